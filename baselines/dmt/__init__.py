@@ -1,0 +1,1 @@
+"""DMT (Arikan et al., TVCG 2014): per-depth-map labeling, runtime triangulation + stitching."""

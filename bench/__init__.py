@@ -1,0 +1,1 @@
+"""Benchmarks: synthetic and real scenes, experiments, the report builder."""

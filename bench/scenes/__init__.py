@@ -1,0 +1,1 @@
+"""Scenes to benchmark on: the synthetic laser-scan generator and real-data loaders."""

@@ -1,0 +1,486 @@
+"""Deterministic synthetic laser-scan scenes: building interiors, a simulated TLS, photographs.
+
+In the spirit of the paper's excavation houses: a grid of rooms joined by doorways, wall niches,
+columns, steps, free-standing objects and thin poles that make silhouettes and occlusions, under
+a roof. Surfaces are textured with public-domain photographs that scikit-image ships offline
+(frescoes on the walls, "marble" on columns) mapped tri-planarly in world coordinates, so the
+colour of any surface point is a pure function of (material, position, normal).
+
+A simulated terrestrial laser scanner (Embree ray casts on an azimuth x elevation grid from
+stations in every room, with Gaussian range noise) makes P_HD: density falls off with distance
+and occlusion shadows are real. Photographs are Embree renders of the same textured mesh, with a
+per-photo exposure and white balance that can be switched off. The output is the scene input
+format every user scene has (``points.ply``, ``sparse/``, ``images/``, ``mesh.ply``) plus
+``synthetic.json`` (the configuration and each photo's exposure) for tests.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from tqdm import tqdm
+
+from dmrt.camera import Camera
+from reference.raycast import MeshRaycaster
+
+
+@dataclass
+class SynthConfig:
+    """One synthetic scene. Lengths in metres, angles in degrees."""
+
+    name: str = "tiny"
+    seed: int = 0
+    rooms: tuple[int, int] = (2, 2)          # grid of rooms (x, y)
+    room_size: tuple[float, float] = (4.0, 6.0)  # random interior width range of each grid row/column
+    wall_height: float = 3.0
+    wall_thickness: float = 0.4
+    ceiling: bool = True                     # a protective roof, as over the excavation houses
+    # Large real-world coordinates (UTM-like) added to everything, so every consumer proves it
+    # keeps a scene origin instead of pushing 10^6 m through float32.
+    offset: tuple[float, float, float] = (512300.0, 5312700.0, 210.0)
+    # Laser scanner
+    points: int = 200_000                    # target |P_HD|; sets the angular step
+    stations_per_room: int = 1
+    scan_elevation: tuple[float, float] = (-70.0, 90.0)  # below -70 deg the tripod hides the floor
+    range_noise: float = 0.002               # 1-sigma range noise, a typical phase-based TLS
+    write_normals: bool = False              # real scans often lack normals: preprocessing estimates them
+    # Photographs
+    photos: int = 12
+    photo_size: tuple[int, int] = (256, 171)  # the paper's 1024x684 aspect
+    fov_x: float = 70.0
+    supersample: int = 2                     # s x s rays per pixel, box-filtered (anti-aliasing)
+    lighting_variation: bool = True          # per-photo exposure and white balance
+    exposure_range: tuple[float, float] = (0.75, 1.25)
+    white_balance_range: tuple[float, float] = (0.92, 1.08)
+    chunk_rays: int = 2_000_000              # rays per Embree batch: bounds memory on big presets
+
+
+PRESETS = {
+    # CI: about 200k points, 12 photos of 256x171, well under a minute on 2 cores.
+    "tiny": SynthConfig(),
+    "small": SynthConfig(name="small", rooms=(3, 2), points=2_000_000, photos=48, photo_size=(512, 342)),
+    # The paper's Scene 2 budget (192 photos of 1024x684) with >= 30M points, streamed to disk.
+    "paper": SynthConfig(name="paper", rooms=(4, 3), stations_per_room=2, points=32_000_000, photos=192,
+                         photo_size=(1024, 684), supersample=1),
+}
+
+LIGHT = np.array([0.35, 0.25, 0.9]) / np.linalg.norm([0.35, 0.25, 0.9])
+
+
+# ----------------------------------------------------------------------------------------------
+# Materials: photographic textures mapped tri-planarly in world coordinates
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class Material:
+    name: str
+    texture: np.ndarray  # (h, w, 3) float32 albedo 0..1
+    tile: float          # metres covered by one repeat of the texture
+
+
+def _rgb(img: np.ndarray, tint=(1.0, 1.0, 1.0)) -> np.ndarray:
+    img = img.astype(np.float32) / 255.0
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    return np.clip(img[..., :3] * np.asarray(tint, np.float32), 0, 1)
+
+
+def make_materials() -> list[Material]:
+    """The material palette (index = material id). Photos from ``skimage.data`` (public domain)."""
+    from skimage import data
+
+    return [
+        Material("floor-gravel", _rgb(data.gravel(), (0.95, 0.85, 0.7)), 1.5),
+        Material("roof-plaster", _rgb(data.grass(), (0.8, 0.8, 0.75)) * 0.5 + 0.4, 2.0),
+        Material("wall-brick", _rgb(data.brick(), (1.0, 0.62, 0.45)), 1.6),
+        Material("fresco-astronaut", _rgb(data.astronaut()), 2.4),
+        Material("fresco-coffee", _rgb(data.coffee()), 2.2),
+        Material("fresco-cat", _rgb(data.chelsea()), 2.0),
+        Material("fresco-rocket", _rgb(data.rocket()), 2.6),
+        Material("marble", _rgb(data.immunohistochemistry()) * 0.6 + 0.35, 0.9),
+        Material("stone-steps", _rgb(data.gravel(), (0.7, 0.7, 0.75)) * 0.8 + 0.15, 1.0),
+        Material("painted-wood", _rgb(data.colorwheel()) * 0.8, 1.2),
+        Material("bronze", _rgb(data.coins(), (0.8, 0.55, 0.3)), 0.6),
+    ]
+
+
+FLOOR, ROOF, BRICK, FRESCOES, MARBLE, STEPS, WOOD, BRONZE = 0, 1, 2, (3, 4, 5, 6), 7, 8, 9, 10
+
+
+def albedo(materials: list[Material], material_ids: np.ndarray, points: np.ndarray,
+           normals: np.ndarray) -> np.ndarray:
+    """Surface colour of each point.
+
+    Parameters
+    ----------
+    material_ids : (n,) int.  points : (n, 3) float64, scene-local metres (offset removed).
+    normals : (n, 3) float32 unit.
+
+    Returns
+    -------
+    (n, 3) float32 albedo 0..1: the material's texture at the point's two world coordinates
+    across the dominant normal axis (tri-planar mapping, nearest texel).
+    """
+    out = np.zeros((len(points), 3), np.float32)
+    axis = np.argmax(np.abs(normals), axis=1)
+    uv_axes = np.array([[1, 2], [0, 2], [0, 1]])[axis]
+    u = np.take_along_axis(points, uv_axes[:, :1], 1)[:, 0]
+    v = np.take_along_axis(points, uv_axes[:, 1:], 1)[:, 0]
+    for m in np.unique(material_ids):
+        sel = material_ids == m
+        mat = materials[int(m)]
+        h, w = mat.texture.shape[:2]
+        scale = max(h, w) / mat.tile  # texels per metre
+        col = np.floor(u[sel] * scale).astype(np.int64) % w
+        row = (-np.floor(v[sel] * scale).astype(np.int64) - 1) % h  # image up = world up
+        out[sel] = mat.texture[row, col]
+    return out
+
+
+def shade(normals: np.ndarray) -> np.ndarray:
+    """(n,) float32 view-independent light (ambient + one distant light), so photos agree."""
+    return (0.6 + 0.4 * np.clip(normals @ LIGHT, 0, None)).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------------------------
+# Geometry: rooms, walls with doorways and niches, furniture
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class Geometry:
+    """The scene's triangle mesh in scene-local metres, with a material per face."""
+
+    vertices: np.ndarray      # (v, 3) float64
+    faces: np.ndarray         # (f, 3) int64
+    face_material: np.ndarray  # (f,) int32
+    rooms: list = field(default_factory=list)  # [(xmin, xmax, ymin, ymax)] room interiors
+
+
+def _box(lo, hi) -> trimesh.Trimesh:
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    return trimesh.creation.box(extents=hi - lo, transform=trimesh.transformations.translation_matrix((lo + hi) / 2))
+
+
+def _wall(plan_lo, plan_hi, along: int, height: float, openings, interior_sign: int):
+    """Boxes of a straight wall with openings.
+
+    ``plan_lo``/``plan_hi``: (x, y) corners of the wall's footprint; ``along``: 0 if it runs along
+    x; ``openings``: [(a, b, z0, z1, depth)] spans along the wall, ``depth`` = full thickness for a
+    doorway, less for a niche recessed from the side ``interior_sign`` (+1: the high side).
+    """
+    lo, hi = np.array([*plan_lo, 0.0]), np.array([*plan_hi, height])
+    across = 1 - along
+    boxes, pos = [], lo[along]
+    for a, b, z0, z1, depth in sorted(openings):
+        if a > pos:
+            boxes.append((np.r_[lo[:2], 0], hi.copy()))
+            boxes[-1][0][along], boxes[-1][1][along] = pos, a
+        for zlo, zhi in ((0.0, z0), (z1, height)):
+            if zhi > zlo:
+                b_lo, b_hi = lo.copy(), hi.copy()
+                b_lo[along], b_hi[along], b_lo[2], b_hi[2] = a, b, zlo, zhi
+                boxes.append((b_lo, b_hi))
+        thickness = hi[across] - lo[across]
+        if depth < thickness:  # a niche: the wall's back stays
+            b_lo, b_hi = lo.copy(), hi.copy()
+            b_lo[along], b_hi[along], b_lo[2], b_hi[2] = a, b, z0, z1
+            if interior_sign > 0:
+                b_hi[across] = hi[across] - depth
+            else:
+                b_lo[across] = lo[across] + depth
+            boxes.append((b_lo, b_hi))
+        pos = b
+    if pos < hi[along]:
+        b_lo = lo.copy()
+        b_lo[along] = pos
+        boxes.append((b_lo, hi.copy()))
+    return [_box(a, b) for a, b in boxes]
+
+
+def build_geometry(config: SynthConfig) -> Geometry:
+    """The scene mesh, deterministic in ``config.seed``."""
+    rng = np.random.default_rng(config.seed)
+    T, H = config.wall_thickness, config.wall_height
+    nx, ny = config.rooms
+    # Wall centre lines; rooms of random size between them.
+    X = np.concatenate([[0.0], np.cumsum(rng.uniform(*config.room_size, nx) + T)])
+    Y = np.concatenate([[0.0], np.cumsum(rng.uniform(*config.room_size, ny) + T)])
+    parts: list[tuple[trimesh.Trimesh, int]] = []
+    ext_lo, ext_hi = (X[0] - T / 2, Y[0] - T / 2), (X[-1] + T / 2, Y[-1] + T / 2)
+    parts.append((_box((*ext_lo, -0.3), (*ext_hi, 0.0)), FLOOR))
+    if config.ceiling:
+        parts.append((_box((*ext_lo, H), (*ext_hi, H + 0.3)), ROOF))
+    room_material = {(i, j): int(rng.choice(FRESCOES + (BRICK,))) for i in range(nx) for j in range(ny)}
+
+    def openings(lo_c, hi_c, exterior):
+        """A doorway through interior walls, a niche (maybe) in exterior ones."""
+        length = hi_c - lo_c
+        if not exterior:
+            w = rng.uniform(0.9, 1.3)
+            a = rng.uniform(lo_c + 0.4, hi_c - 0.4 - w)
+            return [(a, a + w, 0.0, rng.uniform(2.0, 2.4), T)]
+        if rng.random() < 0.75 and length > 2.0:
+            w = rng.uniform(0.6, 1.2)
+            a = rng.uniform(lo_c + 0.4, hi_c - 0.4 - w)
+            z0 = rng.uniform(0.5, 1.0)
+            return [(a, a + w, z0, z0 + rng.uniform(0.8, 1.4), 0.6 * T)]
+        return []
+
+    # Walls along x (at each Y) run the full length; walls along y fit between them.
+    for j, y in enumerate(Y):
+        exterior = j in (0, ny)
+        for i in range(nx):
+            lo_c, hi_c = X[i] - (T / 2 if i == 0 else -T / 2), X[i + 1] + (T / 2 if i == nx - 1 else -T / 2)
+            mat = room_material[(i, min(j, ny - 1))]
+            for box in _wall((lo_c, y - T / 2), (hi_c, y + T / 2), 0, H,
+                             openings(X[i] + T / 2, X[i + 1] - T / 2, exterior), 1 if j == 0 else -1):
+                parts.append((box, mat))
+            # fill the corner pieces between consecutive segments
+            if i < nx - 1:
+                parts.append((_box((X[i + 1] - T / 2, y - T / 2, 0), (X[i + 1] + T / 2, y + T / 2, H)), mat))
+    for i, x in enumerate(X):
+        exterior = i in (0, nx)
+        for j in range(ny):
+            mat = room_material[(min(i, nx - 1), j)]
+            for box in _wall((x - T / 2, Y[j] + T / 2), (x + T / 2, Y[j + 1] - T / 2), 1, H,
+                             openings(Y[j] + T / 2, Y[j + 1] - T / 2, exterior), 1 if i == 0 else -1):
+                parts.append((box, mat))
+
+    rooms = []
+    for i in range(nx):
+        for j in range(ny):
+            x0, x1, y0, y1 = X[i] + T / 2, X[i + 1] - T / 2, Y[j] + T / 2, Y[j + 1] - T / 2
+            rooms.append((x0, x1, y0, y1))
+            parts.extend(_furnish(rng, (x0, x1, y0, y1), H))
+    meshes = [m for m, _ in parts]
+    mesh = trimesh.util.concatenate(meshes)
+    face_material = np.concatenate([np.full(len(m.faces), k, np.int32) for m, k in parts])
+    return Geometry(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), face_material, rooms)
+
+
+def _furnish(rng, room, H):
+    """Columns, steps, an altar, a statue, a thin pole: silhouettes and occluders for one room."""
+    x0, x1, y0, y1 = room
+    taken: list[tuple[float, float, float]] = []
+
+    def spot(radius, margin=0.3):
+        for _ in range(100):
+            p = (rng.uniform(x0 + margin + radius, x1 - margin - radius), rng.uniform(y0 + margin + radius, y1 - margin - radius))
+            if all(np.hypot(p[0] - q[0], p[1] - q[1]) > radius + r + 0.5 for *q, r in taken):
+                taken.append((*p, radius))
+                return p
+        return None
+
+    parts = []
+    # Steps against a wall: three stacked slabs (a podium).
+    w = rng.uniform(1.2, 1.8)
+    sx = rng.uniform(x0 + 0.2, x1 - 0.2 - w)
+    taken.append((sx + w / 2, y1 - 0.7, w / 2 + 0.2))
+    for k in range(3):
+        depth = 1.2 - 0.35 * k
+        parts.append((_box((sx + 0.1 * k, y1 - depth, 0.0), (sx + w - 0.1 * k, y1, 0.15 * (k + 1))), STEPS))
+    # A column from floor to roof.
+    if (p := spot(0.25, margin=0.8)) is not None:
+        col = trimesh.creation.cylinder(radius=rng.uniform(0.15, 0.25), height=H, sections=24)
+        col.apply_translation((p[0], p[1], H / 2))
+        parts.append((col, MARBLE))
+    # An altar: a rotated box.
+    if (p := spot(0.7)) is not None:
+        altar = trimesh.creation.box(extents=(rng.uniform(0.8, 1.3), rng.uniform(0.5, 0.8), rng.uniform(0.7, 1.0)))
+        altar.apply_transform(trimesh.transformations.rotation_matrix(rng.uniform(0, np.pi), (0, 0, 1)))
+        altar.apply_translation((p[0], p[1], altar.extents[2] / 2))
+        parts.append((altar, WOOD))
+    # A statue: a sphere on a pedestal.
+    if (p := spot(0.35)) is not None:
+        ped_h = rng.uniform(0.8, 1.2)
+        parts.append((_box((p[0] - 0.25, p[1] - 0.25, 0), (p[0] + 0.25, p[1] + 0.25, ped_h)), MARBLE))
+        ball = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+        ball.apply_translation((p[0], p[1], ped_h + 0.3))
+        parts.append((ball, BRONZE))
+    # A thin pole (a railing post): the thin features that shine through in DMT (Fig. 11).
+    if (p := spot(0.05)) is not None:
+        pole = trimesh.creation.cylinder(radius=0.03, height=1.1, sections=12)
+        pole.apply_translation((p[0], p[1], 0.55))
+        parts.append((pole, BRONZE))
+    return parts
+
+
+# ----------------------------------------------------------------------------------------------
+# Sensors
+# ----------------------------------------------------------------------------------------------
+def _free(raycaster: MeshRaycaster, p: np.ndarray, clearance: float) -> bool:
+    """Whether ``p`` is inside the building and at least ``clearance`` from every surface."""
+    dirs = np.concatenate([np.eye(3), -np.eye(3), np.array([[1, 1, 0], [1, -1, 0], [-1, 1, 0], [-1, -1, 0]]) / np.sqrt(2)])
+    t, face = raycaster.intersect(p, dirs)
+    if (face < 0).any() or (t < clearance).any():
+        return False
+    # Inside a solid the first hit is a back face (normal pointing along the ray).
+    return bool((np.einsum("ij,ij->i", raycaster.face_normals[face], dirs) < 0).all())
+
+
+def place_stations(config: SynthConfig, geom: Geometry, raycaster, rng) -> np.ndarray:
+    """(s, 3) scanner positions, scene-local metres: on tripods (1.6 m) in every room."""
+    out = []
+    for (x0, x1, y0, y1) in geom.rooms:
+        for _ in range(config.stations_per_room):
+            for _ in range(200):
+                p = np.array([rng.uniform(x0 + 0.8, x1 - 0.8), rng.uniform(y0 + 0.8, y1 - 0.8), 1.6])
+                if _free(raycaster, p, 0.5):
+                    out.append(p)
+                    break
+    return np.array(out)
+
+
+def place_cameras(config: SynthConfig, geom: Geometry, raycaster, rng) -> list[Camera]:
+    """Photo cameras, scene-local: each looks at a wall of a room from 1.5-4 m, a little off-axis."""
+    cams = []
+    w, h = config.photo_size
+    n_rooms = len(geom.rooms)
+    for k in range(config.photos):
+        x0, x1, y0, y1 = geom.rooms[k % n_rooms]
+        for _ in range(500):
+            side = rng.integers(4)
+            if side < 2:  # wall at x0 or x1
+                target = np.array([x0 if side == 0 else x1, rng.uniform(y0 + 0.3, y1 - 0.3), rng.uniform(0.4, 2.4)])
+                normal = np.array([1.0 if side == 0 else -1.0, 0, 0])
+            else:
+                target = np.array([rng.uniform(x0 + 0.3, x1 - 0.3), y0 if side == 2 else y1, rng.uniform(0.4, 2.4)])
+                normal = np.array([0, 1.0 if side == 2 else -1.0, 0])
+            lateral = np.cross(normal, (0, 0, 1))
+            eye = target + normal * rng.uniform(1.5, 4.0) + lateral * rng.uniform(-1.2, 1.2)
+            eye[2] = rng.uniform(1.2, 1.9)
+            if not (x0 + 0.3 < eye[0] < x1 - 0.3 and y0 + 0.3 < eye[1] < y1 - 0.3) or not _free(raycaster, eye, 0.3):
+                continue
+            cam = Camera.look_at(f"photo_{k:04d}.png", eye, target + rng.normal(0, 0.2, 3), w, h, config.fov_x)
+            # The photo must show mostly surface within reach (not a pole 10 cm in front).
+            t, face = raycaster.intersect(eye, cam.R[2][None])
+            if face[0] >= 0 and t[0] > 0.8:
+                cams.append(cam)
+                break
+        else:
+            raise RuntimeError(f"could not place photo {k} in room {k % n_rooms}")
+    return cams
+
+
+def scan(config: SynthConfig, geom: Geometry, raycaster, materials, stations, rng):
+    """Simulated TLS: yields (positions (n,3) float64 local, normals (n,3) float32, colors (n,3) uint8).
+
+    Each station sweeps an azimuth x elevation grid at one angular step, chosen so the scene gets
+    about ``config.points`` returns; range noise is Gaussian along the beam.
+    """
+    el0, el1 = np.radians(config.scan_elevation)
+    # grid rays per station = (2 pi / step) * ((el1 - el0) / step)
+    step = np.sqrt(2 * np.pi * (el1 - el0) * len(stations) / config.points)
+    az = np.arange(0, 2 * np.pi, step)
+    el = np.arange(el0 + step / 2, el1, step)
+    A, E = np.meshgrid(az, el)
+    dirs_all = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
+    for s in stations:
+        for c in range(0, len(dirs_all), config.chunk_rays):
+            d = dirs_all[c:c + config.chunk_rays]
+            t, face = raycaster.intersect(s, d)
+            hit = face >= 0
+            d, t, face = d[hit], t[hit], face[hit]
+            t_noisy = t + rng.normal(0, config.range_noise, len(t))
+            pos = s + d * t_noisy[:, None]
+            n = raycaster.face_normals[face]
+            n[np.einsum("ij,ij->i", n, d) > 0] *= -1  # the side the scanner saw
+            true_pos = s + d * t[:, None]
+            rgb = albedo(materials, geom.face_material[face], true_pos, n) * shade(n)[:, None]
+            yield pos, n, np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)
+
+
+def photograph(camera: Camera, geom: Geometry, raycaster, materials, supersample: int,
+               gain: np.ndarray) -> np.ndarray:
+    """(h, w, 3) uint8 Embree render of the textured mesh; ``gain`` (3,) = exposure x white balance."""
+    s = supersample
+    big = camera.scaled(camera.width * s, camera.height * s)
+    dirs, center = big.pixel_rays()
+    t, face = raycaster.intersect(center, dirs)
+    rgb = np.zeros((len(t), 3), np.float32)
+    hit = face >= 0
+    n = raycaster.face_normals[face[hit]]
+    n[np.einsum("ij,ij->i", n, dirs[hit]) > 0] *= -1
+    p = center + dirs[hit] * t[hit, None]
+    rgb[hit] = albedo(materials, geom.face_material[face[hit]], p, n) * shade(n)[:, None]
+    img = rgb.reshape(camera.height, s, camera.width, s, 3).mean(axis=(1, 3)) * gain
+    return np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
+
+
+# ----------------------------------------------------------------------------------------------
+# The scene on disk
+# ----------------------------------------------------------------------------------------------
+def write_mesh_ply(path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Binary PLY with *double* vertices: trimesh's exporter writes float32, which rounds
+    UTM-sized coordinates to half a metre."""
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertices)}\n"
+              "property double x\nproperty double y\nproperty double z\n"
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    rec = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", 3)])
+    rec["n"], rec["v"] = 3, faces
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(np.asarray(vertices, "<f8").tobytes())
+        f.write(rec.tobytes())
+
+
+def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool = True) -> Path:
+    """Write a synthetic scene in the scene input format to ``out``; returns the path.
+
+    The scene is assembled in ``<out>.partial`` and renamed when complete, so an interrupted run
+    never leaves a scene that looks whole. An existing ``out`` is replaced only with ``force``.
+    """
+    from PIL import Image
+
+    from dmrt.colmap import write_model
+    from dmrt.pointcloud import PointCloud, PointWriter
+
+    out = Path(out)
+    if out.exists() and not force:
+        raise FileExistsError(f"{out}: already exists (use --force to replace it)")
+    tmp = out.with_name(out.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "images").mkdir(parents=True)
+    rng = np.random.default_rng(config.seed + 1)
+    offset = np.asarray(config.offset, np.float64)
+    try:
+        geom = build_geometry(config)
+        materials = make_materials()
+        raycaster = MeshRaycaster(geom.vertices, geom.faces, origin=np.zeros(3))
+        write_mesh_ply(tmp / "mesh.ply", geom.vertices + offset, geom.faces)
+
+        stations = place_stations(config, geom, raycaster, rng)
+        bar = tqdm(total=config.points, desc="scanning", unit="pt", unit_scale=True, disable=not progress)
+        with PointWriter(tmp / "points.ply", normals=config.write_normals, colors=True) as writer:
+            for pos, n, rgb in scan(config, geom, raycaster, materials, stations, rng):
+                writer.write(PointCloud(pos + offset, n if config.write_normals else None, rgb))
+                bar.update(len(pos))
+        bar.close()
+
+        cameras = place_cameras(config, geom, raycaster, rng)
+        gains = []
+        for cam in tqdm(cameras, desc="photographing", unit="photo", disable=not progress):
+            g = (rng.uniform(*config.exposure_range) * rng.uniform(*config.white_balance_range, 3)
+                 if config.lighting_variation else np.ones(3))
+            gains.append(g)
+            Image.fromarray(photograph(cam, geom, raycaster, materials, config.supersample, g)).save(
+                tmp / "images" / cam.name)
+        # Cameras go to disk in world coordinates: t_world = t_local - R @ offset.
+        world = [replace(c, t=c.t - c.R @ offset) for c in cameras]
+        write_model(tmp / "sparse", world, binary=False)
+        meta = {"generator": "bench.scenes.synthetic", "config": asdict(config),
+                "stations": (stations + offset).tolist(),
+                "photo_gains": [g.tolist() for g in gains],
+                "materials": [m.name for m in materials]}
+        (tmp / "synthetic.json").write_text(json.dumps(meta, indent=1))
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out

@@ -1,0 +1,107 @@
+"""The ``dmrt`` command line. Options come from the configuration dataclasses, so the CLI and the
+Python API never drift apart: each dataclass field becomes ``--field-name``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import typing
+from pathlib import Path
+
+from dmrt.errors import InputError
+
+
+# ----------------------------------------------------------------------------------------------
+# Dataclass <-> argparse
+# ----------------------------------------------------------------------------------------------
+def add_config_args(parser: argparse.ArgumentParser, cls, skip=()) -> None:
+    """Add one ``--option`` per field of dataclass ``cls`` (defaults left to the dataclass)."""
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        if f.name in skip:
+            continue
+        opt = "--" + f.name.replace("_", "-")
+        tp = hints[f.name]
+        origin = typing.get_origin(tp)
+        if tp is bool:
+            parser.add_argument(opt, dest=f.name, default=None, action=argparse.BooleanOptionalAction)
+        elif origin is tuple:
+            args = typing.get_args(tp)
+            parser.add_argument(opt, dest=f.name, default=None, nargs=len(args), type=args[0], metavar=f.name.upper())
+        else:
+            base = next((a for a in typing.get_args(tp) if a is not type(None)), tp) if origin else tp
+            parser.add_argument(opt, dest=f.name, default=None, type=base)
+
+
+def config_from_args(cls, args: argparse.Namespace, base=None):
+    """An instance of ``cls`` from ``base`` (or the defaults) with the options the user gave."""
+    base = base if base is not None else cls()
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls)
+             if getattr(args, f.name, None) is not None}
+    given = {k: tuple(v) if isinstance(v, list) else v for k, v in given.items()}
+    return dataclasses.replace(base, **given)
+
+
+# ----------------------------------------------------------------------------------------------
+# Commands
+# ----------------------------------------------------------------------------------------------
+def cmd_scene_synth(args) -> None:
+    from bench.scenes.synthetic import PRESETS, SynthConfig, generate_scene
+
+    config = config_from_args(SynthConfig, args, PRESETS[args.preset])
+    out = generate_scene(config, args.out, force=args.force, progress=not args.quiet)
+    print(f"wrote {out}")
+
+
+def cmd_reference(args) -> None:
+    from dmrt.frames import write_frame
+    from dmrt.scene import load_scene
+    from reference.render import EmbreeReference
+
+    scene = load_scene(args.scene)
+    camera = scene.cameras[scene.camera_index(args.camera)]
+    frame = EmbreeReference.from_scene(scene).render(camera, args.width, args.height)
+    write_frame(args.out, frame)
+    print(f"wrote {args.out} ({frame['depth'].shape[1]}x{frame['depth'].shape[0]}, "
+          f"{(frame['depth'] > 0).mean():.1%} surface)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from bench.scenes.synthetic import PRESETS, SynthConfig
+
+    p = argparse.ArgumentParser(prog="dmrt", description="Multi-Depth-Map Raytracing suite")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    scene = sub.add_parser("scene", help="scene tools").add_subparsers(dest="scene_command", required=True)
+    synth = scene.add_parser("synth", help="generate a synthetic laser-scan scene")
+    synth.add_argument("--preset", choices=sorted(PRESETS), default="tiny")
+    synth.add_argument("--out", type=Path, required=True, help="scene directory to write")
+    synth.add_argument("--force", action="store_true", help="replace an existing scene")
+    synth.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_config_args(synth, SynthConfig, skip=("name",))
+    synth.set_defaults(func=cmd_scene_synth)
+
+    ref = sub.add_parser("reference", help="Embree ground-truth frame of a scene's mesh.ply")
+    ref.add_argument("scene", type=Path)
+    ref.add_argument("--camera", required=True, help="image name of the photo whose camera to use")
+    ref.add_argument("--width", type=int, help="frame width (default: the photo's)")
+    ref.add_argument("--height", type=int, help="frame height (default: keeps the photo's aspect)")
+    ref.add_argument("--out", type=Path, required=True, help="frame file, .exr (all channels) or .png")
+    ref.set_defaults(func=cmd_reference)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        args.func(args)
+    except (InputError, FileExistsError) as exc:
+        print(f"dmrt: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

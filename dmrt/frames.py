@@ -1,0 +1,106 @@
+"""Frame outputs: the dict of arrays every renderer and the reference produce, and its files.
+
+A frame is a ``dict`` with
+
+- ``depth``  : (h, w) float32, camera-space z in metres, 0 = background;
+- ``label``  : (h, w) int32, image index, -1 = none;
+- ``color``  : (h, w, 3) uint8 RGB;
+- ``normal`` : (h, w, 3) float32 unit world-space normal, 0 = background;
+
+plus optional renderer statistics (e.g. ``iterations`` (h, w) int32, ``layer_used`` (h, w) int32)
+and ``timings`` (dict stage -> GPU ms). As OpenEXR it has float32 channels ``Z``, ``label``,
+``R``, ``G``, ``B`` (display-referred 0..1) and ``N.X``, ``N.Y``, ``N.Z``; as PNG, the colour.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from dmrt.errors import InputError
+
+FRAME_KEYS = ("depth", "label", "color", "normal")
+
+
+def empty_frame(height: int, width: int) -> dict:
+    """A frame of background everywhere."""
+    return {
+        "depth": np.zeros((height, width), np.float32),
+        "label": np.full((height, width), -1, np.int32),
+        "color": np.zeros((height, width, 3), np.uint8),
+        "normal": np.zeros((height, width, 3), np.float32),
+    }
+
+
+def _atomic_target(path: Path):
+    """A temporary file beside ``path`` (same suffix, so writers pick the format from it)."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    return Path(tmp)
+
+
+def write_frame(path, frame: dict) -> None:
+    """Write ``frame`` as ``.exr`` (all channels) or ``.png`` (colour only), atomically."""
+    import OpenEXR
+    from PIL import Image
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _atomic_target(path)
+    try:
+        if path.suffix.lower() == ".exr":
+            rgb = frame["color"].astype(np.float32) / 255.0
+            n = frame["normal"].astype(np.float32)
+            channels = {
+                "Z": frame["depth"].astype(np.float32),
+                "label": frame["label"].astype(np.float32),
+                "R": np.ascontiguousarray(rgb[..., 0]), "G": np.ascontiguousarray(rgb[..., 1]),
+                "B": np.ascontiguousarray(rgb[..., 2]),
+                "N.X": np.ascontiguousarray(n[..., 0]), "N.Y": np.ascontiguousarray(n[..., 1]),
+                "N.Z": np.ascontiguousarray(n[..., 2]),
+            }
+            header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+            OpenEXR.File(header, channels).write(str(tmp))
+        elif path.suffix.lower() == ".png":
+            Image.fromarray(frame["color"]).save(tmp)
+        else:
+            raise ValueError(f"{path}: frame files are .exr or .png")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def read_frame(path) -> dict:
+    """Read a frame written by :func:`write_frame` (``.exr``: every channel; ``.png``: colour)."""
+    import OpenEXR
+    from PIL import Image
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "frame file not found")
+    if path.suffix.lower() == ".png":
+        return {"color": np.asarray(Image.open(path).convert("RGB"))}
+    try:
+        channels = {k: v.pixels for k, v in OpenEXR.File(str(path)).channels().items()}
+    except Exception as exc:
+        raise InputError(path, f"not a readable OpenEXR file ({exc})") from exc
+    # OpenEXR groups R, G, B (and N.X, N.Y, N.Z) into one multi-channel entry when it reads.
+    if "RGB" in channels:
+        rgb = channels.pop("RGB")
+        channels.update(R=rgb[..., 0], G=rgb[..., 1], B=rgb[..., 2])
+    if "N" in channels:
+        n = channels.pop("N")
+        channels.update({"N.X": n[..., 0], "N.Y": n[..., 1], "N.Z": n[..., 2]})
+    missing = [c for c in ("Z", "label", "R", "G", "B", "N.X", "N.Y", "N.Z") if c not in channels]
+    if missing:
+        raise InputError(path, f"frame lacks channel(s) {', '.join(missing)}")
+    rgb = np.stack([channels[c] for c in "RGB"], axis=-1)
+    return {
+        "depth": channels["Z"].astype(np.float32),
+        "label": np.rint(channels["label"]).astype(np.int32),
+        "color": np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8),
+        "normal": np.stack([channels[c] for c in ("N.X", "N.Y", "N.Z")], axis=-1).astype(np.float32),
+    }
