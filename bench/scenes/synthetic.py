@@ -60,6 +60,15 @@ class SynthConfig:
     white_balance_range: tuple[float, float] = (0.92, 1.08)
     chunk_rays: int = 2_000_000              # rays per Embree batch: bounds memory on big presets
 
+    def __post_init__(self):
+        # Rooms must hold a doorway (<= 1.3 m plus 0.4 m jambs) and cameras 1.5 m from a wall.
+        if min(self.room_size) < 2.5 or self.room_size[0] > self.room_size[1]:
+            raise ValueError(f"room_size {self.room_size}: need 2.5 m <= min <= max")
+        if min(self.rooms) < 1 or self.points < 1 or self.photos < 1 or self.supersample < 1:
+            raise ValueError("rooms, points, photos and supersample must be at least 1")
+        if min(self.photo_size) < 8:
+            raise ValueError(f"photo_size {self.photo_size}: at least 8x8 pixels")
+
 
 PRESETS = {
     # CI: about 200k points, 12 photos of 256x171, well under a minute on 2 cores.

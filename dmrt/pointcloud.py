@@ -1,0 +1,381 @@
+"""Point clouds on disk: PLY (ascii / binary, either byte order) and LAS/LAZ, read whole or streamed.
+
+Positions stay float64 from disk to caller: real scans carry UTM-sized coordinates (~5e6 m) where
+float32 keeps only half a metre. Every read path validates as it goes and raises ``InputError``
+naming the file, so a bad cloud fails in the loader rather than as NaNs on the GPU.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import dataclass
+from itertools import islice
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from dmrt.errors import InputError
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+_PLY_FORMATS = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": None}
+_MAX_HEADER = 1 << 20  # a real header is a few hundred bytes; stop before slurping a huge body
+_COLOR_NAMES = (("red", "green", "blue"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
+
+
+@dataclass
+class PointCloud:
+    """A set of points.
+
+    Attributes
+    ----------
+    positions : (n, 3) float64
+        World coordinates, metres.
+    normals : (n, 3) float32 or None
+        Unit normals as stored in the file.
+    colors : (n, 3) uint8 or None
+        RGB colours.
+    """
+
+    positions: np.ndarray
+    normals: np.ndarray | None = None
+    colors: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+
+@dataclass
+class _PlyHeader:
+    fmt: str                  # key of _PLY_FORMATS
+    n: int                    # vertex count
+    dtype: np.dtype           # one vertex record (byte order applied; ascii: native)
+    body_offset: int          # bytes from file start to the first body byte
+    skip: int                 # binary: bytes of elements before vertex; ascii: lines before vertex
+
+
+def _kind(path: Path) -> str:
+    ext = path.suffix.lower()
+    if ext not in (".ply", ".las", ".laz"):
+        raise InputError(path, f"unsupported point cloud extension {ext!r} (use .ply, .las or .laz)")
+    if not path.is_file():
+        raise InputError(path, "point cloud file does not exist")
+    return ext[1:]
+
+
+def _read_ply_header(path: Path) -> _PlyHeader:
+    with open(path, "rb") as f:
+        if f.read(4).rstrip(b"\r\n ") != b"ply":
+            raise InputError(path, "not a PLY file (magic 'ply' missing on the first line)")
+        f.seek(0)
+        raw = f.read(_MAX_HEADER)
+    end = raw.find(b"\nend_header") + 1  # at a line start, so a comment cannot fake it
+    if end == 0:
+        raise InputError(path, "PLY header truncated: no 'end_header' line")
+    nl = raw.find(b"\n", end)
+    if nl < 0:
+        raise InputError(path, "PLY header truncated: no newline after 'end_header'")
+    lines = raw[:end].decode("ascii", errors="replace").splitlines()[1:]
+
+    fmt, elements = None, []  # elements: [name, count, [(prop name, type or 'list')]]
+    for no, line in enumerate(lines, start=2):
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        try:
+            if words[0] == "format":
+                fmt = words[1]
+                if fmt not in _PLY_FORMATS:
+                    raise InputError(path, f"unsupported PLY format {fmt!r} (header line {no})")
+            elif words[0] == "element":
+                elements.append([words[1], int(words[2]), []])
+            elif words[0] == "property":
+                if not elements:
+                    raise InputError(path, f"header line {no}: property before any element")
+                if words[1] == "list":
+                    elements[-1][2].append((words[4], "list"))
+                elif words[1] in _PLY_TYPES:
+                    elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+                else:
+                    raise InputError(path, f"header line {no}: unknown property type {words[1]!r}")
+        except (IndexError, ValueError) as e:
+            if isinstance(e, InputError):
+                raise
+            raise InputError(path, f"malformed PLY header line {no}: {line.strip()!r}") from None
+    if fmt is None:
+        raise InputError(path, "PLY header has no 'format' line")
+
+    skip = 0
+    for name, count, props in elements:
+        if name == "vertex":
+            break
+        if fmt == "ascii":
+            skip += count
+        elif any(t == "list" for _, t in props):
+            # Variable-size records: the vertex offset is unknown without parsing them all.
+            raise InputError(path, f"unsupported: element {name!r} with list properties before 'vertex'")
+        else:
+            skip += count * sum(np.dtype(t).itemsize for _, t in props)
+    else:
+        raise InputError(path, "PLY header has no 'vertex' element")
+    if count < 0:
+        raise InputError(path, f"negative vertex count {count}")
+    if any(t == "list" for _, t in props):
+        raise InputError(path, "unsupported: list property inside the 'vertex' element")
+    names = [p for p, _ in props]
+    for axis in "xyz":
+        if axis not in names:
+            raise InputError(path, f"vertex element has no '{axis}' property")
+    if len(set(names)) != len(names):
+        raise InputError(path, f"vertex element has duplicate property names: {names}")
+    order = _PLY_FORMATS[fmt] or "="
+    dtype = np.dtype([(p, order + t) for p, t in props])
+    return _PlyHeader(fmt, count, dtype, nl + 1, skip)
+
+
+def _check_body_size(path: Path, h: _PlyHeader) -> None:
+    if h.fmt == "ascii":
+        return  # line counts are checked while reading
+    present = os.path.getsize(path) - h.body_offset - h.skip
+    needed = h.n * h.dtype.itemsize
+    if present < needed:
+        raise InputError(path, f"PLY body truncated: header declares {h.n} vertices "
+                               f"({needed} bytes) but only {max(present, 0)} bytes are present")
+
+
+def _from_record(path: Path, rec: np.ndarray, start: int) -> PointCloud:
+    """Turn a structured vertex array (PLY) into a validated PointCloud; ``start`` = index of rec[0]."""
+    names = rec.dtype.names
+    pos = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)
+    normals = colors = None
+    if all(a in names for a in ("nx", "ny", "nz")):
+        normals = np.stack([rec["nx"], rec["ny"], rec["nz"]], axis=1).astype(np.float32)
+    for cn in _COLOR_NAMES:
+        if all(c in names for c in cn):
+            colors = _to_uint8(np.stack([rec[c] for c in cn], axis=1))
+            break
+    return _validated(path, PointCloud(pos, normals, colors), start)
+
+
+def _to_uint8(c: np.ndarray) -> np.ndarray:
+    if c.dtype == np.uint8:
+        return c.copy()
+    if c.dtype.kind == "f":  # float colours are 0..1 by convention
+        return np.clip(np.rint(c * 255.0), 0, 255).astype(np.uint8)
+    if c.dtype.itemsize >= 2:  # 16-bit colours (LAS, some PLY writers): keep the high byte
+        return (c.astype(np.uint32) >> 8).astype(np.uint8)
+    return np.clip(c, 0, 255).astype(np.uint8)
+
+
+def _validated(path: Path, pc: PointCloud, start: int) -> PointCloud:
+    for what, arr in (("coordinates", pc.positions), ("normals", pc.normals)):
+        if arr is None:
+            continue
+        bad = ~np.isfinite(arr).all(axis=1)
+        if bad.any():
+            first = start + int(np.argmax(bad))
+            kinds = "/".join(k for k, f in (("NaN", np.isnan), ("inf", np.isinf)) if f(arr).any())
+            raise InputError(path, f"{int(bad.sum())} point(s) with non-finite ({kinds}) {what}, "
+                                   f"first at point index {first}")
+    return pc
+
+
+def _ply_chunks(path: Path, chunk_size: int) -> Iterator[PointCloud]:
+    h = _read_ply_header(path)
+    if h.n == 0:
+        raise InputError(path, "empty point cloud (0 vertices)")
+    _check_body_size(path, h)
+    if h.fmt == "ascii":
+        yield from _ascii_chunks(path, h, chunk_size)
+        return
+    with open(path, "rb") as f:
+        f.seek(h.body_offset + h.skip)
+        # Plain reads of whole records bound memory like a memmap would, without keeping a
+        # mapping (and on Windows a file lock) alive after the generator is dropped.
+        for start in range(0, h.n, chunk_size):
+            count = min(chunk_size, h.n - start)
+            buf = f.read(count * h.dtype.itemsize)
+            rec = np.frombuffer(buf, dtype=h.dtype, count=count)
+            yield _from_record(path, rec, start)
+
+
+def _ascii_chunks(path: Path, h: _PlyHeader, chunk_size: int) -> Iterator[PointCloud]:
+    with open(path, "rb") as f:
+        f.seek(h.body_offset)
+        for _ in islice(f, h.skip):
+            pass
+        for start in range(0, h.n, chunk_size):
+            count = min(chunk_size, h.n - start)
+            lines = [ln for ln in islice(f, count)]
+            if len(lines) < count:
+                raise InputError(path, f"PLY body truncated: header declares {h.n} vertices but "
+                                       f"only {start + len(lines)} vertex lines are present")
+            try:
+                flat = np.array(b" ".join(lines).split(), dtype=np.float64)
+                table = flat.reshape(count, len(h.dtype.names))
+            except ValueError:
+                raise InputError(path, f"malformed ascii vertex data between vertex {start} and "
+                                       f"{start + count - 1} (non-numeric or wrong field count)") from None
+            rec = np.empty(count, dtype=h.dtype)
+            for i, name in enumerate(h.dtype.names):
+                rec[name] = table[:, i]
+            yield _from_record(path, rec, start)
+
+
+def _las_chunks(path: Path, chunk_size: int) -> Iterator[PointCloud]:
+    import laspy
+
+    try:
+        reader = laspy.open(path)
+    except Exception as e:  # laspy raises several types for a bad header; all mean the same here
+        raise InputError(path, f"cannot read LAS/LAZ header: {e}") from None
+    with reader:
+        if reader.header.point_count == 0:
+            raise InputError(path, "empty point cloud (0 points)")
+        has_rgb = {"red", "green", "blue"} <= set(reader.header.point_format.dimension_names)
+        shift = None  # decided on the first chunk so that all chunks agree
+        start = 0
+        try:
+            for pts in reader.chunk_iterator(chunk_size):
+                pos = np.stack([np.asarray(pts.x), np.asarray(pts.y), np.asarray(pts.z)],
+                               axis=1).astype(np.float64)
+                colors = None
+                if has_rgb:
+                    rgb = np.stack([np.asarray(pts.red), np.asarray(pts.green),
+                                    np.asarray(pts.blue)], axis=1).astype(np.uint16)
+                    if shift is None:  # LAS says 16-bit colour, yet some writers store 0..255
+                        shift = 8 if rgb.max(initial=0) > 255 else 0
+                    colors = (rgb >> shift).astype(np.uint8)
+                yield _validated(path, PointCloud(pos, None, colors), start)
+                start += len(pos)
+        except InputError:
+            raise
+        except Exception as e:
+            raise InputError(path, f"cannot read LAS/LAZ points after point {start}: {e}") from None
+    if start < reader.header.point_count:
+        raise InputError(path, f"LAS body truncated: header declares {reader.header.point_count} "
+                               f"points but only {start} could be read")
+
+
+def count_points(path) -> int:
+    """Number of points the file's header declares (0 for an empty cloud; no body read)."""
+    path = Path(path)
+    if _kind(path) == "ply":
+        return _read_ply_header(path).n
+    import laspy
+
+    try:
+        with laspy.open(path) as r:
+            return int(r.header.point_count)
+    except Exception as e:
+        raise InputError(path, f"cannot read LAS/LAZ header: {e}") from None
+
+
+def iter_point_chunks(path, chunk_size: int = 1_000_000) -> Iterator[PointCloud]:
+    """Stream a cloud in chunks of at most ``chunk_size`` points, validating each chunk.
+
+    Memory is bounded by one chunk. Raises ``InputError`` (naming ``path``) for a missing, malformed,
+    truncated or empty file, and for non-finite coordinates or normals.
+    """
+    path = Path(path)
+    if chunk_size < 1:
+        raise ValueError("chunk_size must be >= 1")
+    if _kind(path) == "ply":
+        yield from _ply_chunks(path, chunk_size)
+    else:
+        yield from _las_chunks(path, chunk_size)
+
+
+def read_points(path) -> PointCloud:
+    """The whole cloud in memory (see ``iter_point_chunks`` for the checks)."""
+    path = Path(path)
+    n = count_points(path)
+    chunks = list(iter_point_chunks(path, chunk_size=max(n, 1)))
+    if len(chunks) == 1:
+        return chunks[0]
+    cat = lambda xs: None if xs[0] is None else np.concatenate(xs)  # noqa: E731
+    return PointCloud(cat([c.positions for c in chunks]), cat([c.normals for c in chunks]),
+                      cat([c.colors for c in chunks]))
+
+
+def bounds(path, chunk_size: int = 1_000_000) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned bounding box, streamed: ``(lo, hi)``, each (3,) float64 metres."""
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for c in iter_point_chunks(path, chunk_size):
+        lo = np.minimum(lo, c.positions.min(axis=0))
+        hi = np.maximum(hi, c.positions.max(axis=0))
+    return lo, hi
+
+
+class PointWriter:
+    """Streamed binary little-endian PLY writer; the file appears only once complete.
+
+    Positions are written as double (exact float64 round trip), normals as float, colours as uchar.
+    The vertex count is known only at the end, so the body goes to a temporary file first; on a
+    clean exit the header and body are joined into ``<path>.tmp`` and renamed over ``path``. If the
+    ``with`` block raises, the temporaries are removed and ``path`` is left untouched.
+    """
+
+    def __init__(self, path, normals: bool, colors: bool):
+        self.path = Path(path)
+        self.normals, self.colors = bool(normals), bool(colors)
+        fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+        if self.normals:
+            fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+        if self.colors:
+            fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+        self.dtype = np.dtype(fields)
+        self.count = 0
+        self._body_path = self.path.with_name(self.path.name + ".body.tmp")
+        self._tmp_path = self.path.with_name(self.path.name + ".tmp")
+        self._body = None
+
+    def __enter__(self) -> "PointWriter":
+        self._body = open(self._body_path, "wb")
+        return self
+
+    def write(self, chunk: PointCloud) -> None:
+        """Append ``chunk``; its normals/colors must be present iff the writer was made with them."""
+        if self._body is None:
+            raise RuntimeError("PointWriter.write outside its 'with' block")
+        pos = np.asarray(chunk.positions, dtype=np.float64).reshape(-1, 3)
+        if (chunk.normals is not None) != self.normals or (chunk.colors is not None) != self.colors:
+            raise ValueError("chunk normals/colors do not match the PointWriter's layout")
+        rec = np.empty(len(pos), dtype=self.dtype)
+        rec["x"], rec["y"], rec["z"] = pos.T
+        if self.normals:
+            rec["nx"], rec["ny"], rec["nz"] = np.asarray(chunk.normals, np.float32).reshape(-1, 3).T
+        if self.colors:
+            rec["red"], rec["green"], rec["blue"] = np.asarray(chunk.colors, np.uint8).reshape(-1, 3).T
+        self._body.write(rec.tobytes())
+        self.count += len(rec)
+
+    def _header(self) -> bytes:
+        types = {"<f8": "double", "<f4": "float", "|u1": "uchar"}
+        props = "".join(f"property {types[self.dtype[n].str]} {n}\n" for n in self.dtype.names)
+        return (f"ply\nformat binary_little_endian 1.0\ncomment written by dmrt\n"
+                f"element vertex {self.count}\n{props}end_header\n").encode("ascii")
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self._body.close()
+        self._body = None
+        try:
+            if exc_type is None:
+                with open(self._tmp_path, "wb") as out, open(self._body_path, "rb") as body:
+                    out.write(self._header())
+                    shutil.copyfileobj(body, out, 1 << 22)
+                os.replace(self._tmp_path, self.path)
+        finally:
+            for p in (self._body_path, self._tmp_path):
+                p.unlink(missing_ok=True)
+
+
+def write_points(path, cloud: PointCloud) -> None:
+    """Write ``cloud`` as binary little-endian PLY (atomically, via ``PointWriter``)."""
+    with PointWriter(path, cloud.normals is not None, cloud.colors is not None) as w:
+        w.write(cloud)

@@ -1,0 +1,179 @@
+"""A user's scene directory (DESIGN.md, "Scene input"), loaded and validated in one place.
+
+Layout::
+
+    SCENE/points.ply | points.las | points.laz   point cloud (first found, in that order)
+    SCENE/sparse/  (or sparse/0/)                 COLMAP model, PINHOLE / SIMPLE_PINHOLE
+    SCENE/images/<name>                           one photo per registered image
+    SCENE/mesh.ply                                optional reference mesh (Embree ground truth)
+
+``load_scene`` checks everything a later stage would trip over (and streams the cloud once to
+find its bounds), so bad input fails here with an ``InputError`` naming the file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from dmrt import colmap, pointcloud
+from dmrt.camera import Camera
+from dmrt.errors import InputError
+from dmrt.pointcloud import PointCloud
+
+_POINT_FILES = ("points.ply", "points.las", "points.laz")
+_MODEL_FILES = ("cameras.bin", "cameras.txt", "images.bin", "images.txt")
+
+
+@dataclass
+class Scene:
+    """A validated scene.
+
+    Attributes
+    ----------
+    root : Path
+        The scene directory.
+    points_path : Path
+        The point cloud file.
+    cameras : list of Camera
+        One per registered image, in COLMAP image-id order.
+    image_paths : list of Path
+        ``root / "images" / camera.name``, parallel to ``cameras``.
+    mesh_path : Path or None
+        The reference mesh, if the scene has one.
+    origin : (3,) float64
+        Scene origin, metres: the point bounding-box centre rounded to whole metres. GPU code
+        works in ``x - origin`` so float32 keeps millimetres on UTM-sized coordinates; rounding
+        keeps the offset a short, exactly representable number in reports and bundles.
+    n_points : int
+        Number of points in the cloud.
+    """
+
+    root: Path
+    points_path: Path
+    cameras: list[Camera]
+    image_paths: list[Path]
+    mesh_path: Path | None
+    origin: np.ndarray
+    n_points: int
+
+    def iter_points(self, chunk_size: int = 1_000_000) -> Iterator[PointCloud]:
+        """Stream the cloud (world coordinates, float64) in chunks of at most ``chunk_size``."""
+        return pointcloud.iter_point_chunks(self.points_path, chunk_size)
+
+    def read_points(self) -> PointCloud:
+        """The whole cloud in memory (world coordinates, float64)."""
+        return pointcloud.read_points(self.points_path)
+
+    def read_image(self, i: int) -> np.ndarray:
+        """Photo ``i`` as (height, width, 3) uint8 RGB (greyscale and alpha images converted)."""
+        from PIL import Image
+
+        path = self.image_paths[i]
+        try:
+            with Image.open(path) as im:
+                return np.asarray(im.convert("RGB"), dtype=np.uint8)
+        except (OSError, ValueError) as e:
+            raise InputError(path, f"cannot decode image: {e}") from None
+
+    def camera_index(self, name: str) -> int:
+        """Index of the camera whose image is ``name``."""
+        for i, c in enumerate(self.cameras):
+            if c.name == name:
+                return i
+        some = ", ".join(repr(c.name) for c in self.cameras[:5])
+        more = ", ..." if len(self.cameras) > 5 else ""
+        raise InputError(self.root / "sparse", f"no image named {name!r}; valid names: {some}{more}")
+
+
+def _model_dir(root: Path) -> Path:
+    sparse = root / "sparse"
+    if not sparse.is_dir():
+        raise InputError(sparse, "COLMAP model directory 'sparse/' is missing")
+    # COLMAP's mapper writes sparse/0, sparse/1, ...; accept the common single-model layout.
+    if not any((sparse / f).is_file() for f in _MODEL_FILES) and (sparse / "0").is_dir():
+        return sparse / "0"
+    return sparse
+
+
+def _check_image(path: Path, cam: Camera) -> None:
+    from PIL import Image, UnidentifiedImageError
+
+    if not path.is_file():
+        raise InputError(path, f"image file for camera {cam.name!r} is missing")
+    try:
+        with Image.open(path) as im:  # reads the header only
+            size = im.size
+    except (UnidentifiedImageError, OSError, ValueError) as e:
+        raise InputError(path, f"unreadable or corrupt image: {e}") from None
+    if size != (cam.width, cam.height):
+        raise InputError(path, f"image is {size[0]}x{size[1]} pixels but its camera says "
+                               f"{cam.width}x{cam.height}")
+
+
+def _check_mesh(path: Path) -> None:
+    import trimesh
+
+    try:
+        mesh = trimesh.load(path, force="mesh")
+    except Exception as e:  # trimesh raises many types for bad files; all mean "unreadable"
+        raise InputError(path, f"unreadable reference mesh: {e}") from None
+    if len(getattr(mesh, "vertices", ())) == 0 or len(getattr(mesh, "faces", ())) == 0:
+        raise InputError(path, "reference mesh is empty (no triangles)")
+
+
+def load_scene(root, check_images: bool = True) -> Scene:
+    """Load and validate a scene directory.
+
+    Parameters
+    ----------
+    root : path-like
+        The scene directory.
+    check_images : bool
+        Check that every camera's image exists, decodes its header, and matches the camera's size.
+        Off, neither the images nor ``images/`` need exist (geometry-only use).
+
+    Raises
+    ------
+    InputError
+        Naming the offending file: missing directory / point cloud / model / images, malformed or
+        empty or non-finite cloud, bad COLMAP model, missing / corrupt / wrongly sized image,
+        non-finite camera, unreadable or empty mesh.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(root, "scene directory does not exist")
+    points_path = next((root / f for f in _POINT_FILES if (root / f).is_file()), None)
+    if points_path is None:
+        raise InputError(root, f"no point cloud: expected one of {', '.join(_POINT_FILES)}")
+
+    model = _model_dir(root)
+    cameras = colmap.read_model(model)
+    for c in cameras:
+        if not (np.isfinite(c.R).all() and np.isfinite(c.t).all()
+                and np.isfinite([c.fx, c.fy, c.cx, c.cy]).all()):
+            raise InputError(model, f"camera {c.name!r} has non-finite (NaN/inf) pose or intrinsics")
+
+    images_dir = root / "images"
+    image_paths = [images_dir / c.name for c in cameras]
+    if check_images:
+        if not images_dir.is_dir():
+            raise InputError(images_dir, "image directory 'images/' is missing")
+        for p, c in zip(image_paths, cameras):
+            _check_image(p, c)
+
+    mesh_path = root / "mesh.ply"
+    if mesh_path.exists():
+        _check_mesh(mesh_path)
+    else:
+        mesh_path = None
+
+    n_points = pointcloud.count_points(points_path)
+    if n_points == 0:
+        raise InputError(points_path, "empty point cloud (0 points)")
+    lo, hi = pointcloud.bounds(points_path)  # also validates every point (finite, not truncated)
+    origin = np.round((lo + hi) / 2.0)
+    return Scene(root, points_path, cameras, image_paths, mesh_path, origin, n_points)
