@@ -137,3 +137,17 @@ class MeshRaycaster:
         normal[hit] = n
         h, w = camera.height, camera.width
         return depth.reshape(h, w), face.reshape(h, w), normal.reshape(h, w, 3)
+
+
+def write_mesh_ply(path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Binary PLY with *double* vertices: trimesh's exporter writes float32, which rounds
+    UTM-sized coordinates to half a metre."""
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertices)}\n"
+              "property double x\nproperty double y\nproperty double z\n"
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    rec = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", 3)])
+    rec["n"], rec["v"] = 3, faces
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(np.asarray(vertices, "<f8").tobytes())
+        f.write(rec.tobytes())

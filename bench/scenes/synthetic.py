@@ -27,7 +27,7 @@ import trimesh
 from tqdm import tqdm
 
 from dmrt.camera import Camera
-from reference.raycast import MeshRaycaster
+from reference.raycast import MeshRaycaster, write_mesh_ply
 
 
 @dataclass
@@ -423,20 +423,6 @@ def photograph(camera: Camera, geom: Geometry, raycaster, materials, supersample
 # ----------------------------------------------------------------------------------------------
 # The scene on disk
 # ----------------------------------------------------------------------------------------------
-def write_mesh_ply(path, vertices: np.ndarray, faces: np.ndarray) -> None:
-    """Binary PLY with *double* vertices: trimesh's exporter writes float32, which rounds
-    UTM-sized coordinates to half a metre."""
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertices)}\n"
-              "property double x\nproperty double y\nproperty double z\n"
-              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
-    rec = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", 3)])
-    rec["n"], rec["v"] = 3, faces
-    with open(path, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(np.asarray(vertices, "<f8").tobytes())
-        f.write(rec.tobytes())
-
-
 def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool = True) -> Path:
     """Write a synthetic scene in the scene input format to ``out``; returns the path.
 
