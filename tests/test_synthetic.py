@@ -16,11 +16,6 @@ from reference.raycast import MeshRaycaster
 from reference.render import sample_bilinear
 
 
-@pytest.fixture(scope="session")
-def tiny_scene(tmp_path_factory):
-    return generate_scene(PRESETS["tiny"], tmp_path_factory.mktemp("scenes") / "tiny", progress=False)
-
-
 def test_geometry_is_deterministic_in_the_seed():
     a, b = build_geometry(PRESETS["tiny"]), build_geometry(PRESETS["tiny"])
     np.testing.assert_array_equal(a.vertices, b.vertices)

@@ -1,0 +1,75 @@
+"""Headless OpenGL 4.3+ contexts over EGL (Mesa llvmpipe in CI, the NVIDIA driver on the GPU machines).
+
+Everything GL in the suite runs in one standalone context per process (:func:`get_context`); moderngl
+objects are tied to the context that made them, so sharing one avoids accidental cross-context use.
+"""
+
+from __future__ import annotations
+
+import moderngl
+
+_INSTALL_HINT = (
+    "a headless OpenGL {major}.{minor} context over EGL is required. On Debian/Ubuntu install the "
+    "system packages 'libegl1 libegl-mesa0 libgl1-mesa-dri' (Mesa llvmpipe, CPU) or an NVIDIA driver "
+    "with its EGL vendor library; if the NVIDIA driver is present but not found, set "
+    "__EGL_VENDOR_LIBRARY_FILENAMES=/usr/share/glvnd/egl_vendor.d/10_nvidia.json "
+    "(or the driver's own copy of that file)."
+)
+
+_SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "lavapipe", "software rasterizer")
+
+_shared: moderngl.Context | None = None
+
+
+def create_context(require: int = 430) -> moderngl.Context:
+    """Create a new standalone (windowless) EGL context.
+
+    Parameters
+    ----------
+    require : int
+        Minimum OpenGL version times 100 (430 = 4.3: compute shaders, SSBOs, image atomics).
+
+    Raises
+    ------
+    RuntimeError
+        When EGL or a GL >= ``require`` driver is missing; the message names the packages to install.
+    """
+    hint = _INSTALL_HINT.format(major=require // 100, minor=require % 100 // 10)
+    try:
+        ctx = moderngl.create_standalone_context(backend="egl", require=require)
+    except Exception as exc:  # glcontext raises plain Exceptions whose text varies by platform
+        raise RuntimeError(f"cannot create an OpenGL context ({exc}): {hint}") from exc
+    if ctx.version_code < require:  # some drivers hand out a lower version than requested
+        version = ctx.info.get("GL_VERSION", "?")
+        ctx.release()
+        raise RuntimeError(f"OpenGL {version} is too old: {hint}")
+    return ctx
+
+
+def get_context(require: int = 430) -> moderngl.Context:
+    """The process-wide shared context, created on first use (see :func:`create_context`)."""
+    global _shared
+    if _shared is None:
+        _shared = create_context(require)
+    elif _shared.version_code < require:
+        raise RuntimeError(f"the shared context is GL {_shared.version_code}, {require} was requested")
+    return _shared
+
+
+def renderer_info(ctx: moderngl.Context) -> dict:
+    """Describe the driver behind ``ctx``.
+
+    Returns
+    -------
+    dict
+        ``vendor``, ``renderer``, ``version`` (the driver's strings) and ``is_software`` (True for
+        Mesa's CPU rasterizers, whose GPU timings are meaningless and which lack int64 atomics).
+    """
+    info = ctx.info
+    renderer = str(info.get("GL_RENDERER", ""))
+    return {
+        "vendor": str(info.get("GL_VENDOR", "")),
+        "renderer": renderer,
+        "version": str(info.get("GL_VERSION", "")),
+        "is_software": any(s in renderer.lower() for s in _SOFTWARE_RENDERERS),
+    }

@@ -1,0 +1,80 @@
+// Oriented circular splats (disc of radius r centred at p with unit normal n) seen by a pinhole
+// camera in COLMAP/OpenCV axes (x right, y down, z forward). Shared by every depth-map program so
+// that the raster and compute paths evaluate the very same per-pixel test. Included; no #version.
+//
+// Pixel (row i, column j) has centre (u, v) = (j + 0.5, i + 0.5); its ray in camera space is
+// d = ((u - cx) / fx, (v - cy) / fy, 1), so a point at parameter s on it has camera depth z = s.
+
+uniform mat3 u_R;      // world -> camera rotation (column-major, as GLSL reads it)
+uniform vec3 u_t;      // world -> camera translation, metres (positions are scene-origin-relative)
+uniform vec4 u_K;      // fx, fy, cx, cy in pixels of the depth map
+uniform ivec2 u_size;  // depth-map width, height in pixels
+
+// Below this |cos| between the disc normal and the pixel ray the ray (almost) lies in the disc's
+// plane: the ray-plane depth dot(n, p) / dot(n, d) is then ill-conditioned (a float32 rounding of n
+// moves it by metres), and the true answer is a whole chord of the disc. Such rays take the depth
+// of the disc's centre instead, where they pass within r of it. 1e-3 = within 0.06 degrees of the
+// plane: the footprint of an exactly edge-on disc is a line one or two pixels wide, so this only
+// decides depth on that line and never inflates a disc into a screen-aligned one.
+#ifndef GRAZING_COS
+#define GRAZING_COS 1e-3
+#endif
+
+struct Splat {
+    vec3 pc;  // centre, camera space, metres
+    vec3 nc;  // unit normal, camera space (either side: discs are two-sided)
+    float r;  // radius, metres
+};
+
+Splat splat_to_camera(vec3 p, vec3 n, float r) {
+    Splat s;
+    s.pc = u_R * p + u_t;
+    float len = length(n);
+    // a missing (zero) normal: let the disc face the camera rather than vanish
+    s.nc = len > 0.0 ? (u_R * n) / len : -normalize(s.pc);
+    s.r = r;
+    return s;
+}
+
+// Projected extent along one image axis of the sphere (a, z, r) (a = x or y): exact perspective
+// bounds from the two planes through the camera centre tangent to the sphere. Needs z > r.
+vec2 sphere_bounds(float a, float z, float r, float f, float c) {
+    float den = z * z - r * r;
+    float h = r * sqrt(max(a * a + den, 0.0));
+    return vec2((a * z - h) / den, (a * z + h) / den) * f + c;
+}
+
+// Inclusive pixel box (col0, row0, col1, row1) holding every pixel centre whose ray can meet the
+// disc; empty (col0 > col1) if none. It bounds the disc's bounding sphere, widened by 0.01 px plus
+// 0.1 % of its size, far above the float32 error of the bounds, so that rounding never loses a
+// pixel the per-pixel test would accept (a whole pixel of margin would quadruple the pixels tested
+// for a 1-px disc). A sphere reaching the camera plane (z <= r) has no bounded projection: the box
+// is then the whole depth map.
+ivec4 splat_pixel_box(Splat s) {
+    ivec4 full = ivec4(0, 0, u_size - 1);
+    if (s.pc.z + s.r <= 0.0 || s.r <= 0.0) return ivec4(1, 1, 0, 0);  // behind the camera / no disc
+    if (s.pc.z <= s.r * 1.0001) return full;
+    vec2 bu = sphere_bounds(s.pc.x, s.pc.z, s.r, u_K.x, u_K.z);
+    vec2 bv = sphere_bounds(s.pc.y, s.pc.z, s.r, u_K.y, u_K.w);
+    // clamp in float first: an almost-grazing sphere can project to beyond the int range
+    vec4 lim = vec4(-2.0, -2.0, vec2(u_size) + 2.0);
+    vec2 margin = 0.01 + 1e-3 * vec2(bu.y - bu.x, bv.y - bv.x);
+    vec4 b = vec4(bu.x, bv.x, bu.y, bv.y) + vec4(-margin, margin);
+    b = clamp(b, lim.xyxy, lim.zwzw);
+    ivec4 box = ivec4(ceil(b.xy - 0.5), floor(b.zw - 0.5));
+    return ivec4(max(box.xy, ivec2(0)), min(box.zw, u_size - 1));
+}
+
+// Camera z where the ray of the pixel centred at uv meets the disc; 0.0 if it misses.
+float splat_depth_at(Splat s, vec2 uv) {
+    vec3 d = vec3((uv.x - u_K.z) / u_K.x, (uv.y - u_K.w) / u_K.y, 1.0);
+    float nd = dot(s.nc, d);
+    if (abs(nd) > GRAZING_COS * length(d)) {
+        float z = dot(s.nc, s.pc) / nd;
+        vec3 q = z * d - s.pc;
+        return (z > 0.0 && dot(q, q) <= s.r * s.r) ? z : 0.0;
+    }
+    vec3 dh = normalize(d);
+    vec3 q = dot(s.pc, dh) * dh - s.pc;
+    return (s.pc.z > 0.0 && dot(q, q) <= s.r * s.r) ? s.pc.z : 0.0;
+}

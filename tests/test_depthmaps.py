@@ -1,0 +1,277 @@
+"""Depth maps from oriented circular splats (paper Section 4.1), on a real GL context.
+
+Both GPU paths (compute, raster) are checked against analytic planes and against
+:func:`splat_depth_numpy`, an independent brute-force float64 implementation of the same primitive
+written in world space (every pixel against every disc, no bounding boxes).
+"""
+
+import numpy as np
+import pytest
+
+from dmrt.camera import Camera
+from dmrt.depthmaps import (DepthMapConfig, DepthMapRenderer, depth_map_size, read_depth_exr,
+                            write_depth_exr)
+from dmrt.errors import InputError
+from dmrt.gl import GpuTimer
+
+W, H = 96, 64  # depth-map size used throughout: small enough for llvmpipe and the numpy reference
+GRAZING_COS = 1e-3  # the shaders' GRAZING_COS (shaders/splat_depth_common.glsl)
+
+# (method, renderer tweak): the default paths, plus settings that push most discs through the
+# second programs (workgroup-per-disc compute pass; geometry-shader quads in the raster path)
+VARIANTS = {
+    "compute": ("compute", {}),
+    "compute-large": ("compute", {"max_thread_pixels": 4}),
+    "raster": ("raster", {}),
+    "raster-quads": ("raster", {"max_point_size": 8.0}),
+}
+
+
+def splat_depth_numpy(camera, positions, normals, radii, width, height):
+    """Reference depth map: nearest ray-disc hit per pixel, float64, brute force.
+
+    Parameters
+    ----------
+    camera : Camera
+        Any resolution; scaled to ``width`` x ``height``.
+    positions, normals : (n, 3) float
+        Disc centres (metres) and normals (any length; zero = facing the camera).
+    radii : (n,) float
+        Disc radii, metres.
+
+    Returns
+    -------
+    depth : (height, width) float64
+        Camera z, 0 where no disc is hit.
+    ambiguous : (height, width) bool
+        Pixels whose result float32 rounding may legitimately flip: some disc's rim passes within
+        0.1 % of the pixel centre's ray, or the ray is near the grazing-angle switch.
+    """
+    cam = camera.scaled(width, height)
+    dirs, centre = cam.pixel_rays()  # world directions with camera z = ray parameter
+    dlen = np.linalg.norm(dirs, axis=1, keepdims=True)
+    p = np.asarray(positions, np.float64) - centre
+    n = np.asarray(normals, np.float64)
+    nlen = np.linalg.norm(n, axis=1, keepdims=True)
+    facing = -p / np.linalg.norm(p, axis=1, keepdims=True)
+    n = np.where(nlen > 0, n / np.where(nlen > 0, nlen, 1), facing)
+    r2 = np.asarray(radii, np.float64) ** 2
+    zc = p @ cam.R[2]  # camera z of each centre
+    depth = np.full(len(dirs), np.inf)
+    ambiguous = np.zeros(len(dirs), bool)
+    for b in range(0, len(p), 128):
+        pb, nb, rb, zb = p[b:b + 128], n[b:b + 128], r2[b:b + 128], zc[b:b + 128]
+        nd = dirs @ nb.T  # (pixels, discs)
+        cos = np.abs(nd) / dlen
+        dp = dirs @ pb.T
+        p2 = (pb ** 2).sum(1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (nb * pb).sum(1) / nd
+            q2 = s ** 2 * dlen ** 2 - 2 * s * dp + p2  # |s d - p|^2, squared distance to the centre
+        regular = cos > GRAZING_COS
+        hit = regular & (s > 0) & (q2 <= rb)
+        # grazing rays: the centre's depth where the ray passes within r of the centre
+        line2 = p2 - (dp / dlen) ** 2
+        hit_g = ~regular & (zb > 0) & (line2 <= rb)
+        z = np.where(hit, s, np.where(hit_g, zb, np.inf))
+        depth = np.minimum(depth, z.min(1))
+        rim = regular & (s > 0) & (np.abs(q2 / rb - 1) < 1e-3)
+        rim |= ~regular & (zb > 0) & (np.abs(line2 / rb - 1) < 1e-3)
+        switch = (np.abs(cos / GRAZING_COS - 1) < 0.5) & (line2 <= 1.001 * rb)  # near the grazing rule
+        ambiguous |= (rim | switch).any(1)
+    depth[~np.isfinite(depth)] = 0
+    return depth.reshape(height, width), ambiguous.reshape(height, width)
+
+
+def _render(ctx, variant, camera, chunks, **config):
+    method, tweak = VARIANTS[variant]
+    cfg = DepthMapConfig(width=W, method=method, **config)
+    if "max_thread_pixels" in tweak:
+        cfg.max_thread_pixels = tweak["max_thread_pixels"]
+    renderer = DepthMapRenderer(ctx, cfg)
+    if "max_point_size" in tweak:
+        renderer.max_point_size = tweak["max_point_size"]
+    try:
+        return renderer.render(camera, chunks)
+    finally:
+        renderer.release()
+
+
+def _plane_grid(origin, normal, half, spacing):
+    """Points on a square grid of the plane through ``origin`` with ``normal``; returns p, n, r."""
+    normal = np.asarray(normal, float) / np.linalg.norm(normal)
+    a = np.cross(normal, [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(normal, a)
+    g = np.arange(-half, half + 1e-9, spacing)
+    u, v = (x.ravel() for x in np.meshgrid(g, g))
+    p = np.asarray(origin) + u[:, None] * a + v[:, None] * b
+    n = np.tile(normal, (len(p), 1))
+    # 0.75 spacing > half the cell diagonal (0.707): the discs leave no gaps
+    r = np.full(len(p), 0.75 * spacing)
+    return p.astype(np.float32), n.astype(np.float32), r.astype(np.float32), (a, b)
+
+
+def _analytic_plane_depth(camera, origin, normal, axes, half):
+    """Exact camera z of the plane per pixel, and the pixels well inside the grid."""
+    cam = camera.scaled(W, H)
+    dirs, c = cam.pixel_rays()
+    normal = np.asarray(normal, float) / np.linalg.norm(normal)
+    s = ((np.asarray(origin) - c) @ normal) / (dirs @ normal)
+    hit = c + s[:, None] * dirs - origin
+    inside = (np.abs(hit @ axes[0]) < half - 0.1) & (np.abs(hit @ axes[1]) < half - 0.1) & (s > 0)
+    return s.reshape(H, W), inside.reshape(H, W)
+
+
+PHOTO = dict(width=960, height=640)  # the renderer scales the photo camera to W x H
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("tilt", ["frontal", "tilted"])
+def test_plane_depth_is_exact(ctx, variant, tilt):
+    camera = Camera.look_at("plane", eye=(0.2, -0.1, 0.0), target=(0.0, 0.0, 3.0), **PHOTO)
+    origin = np.array([0.0, 0.0, 3.0])
+    normal = (0.0, 0.0, 1.0) if tilt == "frontal" else (np.sin(0.7), 0.3, np.cos(0.7))
+    p, n, r, axes = _plane_grid(origin, normal, half=2.4, spacing=0.04)
+    truth, inside = _analytic_plane_depth(camera, origin, normal, axes, half=2.4)
+    assert inside.mean() > 0.5
+    depth = _render(ctx, variant, camera, [(p, n, r)])
+    assert depth.shape == (H, W) and depth.dtype == np.float32
+    # a disc lies in the plane, so every covered pixel gets the plane's depth up to float32 rounding
+    # (3 m x 1e-7); 1e-4 m is the contract
+    assert (depth[inside] > 0).all()
+    assert np.abs(depth[inside] - truth[inside]).max() < 1e-4
+    if tilt == "tilted":
+        # discs facing the camera instead (zero normals) are off the plane by up to r sin(tilt):
+        # orientation is what makes the depth exact
+        flat = _render(ctx, variant, camera, [(p, np.zeros_like(n), r)])
+        assert np.abs(flat[inside] - truth[inside]).max() > 1e-3
+
+
+def _random_scene(seed=0, n=1500):
+    rng = np.random.default_rng(seed)
+    camera = Camera.look_at("rand", eye=(0.0, -5.0, 1.5), target=(0.0, 0.0, 1.0), **PHOTO)
+    p = rng.uniform([-3, -2, 0], [3, 2, 2.5], (n, 3))
+    r = rng.uniform(0.03, 0.25, n)
+    c = camera.center
+    fwd = camera.R[2]
+    # a few discs near the camera, two of them reaching behind its plane (whole-image pixel boxes,
+    # but off to the side so that they cover only part of the map), discs behind the camera, and
+    # discs just outside the view whose radii reach in across the image border
+    near = c + fwd * rng.uniform(0.3, 0.6, (4, 1)) + rng.normal(0, 0.1, (4, 3))
+    crossing = c + camera.R[0] * np.array([[0.25], [-0.3]]) + camera.R[1] * 0.1 + fwd * 0.05
+    behind = c - fwd * rng.uniform(0.8, 2.0, (20, 1)) + rng.normal(0, 0.2, (20, 3))
+    side = c + fwd * 4.0 + camera.R[0] * rng.choice([-2.5, 2.5], (30, 1)) + rng.normal(0, 0.2, (30, 3))
+    p = np.concatenate([p, near, crossing, behind, side])
+    r = np.concatenate([r, rng.uniform(0.03, 0.08, 4), [0.45, 0.5], rng.uniform(0.1, 0.4, 20),
+                        rng.uniform(0.3, 0.6, 30)])
+    nrm = rng.normal(size=p.shape)
+    nrm[n + 4:n + 6] = camera.R[0] + 0.2 * camera.R[2]  # the crossing discs reach into the view
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    return camera, p.astype(np.float32), nrm.astype(np.float32), r.astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def random_scene():
+    camera, p, n, r = _random_scene()
+    ref, ambiguous = splat_depth_numpy(camera, p, n, r, W, H)
+    return camera, p, n, r, ref, ambiguous
+
+
+@pytest.fixture(scope="module")
+def random_depths(ctx, random_scene):
+    camera, p, n, r, _ref, _amb = random_scene
+    return {v: _render(ctx, v, camera, [(p, n, r)]) for v in VARIANTS}
+
+
+def _mismatch(a, b, rel):
+    return np.abs(a.astype(np.float64) - b) > rel * np.maximum(np.abs(a), np.abs(b))
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_random_splats_match_numpy_reference(random_scene, random_depths, variant):
+    _camera, _p, _n, _r, ref, ambiguous = random_scene
+    depth = random_depths[variant]
+    covered = (depth > 0) | (ref > 0)
+    assert covered.mean() > 0.5  # the scene fills most of the map
+    bad = _mismatch(depth, ref, 1e-4) & covered
+    assert bad.sum() <= 0.01 * covered.sum()
+    # and every mismatch is one float32 rounding can explain (a disc rim through the pixel centre)
+    assert not (bad & ~ambiguous).any(), np.argwhere(bad & ~ambiguous)[:10]
+
+
+@pytest.mark.parametrize("variant", ["compute-large", "raster", "raster-quads"])
+def test_gpu_paths_agree(random_scene, random_depths, variant):
+    ambiguous = random_scene[5]
+    a, b = random_depths["compute"], random_depths[variant]
+    covered = (a > 0) | (b > 0)
+    bad = _mismatch(a, b, 1e-5) & covered
+    assert bad.sum() <= 0.01 * covered.sum()
+    assert not (bad & ~ambiguous).any()
+
+
+@pytest.mark.parametrize("method", ["compute", "raster"])
+def test_chunked_input_equals_one_chunk(ctx, random_scene, random_depths, method):
+    camera, p, n, r = random_scene[:4]
+    chunks = [(p[a:b], n[a:b], r[a:b]) for a, b in [(0, 100), (100, 130), (130, 900), (900, len(p))]]
+    chunks.insert(2, (p[:0], n[:0], r[:0]))  # an empty chunk is fine
+    # chunk_points=256 also splits the big chunks into several GPU batches
+    depth = _render(ctx, method, camera, iter(chunks), chunk_points=256)
+    # nearest-wins is order-independent (atomicMin / MIN blend): bit-identical
+    np.testing.assert_array_equal(depth, random_depths[method])
+
+
+def test_renderer_reuse_timer_and_size(ctx, random_scene):
+    camera, p, n, r = random_scene[:4]
+    timer = GpuTimer(ctx)
+    renderer = DepthMapRenderer(ctx, DepthMapConfig(width=W), timer=timer)
+    first = renderer.render(camera, [(p, n, r)])
+    again = renderer.render(camera.scaled(W, H), [(p, n, r)])  # any camera resolution, same map
+    np.testing.assert_array_equal(first, again)
+    assert timer.counts["depthmap"] == 2 and timer.ms["depthmap"] > 0
+    small = renderer.render(camera, [(p[:0], n[:0], r[:0])])
+    assert (small == 0).all()
+    renderer.release()
+    assert depth_map_size(Camera("c", 1000, 667, 1, 1, 0, 0), 100) == (100, 67)
+    with pytest.raises(ValueError, match="method"):
+        DepthMapRenderer(ctx, DepthMapConfig(method="ray"))
+    with pytest.raises(ValueError, match=r"\(n, 3\)"):
+        DepthMapRenderer(ctx, DepthMapConfig(width=W)).render(camera, [(p, n[:5], r)])
+
+
+# -- OpenEXR ------------------------------------------------------------------------------------
+def test_exr_round_trip(tmp_path):
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(0.5, 80.0, (37, 53)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.2] = 0.0
+    path = tmp_path / "IMG_0001.exr"
+    write_depth_exr(path, depth)
+    back = read_depth_exr(path)
+    assert back.dtype == np.float32
+    np.testing.assert_array_equal(back, depth)
+    write_depth_exr(path, depth * 2)  # overwriting replaces atomically, leaving no temp files
+    np.testing.assert_array_equal(read_depth_exr(path), depth * 2)
+    assert [f.name for f in tmp_path.iterdir()] == ["IMG_0001.exr"]
+
+
+def test_exr_errors_name_the_file(tmp_path):
+    import OpenEXR
+
+    missing = tmp_path / "missing.exr"
+    with pytest.raises(InputError, match="missing.exr.*not found"):
+        read_depth_exr(missing)
+    garbage = tmp_path / "garbage.exr"
+    garbage.write_bytes(b"not an exr file at all")
+    with pytest.raises(InputError, match="garbage.exr.*OpenEXR"):
+        read_depth_exr(garbage)
+    other = tmp_path / "other.exr"
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, {"R": np.ones((4, 4), np.float32)}).write(str(other))
+    with pytest.raises(InputError, match=r"other.exr.*no 'Z' channel.*R"):
+        read_depth_exr(other)
+    negative = tmp_path / "negative.exr"
+    write_depth_exr(negative, -np.ones((4, 4), np.float32))
+    with pytest.raises(InputError, match="negative.exr.*negative"):
+        read_depth_exr(negative)
+    with pytest.raises(ValueError):
+        write_depth_exr(tmp_path / "bad.exr", np.ones((2, 2, 2), np.float32))
