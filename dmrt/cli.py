@@ -68,8 +68,27 @@ def cmd_reference(args) -> None:
           f"{(frame['depth'] > 0).mean():.1%} surface)")
 
 
+def cmd_preprocess(args) -> None:
+    from dmrt.labeling import LabelingConfig
+    from dmrt.preprocess import PreprocessConfig, preprocess
+
+    out = preprocess(args.scene, args.out, config_from_args(PreprocessConfig, args),
+                     config_from_args(LabelingConfig, args), force=args.force, progress=not args.quiet)
+    print(f"wrote {out}")
+
+
+def cmd_scene_mesh(args) -> None:
+    from dmrt.scene import load_scene
+    from reference.poisson import build_scene_mesh
+
+    out = build_scene_mesh(load_scene(args.scene, check_images=False), args.out, depth=args.depth)
+    print(f"wrote {out}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from bench.scenes.synthetic import PRESETS, SynthConfig
+    from dmrt.labeling import LabelingConfig
+    from dmrt.preprocess import PreprocessConfig
 
     p = argparse.ArgumentParser(prog="dmrt", description="Multi-Depth-Map Raytracing suite")
     sub = p.add_subparsers(dest="command", required=True)
@@ -82,6 +101,21 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--quiet", action="store_true", help="no progress bars")
     add_config_args(synth, SynthConfig, skip=("name",))
     synth.set_defaults(func=cmd_scene_synth)
+
+    mesh = scene.add_parser("mesh", help="reference mesh from the points (screened Poisson)")
+    mesh.add_argument("scene", type=Path)
+    mesh.add_argument("--depth", type=int, default=9, help="Poisson octree depth (default 9)")
+    mesh.add_argument("--out", type=Path, help="mesh file (default SCENE/mesh.ply)")
+    mesh.set_defaults(func=cmd_scene_mesh)
+
+    pre = sub.add_parser("preprocess", help="scene -> bundle: depth maps, proxy points, labels")
+    pre.add_argument("scene", type=Path)
+    pre.add_argument("--out", type=Path, required=True, help="bundle directory to write")
+    pre.add_argument("--force", action="store_true", help="overwrite an existing bundle")
+    pre.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_config_args(pre, PreprocessConfig)
+    add_config_args(pre, LabelingConfig)
+    pre.set_defaults(func=cmd_preprocess)
 
     ref = sub.add_parser("reference", help="Embree ground-truth frame of a scene's mesh.ply")
     ref.add_argument("scene", type=Path)

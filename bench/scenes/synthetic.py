@@ -36,7 +36,7 @@ class SynthConfig:
 
     name: str = "tiny"
     seed: int = 0
-    rooms: tuple[int, int] = (2, 2)          # grid of rooms (x, y)
+    rooms: tuple[int, int] = (2, 1)          # grid of rooms (x, y)
     room_size: tuple[float, float] = (4.0, 6.0)  # random interior width range of each grid row/column
     wall_height: float = 3.0
     wall_thickness: float = 0.4
@@ -53,7 +53,7 @@ class SynthConfig:
     # Photographs
     photos: int = 12
     photo_size: tuple[int, int] = (256, 171)  # the paper's 1024x684 aspect
-    fov_x: float = 70.0
+    fov_x: float = 80.0
     supersample: int = 2                     # s x s rays per pixel, box-filtered (anti-aliasing)
     lighting_variation: bool = True          # per-photo exposure and white balance
     exposure_range: tuple[float, float] = (0.75, 1.25)
@@ -71,7 +71,7 @@ class SynthConfig:
 
 
 PRESETS = {
-    # CI: about 200k points, 12 photos of 256x171, well under a minute on 2 cores.
+    # CI: about 200k points, 12 photos of 256x171 (6 per room), seconds on 2 cores.
     "tiny": SynthConfig(),
     "small": SynthConfig(name="small", rooms=(3, 2), points=2_000_000, photos=48, photo_size=(512, 342)),
     # The paper's Scene 2 budget (192 photos of 1024x684) with >= 30M points, streamed to disk.
@@ -223,7 +223,8 @@ def build_geometry(config: SynthConfig) -> Geometry:
     parts.append((_box((*ext_lo, -0.3), (*ext_hi, 0.0)), FLOOR))
     if config.ceiling:
         parts.append((_box((*ext_lo, H), (*ext_hi, H + 0.3)), ROOF))
-    room_material = {(i, j): int(rng.choice(FRESCOES + (BRICK,))) for i in range(nx) for j in range(ny)}
+    palette, first = FRESCOES + (BRICK,), int(rng.integers(5))  # neighbouring rooms differ
+    room_material = {(i, j): palette[(first + i * ny + j) % 5] for i in range(nx) for j in range(ny)}
 
     def openings(lo_c, hi_c, exterior):
         """A doorway through interior walls, a niche (maybe) in exterior ones."""
@@ -345,23 +346,30 @@ def place_stations(config: SynthConfig, geom: Geometry, raycaster, rng) -> np.nd
 
 
 def place_cameras(config: SynthConfig, geom: Geometry, raycaster, rng) -> list[Camera]:
-    """Photo cameras, scene-local: each looks at a wall of a room from 1.5-4 m, a little off-axis."""
+    """Photo cameras, scene-local, placed the way a documentation campaign covers a room: each
+    photo looks at one wall (cycling through the four) from across the room, a little off-axis,
+    so that the walls, floor and roof of every room are seen."""
     cams = []
     w, h = config.photo_size
     n_rooms = len(geom.rooms)
     for k in range(config.photos):
         x0, x1, y0, y1 = geom.rooms[k % n_rooms]
+        side = (k // n_rooms) % 4
         for _ in range(500):
-            side = rng.integers(4)
             if side < 2:  # wall at x0 or x1
-                target = np.array([x0 if side == 0 else x1, rng.uniform(y0 + 0.3, y1 - 0.3), rng.uniform(0.4, 2.4)])
                 normal = np.array([1.0 if side == 0 else -1.0, 0, 0])
+                target = np.array([x0 if side == 0 else x1, rng.uniform(y0, y1), 0.0])
+                depth, width = x1 - x0, y1 - y0
             else:
-                target = np.array([rng.uniform(x0 + 0.3, x1 - 0.3), y0 if side == 2 else y1, rng.uniform(0.4, 2.4)])
                 normal = np.array([0, 1.0 if side == 2 else -1.0, 0])
+                target = np.array([rng.uniform(x0, x1), y0 if side == 2 else y1, 0.0])
+                depth, width = y1 - y0, x1 - x0
+            center = np.array([(x0 + x1) / 2, (y0 + y1) / 2])
             lateral = np.cross(normal, (0, 0, 1))
-            eye = target + normal * rng.uniform(1.5, 4.0) + lateral * rng.uniform(-1.2, 1.2)
-            eye[2] = rng.uniform(1.2, 1.9)
+            target[:2] += (center - target[:2]) * np.abs(lateral[:2]) * 0.6  # towards the wall centre
+            target[2] = rng.uniform(0.8, 1.8)
+            eye = target + normal * depth * rng.uniform(0.55, 0.92) + lateral * rng.uniform(-0.25, 0.25) * width
+            eye[2] = rng.uniform(1.3, 1.9)
             if not (x0 + 0.3 < eye[0] < x1 - 0.3 and y0 + 0.3 < eye[1] < y1 - 0.3) or not _free(raycaster, eye, 0.3):
                 continue
             cam = Camera.look_at(f"photo_{k:04d}.png", eye, target + rng.normal(0, 0.2, 3), w, h, config.fov_x)

@@ -1,0 +1,473 @@
+"""Point normals and splat radii (paper Section 4.1), in memory and out of core.
+
+* Normals: "if point normals are not available, we compute them by fitting a least-square plane to
+  a neighborhood of each point" — the plane through the k nearest neighbours' centroid minimising
+  the squared distances has the normal of the covariance matrix's smallest eigenvector (PCA).
+  A plane has no front side, so normals are oriented toward the viewpoint that saw the point (a
+  scanner station or the nearest camera): ``n . (v - p) > 0``.
+* Radii: "the splat radii are determined from the density of the rendered points" — from the
+  distance to the k-th nearest neighbour (see :func:`splat_radii` for the factor).
+* :func:`process_chunked`: both for a cloud too large for memory, by spatial buckets with a halo;
+  equal to the in-memory results wherever the neighbourhood fits inside the halo (counted and
+  reported otherwise).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from dmrt.octree import (_Appender, _chunk_source, _iter_normalized, _merge_counts, _progress,
+                         _in_sorted, _read_records, _unique_counts, compute_bbox, morton_encode)
+
+__all__ = ["estimate_normals", "splat_radii", "orient_normals", "process_chunked", "ChunkedResult",
+           "iter_with_results"]
+
+# rows per batch of covariance matrices: (b, k, 3) float64 neighbourhoods are the largest temporaries
+_BATCH = 65536
+
+
+# ---------------------------------------------------------------------------------------------
+# in memory
+# ---------------------------------------------------------------------------------------------
+def _as_positions(positions) -> np.ndarray:
+    p = np.asarray(positions)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"positions must have shape (n, 3), got {p.shape}")
+    return p.astype(np.float64, copy=False)
+
+
+def _pca_normals(data: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Least-squares plane normals from neighbour indices.
+
+    Parameters
+    ----------
+    data : (m, 3) float64, already centred near the origin (precision)
+    idx : (b, k) int64 indices into ``data``
+
+    Returns
+    -------
+    (b, 3) float64 unit normals (sign arbitrary).
+    """
+    nb = data[idx]  # (b, k, 3)
+    nb -= nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("bki,bkj->bij", nb, nb)
+    del nb
+    _, vec = np.linalg.eigh(cov)  # eigenvalues ascending: column 0 is the smallest's eigenvector
+    return vec[:, :, 0]
+
+
+def orient_normals(normals: np.ndarray, positions: np.ndarray, viewpoints=None,
+                   per_point: bool | None = None) -> np.ndarray:
+    """Flip normals so that ``n . (v - p) > 0`` for each point's viewpoint ``v``.
+
+    Parameters
+    ----------
+    normals : (n, 3) float
+    positions : (n, 3) float
+    viewpoints : (m, 3) or (n, 3) float, optional
+        Scanner stations / camera centres (each point takes the nearest), or one viewpoint per point.
+        ``None``: a deterministic but arbitrary sign (``n_z >= 0``, then ``n_y``, then ``n_x``).
+    per_point : bool, optional
+        Whether ``viewpoints`` is one per point; by default it is when it has ``n`` rows.
+    """
+    n = np.array(normals, dtype=np.float64, copy=True)
+    p = _as_positions(positions)
+    if viewpoints is None:
+        s = np.where(n[:, 2] != 0, n[:, 2], np.where(n[:, 1] != 0, n[:, 1], n[:, 0]))
+        n[s < 0] *= -1
+        return n
+    v = np.asarray(viewpoints, dtype=np.float64).reshape(-1, 3)
+    if per_point is None:
+        per_point = len(v) == len(p) and len(p) > 1
+    if per_point:
+        if len(v) != len(p):
+            raise ValueError(f"{len(v)} per-point viewpoints for {len(p)} points")
+        to_v = v - p
+    elif len(v) == 1:
+        to_v = v[0] - p
+    else:
+        _, j = cKDTree(v).query(p, k=1, workers=-1)
+        to_v = v[j] - p
+    n[np.einsum("ij,ij->i", n, to_v) < 0] *= -1
+    return n
+
+
+def estimate_normals(positions, k: int = 16, viewpoints=None, *, per_point: bool | None = None,
+                     tree: cKDTree | None = None) -> np.ndarray:
+    """Least-squares plane normals of the ``k`` nearest neighbours (the point itself included).
+
+    Parameters
+    ----------
+    positions : (n, 3) float64 or float32
+    k : int
+        Neighbourhood size (clamped to ``n``). 16 balances noise (a larger k averages it out) and
+        detail (a smaller k follows creases).
+    viewpoints : (m, 3) or (n, 3) float, optional
+        Orientation: see :func:`orient_normals`.
+    per_point : bool, optional
+        See :func:`orient_normals`.
+    tree : cKDTree, optional
+        A tree already built on ``positions``.
+
+    Returns
+    -------
+    (n, 3) float32 unit normals, ``n . (v - p) > 0`` toward each point's viewpoint.
+    """
+    p = _as_positions(positions)
+    n = len(p)
+    if n < 3:
+        out = np.zeros((n, 3), np.float64)
+        out[:, 2] = 1.0
+        return orient_normals(out, p, viewpoints, per_point).astype(np.float32)
+    c = p - p.mean(axis=0)  # centred: large real-world coordinates would lose digits in the covariance
+    tree = tree if tree is not None else cKDTree(c)
+    k = min(int(k), n)
+    out = np.empty((n, 3), np.float64)
+    for s in range(0, n, _BATCH):
+        _, idx = tree.query(c[s:s + _BATCH], k=k, workers=-1)
+        out[s:s + _BATCH] = _pca_normals(c, idx.reshape(-1, k))
+    return orient_normals(out, p, viewpoints, per_point).astype(np.float32)
+
+
+# The radius factor. For points on a square grid of spacing h, the discs of radius h/sqrt(2) (half
+# the cell diagonal) are the smallest that cover the plane: each cell's centre is h/sqrt(2) from its
+# four corner points. A grid point's 8 nearest neighbours (itself excluded) are the ring of its 3x3
+# block, the farthest of them diagonal at sqrt(2)*h, so radius = d_8 / 2 gives exactly h/sqrt(2).
+# For other k we keep the same radius for the same density: on a surface d_k grows like sqrt(k)
+# (k ~ pi d_k^2 * density), hence radius = d_k / 2 * sqrt(8 / k).
+# Irregular (random) sampling has larger gaps than a grid of the same density: there a ``scale`` of
+# about 1.5 closes nearly all holes (a Poisson sample of density rho leaves exp(-pi rho r^2) of the
+# plane uncovered: 1 % at r = 1.2 / sqrt(rho), i.e. scale ~1.5 on top of the grid factor).
+def radius_factor(k: int) -> float:
+    """Radius / (distance to the k-th neighbour) for gap-free discs on a square grid: ``sqrt(8/k)/2``."""
+    return 0.5 * math.sqrt(8.0 / k)
+
+
+def splat_radii(positions, k: int = 8, scale: float = 1.0, *, tree: cKDTree | None = None) -> np.ndarray:
+    """Splat radii from the local point density.
+
+    ``radius = scale * d_k * sqrt(8/k) / 2`` with ``d_k`` the distance to the k-th nearest other
+    point; on a square grid of spacing h this is h/sqrt(2), the smallest radius whose discs cover
+    the plane (comment above :func:`radius_factor`).
+
+    Parameters
+    ----------
+    positions : (n, 3) float
+    k : int
+        Neighbour rank (clamped to ``n - 1``).
+    scale : float
+        Extra factor (the paper's worst case multiplies radii by 2.5).
+
+    Returns
+    -------
+    (n,) float32 radii, metres.
+    """
+    p = _as_positions(positions)
+    n = len(p)
+    if n < 2:
+        return np.zeros(n, np.float32)
+    c = p - p.mean(axis=0)
+    tree = tree if tree is not None else cKDTree(c)
+    k = min(int(k), n - 1)
+    out = np.empty(n, np.float64)
+    for s in range(0, n, _BATCH):
+        d, _ = tree.query(c[s:s + _BATCH], k=[k + 1], workers=-1)  # +1: the point itself
+        out[s:s + _BATCH] = d[:, 0]
+    return (out * (scale * radius_factor(k))).astype(np.float32)
+
+
+# ---------------------------------------------------------------------------------------------
+# out of core
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class ChunkedResult:
+    """Output of :func:`process_chunked`: arrays indexed by the input's point order.
+
+    Attributes
+    ----------
+    normals : (n, 3) float32 memmap (``work_dir/normals.npy``), or None
+    radii : (n,) float32 memmap (``work_dir/radii.npy``), or None
+    n_points : int
+    margin : float
+        Halo width, metres.
+    n_unverified : int
+        Points whose neighbourhood (k-th neighbour distance) exceeded the margin: their neighbours
+        outside the halo were not seen, so they may differ from the in-memory result (sparse
+        outliers). 0 means the results equal the in-memory ones.
+    n_buckets : int
+    max_bucket_points : int
+        Core + halo points of the largest bucket.
+    """
+
+    normals: np.ndarray | None
+    radii: np.ndarray | None
+    n_points: int
+    margin: float
+    n_unverified: int
+    n_buckets: int
+    max_bucket_points: int
+    seconds: float
+
+
+def _margin_from_counts(keys, cnts, cell, k, extent):
+    """Halo width from the per-cell counts: 2.5x the k-th neighbour distance at the density of the
+    sparse end (5th percentile, weighted by points) of the cells.
+
+    A surface crossing a cube of side ``s`` has about ``s^2`` of area in it, so ``c`` points there
+    mean a density of ``c / s^2`` and a k-th neighbour distance ``sqrt(k / (pi c / s^2))``. The
+    cells are coarsened until that percentile holds ``4k`` points, so the count is not dominated by
+    sampling noise. Partly filled cells (a surface clipping a corner) only lower the density
+    estimate, which widens the margin: the safe side.
+    """
+    while True:
+        order = np.argsort(cnts)
+        cs = cnts[order]
+        cum = np.cumsum(cs)
+        c05 = float(cs[np.searchsorted(cum, 0.05 * cum[-1])])
+        if c05 >= 4 * k or cell >= extent or len(keys) == 1:
+            break
+        keys, cnts = _merge_counts(keys >> 3, cnts)
+        cell *= 2
+    return 2.5 * math.sqrt(k / (math.pi * c05)) * cell
+
+
+def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = True, k_normals: int = 16,
+                    k_radii: int = 8, scale: float = 1.0, viewpoints=None, margin: float | None = None,
+                    memory_limit_mb: float = 1024, bbox=None, progress: bool = True) -> ChunkedResult:
+    """Normals and/or radii of a cloud too large for memory.
+
+    The cloud is cut into spatial buckets (consecutive Morton cells of a grid whose cell is at
+    least ``margin``); each bucket is processed with its *halo*, every point within ``margin`` of
+    the bucket's cells (a point's margin box overlaps at most 2 cells per axis). For a point whose
+    k-th neighbour lies within ``margin`` the neighbourhood is complete, so the result equals the
+    in-memory :func:`estimate_normals` / :func:`splat_radii` up to floating-point noise; the others
+    are counted in ``n_unverified``.
+
+    Parameters
+    ----------
+    chunks_fn : callable returning an iterator of chunks (as :meth:`dmrt.octree.Octree.build`;
+        e.g. ``lambda: octree.iter_levels(range(k))`` for the radii of a level of detail)
+        Read 2 or 3 times, in the same order each time.
+    work_dir : path
+        Receives ``normals.npy`` / ``radii.npy`` (renamed into place when complete) and temporary
+        spill files.
+    viewpoints : (m, 3) float, optional
+        Scanner stations / camera centres; each point is oriented toward the nearest.
+    margin : float, optional
+        Halo width in metres; default from the point counts per grid cell (2.5x the k-th neighbour
+        distance at the density of the sparsest 5 % of the points, see ``_margin_from_counts``).
+    memory_limit_mb : float
+        Budget for the points of one bucket with its halo and the kNN work arrays.
+
+    Returns
+    -------
+    ChunkedResult
+    """
+    t0 = time.perf_counter()
+    src = _chunk_source(chunks_fn)
+    work = Path(work_dir)
+    work.mkdir(parents=True, exist_ok=True)
+    if not (normals or radii):
+        raise ValueError("nothing to compute: normals and radii are both False")
+    kmax = max(k_normals if normals else 1, k_radii + 1 if radii else 1)  # kNN columns, self included
+    budget = int(memory_limit_mb * 2 ** 20)
+    # per point of a bucket: record 33 B, centred copy 24, kd-tree ~48, kNN batch rows are bounded
+    # separately (knn_rows), so ~150 B/point within half the budget
+    capacity = max(4096, int(budget * 0.5 / 150))
+    slice_points = max(1024, budget // 8 // 256)
+    knn_rows = max(1024, int(budget * 0.25 / (kmax * 3 * 8 * 3 + kmax * 16)))
+
+    if bbox is None:
+        lo, hi, n = compute_bbox(src, progress)
+    else:
+        lo, hi = (np.asarray(b, np.float64).reshape(3) for b in bbox)
+        n = None
+    extent = float(np.max(hi - lo)) or 1.0
+
+    def qcoords(p, c):
+        q = np.floor((p - lo) / c)
+        np.clip(q, 0, (1 << 21) - 1, out=q)
+        return q.astype(np.int64)
+
+    # count points per cell of a fine grid, coarsened (cells doubled) while the table is large.
+    # Coarser cells are always the fine grid's integer coordinates shifted right (never a second
+    # floor() with a doubled cell), so every pass assigns a point to exactly the same cell.
+    count_cap = max(4096, budget // 256)
+    cell0 = extent / ((1 << 20) - 1)
+    cell, shift = cell0, 0
+    keys = np.zeros(0, np.int64)
+    cnts = np.zeros(0, np.int64)
+    n_seen = 0
+    with _progress(n, "normals: count", progress) as bar:
+        for pos, _ in _iter_normalized(src, None, slice_points):
+            uk, uc = _unique_counts(morton_encode(qcoords(pos, cell0) >> shift))
+            keys, cnts = _merge_counts(keys, cnts, uk, uc)
+            while len(keys) > count_cap:
+                cell, shift = cell * 2, shift + 1
+                keys, cnts = _merge_counts(keys >> 3, cnts)
+            n_seen += len(pos)
+            bar.update(len(pos))
+    if n is not None and n_seen != n:
+        raise RuntimeError("chunks_fn must yield the same points on every call")
+    n = n_seen
+    if n == 0:
+        raise ValueError("the point source yielded no points")
+    if margin is None:
+        margin = _margin_from_counts(keys, cnts, cell, kmax, extent)
+    margin = float(margin)
+    if not margin > 0:
+        raise ValueError(f"margin must be > 0, got {margin}")
+    # bucket grid: cells wider than 2 margins, so a point's margin box overlaps <= 2 cells per axis
+    while cell <= 2.0 * margin and shift < 20:
+        cell, shift = cell * 2, shift + 1
+        keys, cnts = _merge_counts(keys >> 3, cnts)
+    # halos add points: leave room for them in a bucket
+    core_cap = max(1, capacity // 2)
+    starts, bcounts, acc = [], [], 0
+    for key, cnt in zip(keys.tolist(), cnts.tolist()):
+        if not starts or acc + cnt > core_cap:
+            starts.append(key)
+            bcounts.append(0)
+            acc = 0
+        acc += cnt
+        bcounts[-1] += cnt
+    cell_keys = keys  # occupied cells of the bucket grid, sorted
+    del cnts
+    starts = np.asarray(starts, np.int64)
+    nb = len(starts)
+
+    spill = work / f".spill-{os.getpid()}"
+    if spill.exists():
+        shutil.rmtree(spill)
+    schema = {"positions": ("float64", (3,)), "gidx": ("int64", ()), "core": ("uint8", ())}
+    names = {"normals": work / "normals.npy", "radii": work / "radii.npy"}
+    tmp_names = {k: work / f".{k}.npy.tmp-{os.getpid()}" for k in names}
+    try:
+        # distribute: core copy to the own bucket, halo copies to the other buckets in the margin box
+        apps = [_Appender(spill / f"b{b:06d}", schema) for b in range(nb)]
+        buf = [[] for _ in range(nb)]
+        buffered = 0
+        offsets = np.array([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], np.int64)
+
+        def flush():
+            for b in range(nb):
+                if buf[b]:
+                    rec = {k: np.concatenate([p[k] for p in buf[b]]) for k in schema}
+                    apps[b].write(rec)
+                    apps[b].close()
+                    buf[b] = []
+
+        g = 0
+        with _progress(n, "normals: distribute", progress) as bar:
+            for pos, _ in _iter_normalized(src, None, slice_points):
+                m = len(pos)
+                gidx = np.arange(g, g + m, dtype=np.int64)
+                g += m
+                own = np.searchsorted(starts, morton_encode(qcoords(pos, cell0) >> shift), side="right") - 1
+                # the margin box [p - margin, p + margin] spans at most 2 cells per axis (cell >= 2
+                # margin): its cells are the 8 combinations of its low and high corner cells
+                qlo = qcoords(pos - margin, cell0) >> shift
+                qhi = qcoords(pos + margin, cell0) >> shift
+                # (only occupied cells: a bucket's key range also spans empty cells, which must not
+                # draw halos)
+                bb, pi = [own], [np.arange(m)]  # the core copy, always
+                for off in offsets:
+                    kk = morton_encode(np.where(off, qhi, qlo))
+                    occ = np.flatnonzero(_in_sorted(kk, cell_keys))
+                    bb.append(np.searchsorted(starts, kk[occ], side="right") - 1)
+                    pi.append(occ)
+                bb, pi = np.concatenate(bb), np.concatenate(pi)
+                pair = bb * m + pi
+                pair, _ = _unique_counts(pair)  # one copy per (bucket, point), sorted by bucket
+                bb, ii = pair // m, pair % m
+                core = (bb == own[ii]).astype(np.uint8)
+                cuts = np.flatnonzero(np.r_[True, bb[1:] != bb[:-1], True])
+                for j in range(len(cuts) - 1):
+                    a, e = cuts[j], cuts[j + 1]
+                    sel = ii[a:e]
+                    buf[bb[a]].append({"positions": pos[sel], "gidx": gidx[sel], "core": core[a:e]})
+                buffered += len(bb) * 33
+                if buffered > budget // 4:
+                    flush()
+                    buffered = 0
+                bar.update(m)
+        flush()
+
+        out_n = np.lib.format.open_memmap(tmp_names["normals"], "w+", np.float32, (n, 3)) if normals else None
+        out_r = np.lib.format.open_memmap(tmp_names["radii"], "w+", np.float32, (n,)) if radii else None
+        n_unverified = 0
+        max_bucket = 0
+        with _progress(n, "normals: buckets", progress) as bar:
+            for b in range(nb):
+                rec = _read_records(spill / f"b{b:06d}", schema)
+                shutil.rmtree(spill / f"b{b:06d}", ignore_errors=True)
+                pos, gidx, core = rec["positions"], rec["gidx"], rec["core"].astype(bool)
+                max_bucket = max(max_bucket, len(pos))
+                qi = np.flatnonzero(core)
+                if len(qi) == 0:
+                    continue
+                c = pos - pos.mean(axis=0)
+                tree = cKDTree(c)
+                kn = min(k_normals, len(pos))  # neighbours of the plane fit, the point included
+                kr = min(k_radii, len(pos) - 1)  # rank of the radius neighbour, the point excluded
+                kq = max(kn if normals else 1, kr + 1 if radii else 1)  # kNN columns needed
+                for s in range(0, len(qi), knn_rows):
+                    rows = qi[s:s + knn_rows]
+                    d, idx = tree.query(c[rows], k=kq, workers=-1)
+                    d = d.reshape(len(rows), kq)
+                    idx = idx.reshape(len(rows), kq)
+                    # complete neighbourhood <=> its farthest member lies within the halo margin
+                    n_unverified += int(np.count_nonzero(~(d[:, -1] <= margin)))
+                    if normals:
+                        if kn >= 3:
+                            nrm = _pca_normals(c, idx[:, :kn])
+                        else:
+                            nrm = np.tile([0.0, 0.0, 1.0], (len(rows), 1))
+                        nrm = orient_normals(nrm, pos[rows], viewpoints, per_point=False)
+                        out_n[gidx[rows]] = nrm.astype(np.float32)
+                    if radii:
+                        rad = d[:, kr] * (scale * radius_factor(kr)) if kr >= 1 else np.zeros(len(rows))
+                        out_r[gidx[rows]] = rad.astype(np.float32)
+                bar.update(len(qi))
+        for arr in (out_n, out_r):
+            if arr is not None:
+                arr.flush()
+        del out_n, out_r
+        shutil.rmtree(spill, ignore_errors=True)
+        for k, path in names.items():
+            if tmp_names[k].exists():
+                os.replace(tmp_names[k], path)
+    except BaseException:
+        shutil.rmtree(spill, ignore_errors=True)
+        for p in tmp_names.values():
+            p.unlink(missing_ok=True)
+        raise
+    return ChunkedResult(
+        normals=np.load(names["normals"], mmap_mode="r") if normals else None,
+        radii=np.load(names["radii"], mmap_mode="r") if radii else None,
+        n_points=n, margin=margin, n_unverified=n_unverified, n_buckets=nb,
+        max_bucket_points=max_bucket, seconds=time.perf_counter() - t0)
+
+
+def iter_with_results(chunks_fn, result: ChunkedResult) -> Iterator[tuple[np.ndarray, dict]]:
+    """The input chunks again, with ``normals`` and/or ``radii`` attributes from ``result`` added
+    (ready for :meth:`dmrt.octree.Octree.build`)."""
+    g = 0
+    for pos, attrs in _iter_normalized(_chunk_source(chunks_fn)):
+        m = len(pos)
+        attrs = dict(attrs)
+        if result.normals is not None:
+            attrs["normals"] = np.array(result.normals[g:g + m])
+        if result.radii is not None:
+            attrs["radii"] = np.array(result.radii[g:g + m])
+        g += m
+        yield pos, attrs

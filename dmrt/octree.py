@@ -1,0 +1,943 @@
+"""Nested levels of detail of a point cloud, built out of core (the paper's out-of-core octree).
+
+The paper (Section 4.1/4.2) keeps P_HD in an out-of-core octree in the style of Scheiblauer &
+Wimmer / Potree and takes the proxy cloud P_LD as the union of its k top-most (coarsest) levels.
+This module builds that structure for clouds far larger than memory.
+
+Levels
+------
+Level ``l`` (``0 <= l < levels - 1``) has a grid of cell size ``s_l = root_cell / 2**l`` laid over the
+cloud's bounding box (origin = bbox minimum). Every occupied level-``l`` cell receives exactly one
+point: among the points of that cell that no coarser level has taken, the one **closest to the cell
+centre** (ties broken by x, then y, then z). Points that no grid level takes form the last level,
+``levels - 1`` (the remainder). Hence
+
+* every input point is in exactly one level (the levels partition the cloud);
+* no two points of level ``l`` share a level-``l`` cell (each level is spatially even);
+* ``LOD k`` = levels ``0 .. k-1`` holds a point in every occupied level-``(k-1)`` cell, and each
+  ``LOD k+1`` is a superset of ``LOD k`` (nested), roughly 4x denser for surfaces (8x for volumes).
+
+The selection is a pure function of the *set* of input points: chunk order and chunk sizes do
+not change the octree (except the order of exact duplicate points, which follows the input).
+
+Out-of-core build (memory ``M = memory_limit_mb``)
+------------------------------------------------
+1. (only without ``bbox``) one pass for the bounding box;
+2. *count*: points per cell of a counting grid (sparse: sorted int64 Morton keys + counts; coarsened
+   one level at a time while the table would exceed ``M/64`` entries);
+3. choose the *bucket level* ``c`` = the coarsest level whose cells each hold at most one bucket's
+   capacity (about ``M/2`` bytes of processing), and cut the Morton-sorted level-``c`` cells into
+   buckets of consecutive cells, each within capacity;
+4. *distribute*: stream the points into per-bucket spill files (``M/4`` bytes of buffers);
+5. *candidates*: levels ``l < c`` have cells spanning several buckets. A level-``l`` pick is the best
+   point of its cell that levels ``< l`` did not take; at most ``l`` points of the cell were taken, so
+   it is among the cell's ``l + 1`` best, hence among the union over buckets of each bucket's ``l + 1``
+   best of that cell. Each bucket contributes those candidates (few: they scale with the coarse
+   levels' sizes), and levels ``0 .. c-1`` are resolved exactly in memory;
+6. *select*: each bucket is loaded alone, the coarse picks are removed, and levels ``c .. levels-2``
+   plus the remainder are selected inside it (level ``>= c`` cells never cross a bucket).
+
+A level-``c`` cell that alone exceeds the capacity (extreme point density) is processed by streaming
+per-level reductions over its spill file; then memory is proportional to its number of occupied
+cells per level rather than to its number of points (plus one byte per point).
+
+The caller's chunks count against the budget too: keep ``chunk_size * record_bytes`` well below ``M``
+(``record_bytes`` = 24 for positions plus the attributes' bytes). Python's own ~40 MB and the
+numpy/scipy libraries come on top.
+
+On disk (written to a temporary sibling folder and renamed when complete)::
+
+    out_dir/octree.json            format, version, config, bbox, counts, fields, timings
+    out_dir/level_XX/<field>.bin   raw little-endian arrays, one file per attribute, Morton-ordered
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable, Iterator
+
+import numpy as np
+
+from dmrt.errors import InputError
+
+try:  # progress bars are optional
+    from tqdm.auto import tqdm as _tqdm
+except ImportError:  # pragma: no cover
+    _tqdm = None
+
+FORMAT = "dmrt-octree"
+VERSION = 1
+MAX_BITS_PER_AXIS = 21  # 3 * 21 = 63 bits: Morton keys fit a non-negative int64
+
+
+# ---------------------------------------------------------------------------------------------
+# configuration
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class OctreeConfig:
+    """How to build the levels of detail."""
+
+    levels: int = 8
+    """Number of levels of detail; levels ``0 .. levels-2`` are grid levels, the last one holds the
+    remainder (every point no grid level took)."""
+    root_cell: float | None = None
+    """Cell size of level 0, metres. Default: bounding-box diagonal / 64."""
+    memory_limit_mb: float = 2048
+    """Bytes of point data (and working arrays) the build may hold at once, in MiB."""
+
+    def __post_init__(self):
+        if int(self.levels) < 1:
+            raise ValueError(f"OctreeConfig.levels must be >= 1, got {self.levels}")
+        self.levels = int(self.levels)
+        if self.root_cell is not None and not float(self.root_cell) > 0:
+            raise ValueError(f"OctreeConfig.root_cell must be > 0, got {self.root_cell}")
+        if not float(self.memory_limit_mb) > 0:
+            raise ValueError(f"OctreeConfig.memory_limit_mb must be > 0, got {self.memory_limit_mb}")
+
+
+# ---------------------------------------------------------------------------------------------
+# small helpers
+# ---------------------------------------------------------------------------------------------
+def _progress(total, desc, enabled):
+    if not enabled or _tqdm is None:
+        return _NullBar()
+    return _tqdm(total=total, desc=desc, unit="pt", unit_scale=True, leave=False)
+
+
+class _NullBar:
+    def update(self, n=1):
+        pass
+
+    def close(self):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def _part1by2(v: np.ndarray) -> np.ndarray:
+    """Spread the low 21 bits of ``v`` (uint64) to every third bit."""
+    v = v & np.uint64(0x1FFFFF)
+    v = (v | (v << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
+    v = (v | (v << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
+    v = (v | (v << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
+    v = (v | (v << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
+    v = (v | (v << np.uint64(2))) & np.uint64(0x1249249249249249)
+    return v
+
+
+def morton_encode(q: np.ndarray) -> np.ndarray:
+    """Morton (z-order) keys of integer cell coordinates.
+
+    Parameters
+    ----------
+    q : (n, 3) int64, each in ``[0, 2**21)``
+
+    Returns
+    -------
+    (n,) int64 keys; the key of the parent cell (coordinates ``q >> 1``) is ``key >> 3``.
+    """
+    q = q.astype(np.uint64, copy=False)
+    k = _part1by2(q[:, 0]) | (_part1by2(q[:, 1]) << np.uint64(1)) | (_part1by2(q[:, 2]) << np.uint64(2))
+    return k.view(np.int64)
+
+
+def _normalize_chunk(item, where="chunk") -> tuple[np.ndarray, dict]:
+    """Accept ``(positions, attrs)``, a dict with ``'positions'``, or an object with ``.positions``
+    (e.g. ``dmrt.pointcloud.PointCloud``; attributes that are ``None`` are skipped)."""
+    if isinstance(item, (tuple, list)) and len(item) == 2:
+        pos, attrs = item
+        attrs = dict(attrs or {})
+    elif isinstance(item, dict):
+        attrs = dict(item)
+        pos = attrs.pop("positions")
+    elif hasattr(item, "positions"):
+        pos = item.positions
+        if dataclasses.is_dataclass(item):
+            names = [f.name for f in dataclasses.fields(item) if f.name != "positions"]
+        else:
+            names = [n for n in ("normals", "colors", "radii") if hasattr(item, n)]
+        attrs = {n: getattr(item, n) for n in names}
+    else:
+        raise TypeError(f"{where}: expected (positions, attributes), a dict or a PointCloud, "
+                        f"got {type(item).__name__}")
+    pos = np.ascontiguousarray(np.asarray(pos, dtype=np.float64).reshape(-1, 3))
+    out = {}
+    for name, a in attrs.items():
+        if a is None or not isinstance(a, np.ndarray) and not isinstance(a, (list, tuple)):
+            continue
+        a = np.ascontiguousarray(np.asarray(a))
+        if a.ndim == 0 or a.shape[0] != len(pos):
+            raise ValueError(f"{where}: attribute {name!r} has {a.shape[0] if a.ndim else 0} rows "
+                             f"for {len(pos)} positions")
+        out[name] = a
+    return pos, out
+
+
+def _chunk_source(chunks_fn) -> Callable[[], Iterator]:
+    if callable(chunks_fn):
+        return chunks_fn
+    if isinstance(chunks_fn, Iterator):
+        raise TypeError("the octree build reads its input several times: pass a callable that "
+                        "returns a fresh iterator of chunks (or a re-iterable such as a list)")
+    if isinstance(chunks_fn, Iterable):
+        return lambda: iter(chunks_fn)
+    raise TypeError(f"chunks_fn must be callable, got {type(chunks_fn).__name__}")
+
+
+def _iter_normalized(chunks_fn, schema=None, max_points=None):
+    """Yield ``(positions, attrs)`` from the source, checking the attribute schema, and split into
+    slices of at most ``max_points`` so working arrays stay bounded."""
+    for i, item in enumerate(chunks_fn()):
+        pos, attrs = _normalize_chunk(item, where=f"chunk {i}")
+        if schema is not None:
+            got = {k: (str(v.dtype), list(v.shape[1:])) for k, v in attrs.items()}
+            want = {k: v for k, v in schema.items() if k != "positions"}
+            if got != want:
+                raise ValueError(f"chunk {i}: attributes {got} differ from the first chunk's {want}")
+        n = len(pos)
+        if n == 0:
+            continue
+        step = n if not max_points else max(1, int(max_points))
+        for s in range(0, n, step):
+            yield pos[s:s + step], {k: v[s:s + step] for k, v in attrs.items()}
+
+
+def compute_bbox(chunks_fn, progress=False) -> tuple[np.ndarray, np.ndarray, int]:
+    """One streaming pass: ``(min (3,) float64, max (3,) float64, number of points)``."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    n = 0
+    with _progress(None, "octree: bbox", progress) as bar:
+        for pos, _ in _iter_normalized(_chunk_source(chunks_fn)):
+            lo = np.minimum(lo, pos.min(axis=0))
+            hi = np.maximum(hi, pos.max(axis=0))
+            n += len(pos)
+            bar.update(len(pos))
+    if n == 0:
+        raise ValueError("the point source yielded no points")
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        raise ValueError("the point source contains non-finite coordinates")
+    return lo, hi, n
+
+
+# ---------------------------------------------------------------------------------------------
+# the grid of all levels
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class _Grid:
+    origin: np.ndarray  # (3,) float64
+    root_cell: float
+    n_grid: int  # number of grid levels (= levels - 1)
+    bits0: int  # bits per axis at level 0
+
+    @property
+    def finest(self) -> int:
+        return self.n_grid - 1
+
+    def cell(self, level: int) -> float:
+        return self.root_cell / 2.0 ** level
+
+    def coords(self, pos: np.ndarray) -> np.ndarray:
+        """(n, 3) int64 cell coordinates at the finest grid level (coarser: ``>> (finest - l)``)."""
+        bits = self.bits0 + self.finest
+        q = np.floor((pos - self.origin) * (1.0 / self.cell(self.finest)))
+        np.clip(q, 0, (1 << bits) - 1, out=q)
+        return q.astype(np.int64)
+
+    def keys_and_d2(self, pos: np.ndarray, q: np.ndarray, level: int):
+        """Morton keys of the level-``level`` cells and squared distances to their centres."""
+        ql = q >> (self.finest - level)
+        return morton_encode(ql), self.d2(pos[:, 0], pos[:, 1], pos[:, 2], ql[:, 0], ql[:, 1], ql[:, 2], level)
+
+    def d2(self, x, y, z, qx, qy, qz, level: int) -> np.ndarray:
+        """Squared distance of points (coordinate columns) to the centres of their level-``level``
+        cells (integer columns). The one formula every path uses, so equal inputs give bit-equal
+        distances (and exact ties stay ties)."""
+        s = self.cell(level)
+        o = self.origin
+        dx = x - (o[0] + (qx + 0.5) * s)
+        dy = y - (o[1] + (qy + 0.5) * s)
+        dz = z - (o[2] + (qz + 0.5) * s)
+        return dx * dx + dy * dy + dz * dz
+
+
+def _best_in_runs(keys, d2, cols) -> np.ndarray:
+    """Like :func:`_best_per_cell` for ``keys`` already sorted (cells are contiguous runs) and
+    positions given as coordinate columns ``(x, y, z)``; among exact ties of distance and position
+    the earliest index wins."""
+    n = len(keys)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    start = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    gmin = np.minimum.reduceat(d2, start)
+    is_min = d2 == np.repeat(gmin, np.diff(np.r_[start, n]))
+    del gmin
+    idx = np.flatnonzero(is_min)  # sorted; every run has at least one minimum
+    grp = np.searchsorted(start, idx, side="right") - 1
+    first = np.r_[True, grp[1:] != grp[:-1]]
+    best = idx[first]
+    if len(idx) > len(best):  # exact distance ties (regular grids, duplicates): lowest x, y, z
+        n_min = np.diff(np.r_[np.flatnonzero(first), len(idx)])
+        sel = np.repeat(n_min > 1, n_min)
+        ti, tg = idx[sel], grp[sel]
+        ot = np.lexsort((ti, cols[2][ti], cols[1][ti], cols[0][ti], tg))
+        tgs = tg[ot]
+        firsts = np.r_[True, tgs[1:] != tgs[:-1]]
+        best[tgs[firsts]] = ti[ot[firsts]]
+    return best
+
+
+def _best_per_cell(keys, d2, pos) -> np.ndarray:
+    """Index of the best point of every cell — smallest distance to the cell centre, ties broken by
+    x, then y, then z, then index — in Morton order of the cells.
+
+    One stable ``argsort`` of the keys and a segmented minimum; only exact distance ties (regular
+    grids) take a lexicographic sort, on the tied points alone.
+
+    Parameters
+    ----------
+    keys : (n,) int64 cell keys
+    d2 : (n,) float64 squared distances to the cell centres
+    pos : (n, 3) float64
+    """
+    if len(keys) == 0:
+        return np.zeros(0, np.int64)
+    o = np.argsort(keys, kind="stable")
+    p = pos[o]
+    return o[_best_in_runs(keys[o], d2[o], (p[:, 0], p[:, 1], p[:, 2]))]
+
+
+def _top_m(keys, d2, pos, m: int) -> np.ndarray:
+    """Indices of the ``m`` best points of every cell (order as :func:`_best_per_cell`, repeated)."""
+    if m == 1:
+        return _best_per_cell(keys, d2, pos)
+    out = []
+    alive = np.arange(len(keys))
+    for _ in range(m):
+        if len(alive) == 0:
+            break
+        b = alive[_best_per_cell(keys[alive], d2[alive], pos[alive])]
+        out.append(b)
+        mask = np.ones(len(keys), bool)
+        mask[np.concatenate(out)] = False
+        alive = np.flatnonzero(mask)
+    return np.concatenate(out) if out else np.zeros(0, np.int64)
+
+
+# ---------------------------------------------------------------------------------------------
+# file helpers
+# ---------------------------------------------------------------------------------------------
+def _field_bytes(schema) -> int:
+    return sum(np.dtype(dt).itemsize * int(np.prod(shape, dtype=np.int64)) for dt, shape in schema.values())
+
+
+class _Appender:
+    """Append raw arrays to ``<dir>/<field>.bin`` files (opened lazily, kept open)."""
+
+    def __init__(self, directory: Path, schema):
+        self.dir = Path(directory)
+        self.schema = schema
+        self.files = {}
+        self.count = 0
+
+    def write(self, rec: dict):
+        n = len(rec["positions"])
+        if n == 0:
+            return
+        if not self.files:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            self.files = {k: open(self.dir / f"{k}.bin", "ab") for k in self.schema}
+        for k, f in self.files.items():
+            np.ascontiguousarray(rec[k], dtype=self.schema[k][0]).tofile(f)
+        self.count += n
+
+    def close(self):
+        for f in self.files.values():
+            f.close()
+        self.files = {}
+
+
+def _read_records(directory: Path, schema, start=0, stop=None) -> dict:
+    out = {}
+    for k, (dt, shape) in schema.items():
+        dt = np.dtype(dt)
+        row = int(np.prod(shape, dtype=np.int64))
+        path = Path(directory) / f"{k}.bin"
+        if not path.exists():
+            out[k] = np.zeros((0, *shape), dt)
+            continue
+        total = path.stat().st_size // (dt.itemsize * row)
+        stop_k = total if stop is None else min(stop, total)
+        with open(path, "rb") as f:
+            f.seek(start * dt.itemsize * row)
+            a = np.fromfile(f, dtype=dt, count=max(0, stop_k - start) * row)
+        out[k] = a.reshape(-1, *shape)
+    return out
+
+
+def _unique_counts(a: np.ndarray):
+    """Sorted unique values and their counts (sort-based: NumPy 2.4's hash-based ``np.unique`` is
+    an order of magnitude slower on large int64 arrays)."""
+    s = np.sort(a)
+    if len(s) == 0:
+        return s, np.zeros(0, np.int64)
+    start = np.flatnonzero(np.r_[True, s[1:] != s[:-1]])
+    return s[start], np.diff(np.r_[start, len(s)])
+
+
+def _in_sorted(a: np.ndarray, sorted_b: np.ndarray) -> np.ndarray:
+    """Boolean mask: which elements of ``a`` occur in the sorted array ``sorted_b``."""
+    if len(sorted_b) == 0:
+        return np.zeros(len(a), bool)
+    i = np.searchsorted(sorted_b, a)
+    return sorted_b[np.minimum(i, len(sorted_b) - 1)] == a
+
+
+def _merge_counts(k1, c1, k2=None, c2=None):
+    """Merge sorted (key, count) tables (keys may repeat): sorted unique keys and summed counts.
+    A stable sort of two sorted runs is a linear merge (timsort)."""
+    if k2 is not None:
+        k = np.concatenate([k1, k2])
+        c = np.concatenate([c1, c2])
+        o = np.argsort(k, kind="stable")
+        k, c = k[o], c[o]
+    else:
+        k, c = k1, c1
+    if len(k) == 0:
+        return k, c
+    start = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    return k[start], np.add.reduceat(c, start)
+
+
+def _take(rec: dict, idx) -> dict:
+    return {k: v[idx] for k, v in rec.items()}
+
+
+# ---------------------------------------------------------------------------------------------
+# the octree
+# ---------------------------------------------------------------------------------------------
+class Octree:
+    """Nested levels of detail on disk (see the module docstring).
+
+    Attributes
+    ----------
+    path : Path
+    config : OctreeConfig
+    level_counts : list[int]
+        Points per level, coarsest first.
+    bbox : ((3,) float64, (3,) float64)
+    fields : dict name -> (dtype str, per-point shape tuple); always holds ``'positions'``.
+    meta : dict
+        The parsed ``octree.json``.
+    """
+
+    def __init__(self, path, meta: dict):
+        self.path = Path(path)
+        self.meta = meta
+        cfg = meta["config"]
+        self.config = OctreeConfig(levels=cfg["levels"], root_cell=cfg["root_cell"],
+                                   memory_limit_mb=cfg["memory_limit_mb"])
+        self.level_counts = [int(c) for c in meta["level_counts"]]
+        self.bbox = (np.asarray(meta["bbox"][0], np.float64), np.asarray(meta["bbox"][1], np.float64))
+        self.fields = {k: (v["dtype"], tuple(v["shape"])) for k, v in meta["fields"].items()}
+
+    # -- properties ------------------------------------------------------------------------------
+    @property
+    def levels(self) -> int:
+        return len(self.level_counts)
+
+    @property
+    def n_points(self) -> int:
+        return int(sum(self.level_counts))
+
+    def cell_size(self, level: int) -> float:
+        """Cell size (metres) of grid level ``level``."""
+        return float(self.meta["root_cell"]) / 2.0 ** level
+
+    def __repr__(self):
+        return f"Octree({str(self.path)!r}, levels={self.level_counts})"
+
+    # -- opening -------------------------------------------------------------------------------
+    @classmethod
+    def open(cls, out_dir) -> "Octree":
+        path = Path(out_dir)
+        jf = path / "octree.json"
+        if not jf.is_file():
+            raise InputError(jf, "not an octree: octree.json is missing (unfinished or wrong folder)")
+        try:
+            meta = json.loads(jf.read_text())
+        except json.JSONDecodeError as e:
+            raise InputError(jf, f"invalid JSON: {e}") from None
+        if meta.get("format") != FORMAT:
+            raise InputError(jf, f"field 'format' is {meta.get('format')!r}, expected {FORMAT!r}")
+        if meta.get("version") != VERSION:
+            raise InputError(jf, f"field 'version' is {meta.get('version')!r}, this reader knows {VERSION}")
+        for key in ("config", "level_counts", "bbox", "fields", "root_cell"):
+            if key not in meta:
+                raise InputError(jf, f"field {key!r} is missing")
+        tree = cls(path, meta)
+        for lvl, n in enumerate(tree.level_counts):
+            for k, (dt, shape) in tree.fields.items():
+                f = tree._level_dir(lvl) / f"{k}.bin"
+                want = n * np.dtype(dt).itemsize * int(np.prod(shape, dtype=np.int64))
+                size = f.stat().st_size if f.exists() else 0
+                if size != want:
+                    raise InputError(f, f"holds {size} bytes, octree.json field 'level_counts' "
+                                        f"implies {want}")
+        return tree
+
+    # -- reading -------------------------------------------------------------------------------
+    def _level_dir(self, level: int) -> Path:
+        return self.path / f"level_{level:02d}"
+
+    def _check_level(self, level):
+        if not 0 <= level < self.levels:
+            raise IndexError(f"level {level} out of range 0..{self.levels - 1}")
+
+    def read_level(self, level: int) -> dict:
+        """All points of one level: ``{'positions': (n, 3) float64, <attribute>: (n, ...)}``."""
+        self._check_level(level)
+        return _read_records(self._level_dir(level), self.fields)
+
+    def iter_level_chunks(self, level: int, chunk_size: int = 1_000_000) -> Iterator[dict]:
+        """One level in chunks of at most ``chunk_size`` points (dicts as :meth:`read_level`)."""
+        self._check_level(level)
+        n = self.level_counts[level]
+        for s in range(0, n, int(chunk_size)):
+            yield _read_records(self._level_dir(level), self.fields, s, min(n, s + int(chunk_size)))
+
+    def iter_levels(self, levels: Iterable[int] | None = None, chunk_size: int = 1_000_000) -> Iterator[dict]:
+        """Stream several levels (default: all), coarsest first, in chunks of ``<= chunk_size``."""
+        for lvl in (range(self.levels) if levels is None else levels):
+            yield from self.iter_level_chunks(lvl, chunk_size)
+
+    def read_lod(self, k: int) -> dict:
+        """``LOD k`` = levels ``0 .. k-1`` concatenated (the paper's proxy cloud P_LD for ``k``)."""
+        parts = [self.read_level(lvl) for lvl in range(k)]
+        if not parts:
+            return {f: np.zeros((0, *s), dt) for f, (dt, s) in self.fields.items()}
+        return {f: np.concatenate([p[f] for p in parts]) for f in self.fields}
+
+    def lod_counts(self) -> list[int]:
+        """``|LOD k|`` for ``k = 1 .. levels``."""
+        return [int(c) for c in np.cumsum(self.level_counts)]
+
+    def subsampling_factors(self) -> list[float]:
+        """``|P_HD| / |LOD k|`` for ``k = 1 .. levels`` (non-increasing, ends at 1.0)."""
+        total = self.n_points
+        return [total / c if c else math.inf for c in self.lod_counts()]
+
+    def lod_for_factor(self, factor: float) -> int:
+        """The smallest ``k`` whose sub-sampling factor is at most ``factor`` (i.e. the coarsest
+        LOD at least as dense as asked)."""
+        for k, f in enumerate(self.subsampling_factors(), start=1):
+            if f <= factor:
+                return k
+        return self.levels
+
+    # -- building ------------------------------------------------------------------------------
+    @classmethod
+    def build(cls, chunks_fn, out_dir, config: OctreeConfig | None = None, bbox=None,
+              progress: bool = True) -> "Octree":
+        """Build the levels of detail out of core and write them to ``out_dir``.
+
+        Parameters
+        ----------
+        chunks_fn : callable returning an iterator of chunks (or a re-iterable)
+            Each chunk is ``(positions (n, 3) float64, {name: (n, ...) array})``, a dict with
+            ``'positions'``, or a ``PointCloud``. Read 2 times (3 without ``bbox``), plus the
+            first chunk once more for the attribute schema; every pass must yield the same points
+            in the same order. Attributes travel with the points.
+        out_dir : path
+            Written atomically: built in ``<out_dir>.tmp-<pid>`` beside it and renamed when
+            complete. An existing octree there is replaced; any other non-empty folder is an error.
+        config : OctreeConfig
+        bbox : ((3,), (3,)) float64, optional
+            The cloud's bounding box; computed in an extra pass if omitted.
+        progress : bool
+            tqdm progress bars.
+        """
+        config = config or OctreeConfig()
+        src = _chunk_source(chunks_fn)
+        out_dir = Path(out_dir)
+        if out_dir.exists() and not (out_dir / "octree.json").exists() and any(out_dir.iterdir()):
+            raise InputError(out_dir, "exists and is not an octree; refusing to overwrite it")
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}"
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir()
+        try:
+            meta = _Builder(src, tmp, config, bbox, progress).run()
+            (tmp / "octree.json").write_text(json.dumps(meta, indent=1))
+            if out_dir.exists():
+                old = out_dir.parent / f".{out_dir.name}.old-{os.getpid()}"
+                out_dir.rename(old)
+                tmp.rename(out_dir)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                tmp.rename(out_dir)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return cls.open(out_dir)
+
+
+class _Builder:
+    """The build passes of :meth:`Octree.build` (see the module docstring)."""
+
+    def __init__(self, src, tmp: Path, config: OctreeConfig, bbox, progress):
+        self.src = src
+        self.tmp = tmp
+        self.config = config
+        self.bbox = bbox
+        self.progress = progress
+        self.budget = int(config.memory_limit_mb * 2 ** 20)
+        self.timings = {}
+
+    # -- budget split -----------------------------------------------------------------------------
+    def _plan_memory(self):
+        rb = _field_bytes(self.schema)
+        self.record_bytes = rb
+        # counting table: int64 keys + int64 counts (16 B/cell); merging it with a slice's cells
+        # takes ~6 temporaries of that size, so 96 B/cell at the peak: cap it at ~3/8 of the budget
+        self.count_cap = max(4096, self.budget // 256)
+        # spill buffers: a quarter of the budget
+        self.buffer_bytes = max(1 << 16, self.budget // 4)
+        # one bucket in memory: its records, a copy while writing levels, and ~100 bytes/point of
+        # work arrays (int64 coordinates 24, keys 8, distances 8, lexsort 16, float temporaries 48)
+        self.capacity = max(1024, int(self.budget * 0.4 / (2 * rb + 112)))
+        # input chunks are sliced so the per-slice work arrays (~ 4 * rb + 64 bytes/point) stay
+        # within an eighth of the budget
+        self.slice_points = max(1024, int(self.budget / 8 / (4 * rb + 64)))
+
+    # -- passes ------------------------------------------------------------------------------------
+    def run(self) -> dict:
+        t0 = time.perf_counter()
+        cfg = self.config
+        # schema from the first chunk
+        it = iter(self.src())
+        first = next(it, None)
+        if hasattr(it, "close"):
+            it.close()
+        del it
+        if first is None:
+            raise ValueError("the point source yielded no chunks")
+        pos0, attrs0 = _normalize_chunk(first, "chunk 0")
+        self.schema = {"positions": ("float64", (3,))}
+        self.schema.update({k: (str(v.dtype), tuple(v.shape[1:])) for k, v in attrs0.items()})
+        del first, pos0, attrs0
+        self._plan_memory()
+        # _iter_normalized compares against lists; keep a list-shaped copy for the check
+        self._schema_for_check = {k: (dt, list(s)) for k, (dt, s) in self.schema.items()}
+
+        if self.bbox is None:
+            lo, hi, n = compute_bbox(self.src, self.progress)
+            self.n_total = n
+        else:
+            lo = np.asarray(self.bbox[0], np.float64).reshape(3)
+            hi = np.asarray(self.bbox[1], np.float64).reshape(3)
+            self.n_total = None
+        self.timings["bbox_s"] = time.perf_counter() - t0
+        extent = np.maximum(hi - lo, 0.0)
+        diag = float(np.linalg.norm(extent))
+        root = float(cfg.root_cell) if cfg.root_cell else (diag / 64.0 if diag > 0 else 1.0)
+        n_grid = cfg.levels - 1
+        dims0 = max(1, int(np.ceil(np.max(extent) / root)))
+        bits0 = max(1, int(math.ceil(math.log2(dims0))) if dims0 > 1 else 1)
+        if n_grid > 0 and bits0 + n_grid - 1 > MAX_BITS_PER_AXIS:
+            raise ValueError(f"{cfg.levels} levels with root cell {root:g} m over a {np.max(extent):g} m "
+                             f"box need {bits0 + n_grid - 1} bits per axis (max {MAX_BITS_PER_AXIS}): "
+                             "use fewer levels or a larger root_cell")
+        self.grid = _Grid(lo, root, n_grid, bits0)
+        self.spill = self.tmp / "spill"
+        self.spill.mkdir()
+
+        if n_grid == 0:
+            counts = self._copy_all()
+        else:
+            t = time.perf_counter()
+            self._count()
+            self.timings["count_s"] = time.perf_counter() - t
+            t = time.perf_counter()
+            self._make_buckets()
+            self._distribute()
+            self.timings["distribute_s"] = time.perf_counter() - t
+            t = time.perf_counter()
+            self._coarse_levels()
+            self.timings["coarse_s"] = time.perf_counter() - t
+            t = time.perf_counter()
+            counts = self._fine_levels()
+            self.timings["select_s"] = time.perf_counter() - t
+        shutil.rmtree(self.spill)
+        self.timings["total_s"] = time.perf_counter() - t0
+        if self.n_total is not None and sum(counts) != self.n_total:
+            raise RuntimeError(f"the point source yielded {sum(counts)} points, the bbox pass {self.n_total}: "
+                               "chunks_fn must yield the same points on every call")
+        outside = getattr(self, "n_outside", 0)
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "config": dataclasses.asdict(cfg),
+            "root_cell": root,
+            "bbox": [lo.tolist(), hi.tolist()],
+            "level_counts": [int(c) for c in counts],
+            "n_points": int(sum(counts)),
+            "fields": {k: {"dtype": dt, "shape": list(s)} for k, (dt, s) in self.schema.items()},
+            "bucket_level": int(getattr(self, "c", 0)),
+            "n_buckets": int(len(getattr(self, "bucket_counts", [0]))),
+            "max_bucket_points": int(max(getattr(self, "bucket_counts", [0]), default=0)),
+            "bucket_capacity": int(self.capacity),
+            "points_outside_bbox": int(outside),
+            "timings": self.timings,
+        }
+
+    def _iter_checked(self):
+        return _iter_normalized(self.src, self._schema_for_check, self.slice_points)
+
+    # pass: everything into level 0 when there are no grid levels
+    def _copy_all(self):
+        app = _Appender(self.tmp / "level_00", self.schema)
+        with _progress(self.n_total, "octree: copy", self.progress) as bar:
+            for pos, attrs in self._iter_checked():
+                app.write({"positions": pos, **attrs})
+                bar.update(len(pos))
+        app.close()
+        return [app.count]
+
+    # pass: sparse counts at the finest affordable level
+    def _count(self):
+        g = self.grid
+        level = g.finest
+        keys = np.zeros(0, np.int64)
+        cnts = np.zeros(0, np.int64)
+        n = 0
+        n_out = 0
+        lo, hi = g.origin, np.asarray(self.bbox[1]) if self.bbox is not None else None
+        with _progress(self.n_total, "octree: count", self.progress) as bar:
+            for pos, _ in self._iter_checked():
+                if not np.isfinite(pos).all():
+                    raise ValueError("the point source contains non-finite coordinates")
+                if hi is not None:
+                    n_out += int(np.count_nonzero(np.any((pos < lo) | (pos > hi), axis=1)))
+                k = morton_encode(g.coords(pos) >> (g.finest - level))
+                uk, uc = _unique_counts(k)
+                keys, cnts = _merge_counts(keys, cnts, uk, uc)
+                while len(keys) > self.count_cap and level > 0:
+                    level -= 1
+                    keys, cnts = _merge_counts(keys >> 3, cnts)
+                n += len(pos)
+                bar.update(len(pos))
+        if self.n_total is not None and n != self.n_total:
+            raise RuntimeError(f"chunks_fn yielded {n} points now and {self.n_total} before: "
+                               "it must yield the same points on every call")
+        self.n_total = n
+        self.n_outside = n_out  # clipped into the boundary cells; harmless but reported
+        # bucket level: the coarsest level whose every cell fits one bucket
+        c, ck, cc = level, keys, cnts
+        for lvl in range(0, level + 1):
+            k2, c2 = _merge_counts(keys >> (3 * (level - lvl)), cnts)
+            if c2.max() <= self.capacity:
+                c, ck, cc = lvl, k2, c2
+                break
+        self.c, self.cell_keys, self.cell_counts = c, ck, cc
+
+    def _make_buckets(self):
+        starts, counts = [], []
+        acc = 0
+        for key, cnt in zip(self.cell_keys.tolist(), self.cell_counts.tolist()):
+            if not starts or acc + cnt > self.capacity:
+                starts.append(key)
+                counts.append(0)
+                acc = 0
+            acc += cnt
+            counts[-1] += cnt
+        self.bucket_starts = np.asarray(starts, np.int64)
+        self.bucket_counts = np.asarray(counts, np.int64)
+        self.bucket_offsets = np.r_[0, np.cumsum(self.bucket_counts)]
+        del self.cell_keys, self.cell_counts
+
+    def _bucket_dir(self, b: int) -> Path:
+        return self.spill / f"b{b:06d}"
+
+    # pass: points -> per-bucket spill files
+    def _distribute(self):
+        g, c = self.grid, self.c
+        nb = len(self.bucket_starts)
+        apps = [_Appender(self._bucket_dir(b), self.schema) for b in range(nb)]
+        buf = [[] for _ in range(nb)]
+        buffered = 0
+
+        def flush():
+            for b in range(nb):
+                if buf[b]:
+                    parts = buf[b]
+                    rec = parts[0] if len(parts) == 1 else {k: np.concatenate([p[k] for p in parts]) for k in self.schema}
+                    apps[b].write(rec)
+                    apps[b].close()  # never hold thousands of handles
+                    buf[b] = []
+
+        with _progress(self.n_total, "octree: distribute", self.progress) as bar:
+            for pos, attrs in self._iter_checked():
+                kc = morton_encode(g.coords(pos) >> (g.finest - c))
+                bid = np.searchsorted(self.bucket_starts, kc, side="right") - 1
+                o = np.argsort(bid, kind="stable")
+                bs = bid[o]
+                cuts = np.flatnonzero(np.r_[True, bs[1:] != bs[:-1], True])
+                rec = {"positions": pos, **attrs}
+                rec = {k: v[o] for k, v in rec.items()}
+                for i in range(len(cuts) - 1):
+                    a, e = cuts[i], cuts[i + 1]
+                    buf[bs[a]].append({k: v[a:e] for k, v in rec.items()})
+                buffered += len(pos) * self.record_bytes
+                if buffered > self.buffer_bytes:
+                    flush()
+                    buffered = 0
+                bar.update(len(pos))
+        flush()
+        for b, app in enumerate(apps):
+            if app.count != self.bucket_counts[b]:
+                raise RuntimeError(f"bucket {b} received {app.count} points, counted {self.bucket_counts[b]}: "
+                                   "chunks_fn must yield the same points on every call")
+
+    # bucket access ------------------------------------------------------------------------------
+    def _bucket_chunks(self, b: int):
+        """Yield ``(local_start, record)`` for bucket ``b`` in slices within the capacity."""
+        n = int(self.bucket_counts[b])
+        step = n if n <= self.capacity else max(1024, self.capacity // 2)
+        for s in range(0, n, step):
+            yield s, _read_records(self._bucket_dir(b), self.schema, s, min(n, s + step))
+
+    # pass: candidates for levels 0..c-1, resolved exactly in memory
+    def _coarse_levels(self):
+        g, c = self.grid, self.c
+        nb = len(self.bucket_starts)
+        self.coarse_picks = [np.zeros(0, np.int64) for _ in range(nb)]  # local indices per bucket
+        self.level_apps = [_Appender(self.tmp / f"level_{lvl:02d}", self.schema) for lvl in range(self.config.levels)]
+        if c == 0:
+            return
+        cand = [[] for _ in range(c)]  # per level: list of (uid, key, d2, record)
+        with _progress(self.n_total, "octree: coarse levels", self.progress) as bar:
+            for b in range(nb):
+                running = [None] * c
+                for s, rec in self._bucket_chunks(b):
+                    pos = rec["positions"]
+                    q = g.coords(pos)
+                    uid = self.bucket_offsets[b] + s + np.arange(len(pos), dtype=np.int64)
+                    for lvl in range(c):
+                        keys, d2 = g.keys_and_d2(pos, q, lvl)
+                        part = {"uid": uid, "key": keys, "d2": d2, **rec}
+                        if running[lvl] is not None:
+                            part = {k: np.concatenate([running[lvl][k], part[k]]) for k in part}
+                        t = _top_m(part["key"], part["d2"], part["positions"], lvl + 1)
+                        running[lvl] = _take(part, t)
+                    bar.update(len(pos))
+                for lvl in range(c):
+                    cand[lvl].append(running[lvl])
+        picked = np.zeros(0, np.int64)
+        for lvl in range(c):
+            allc = {k: np.concatenate([p[k] for p in cand[lvl]]) for k in cand[lvl][0]}
+            cand[lvl] = None
+            free = ~_in_sorted(allc["uid"], picked)
+            allc = _take(allc, free)
+            t = _top_m(allc["key"], allc["d2"], allc["positions"], 1)
+            best = _take(allc, t)
+            self.level_apps[lvl].write({k: best[k] for k in self.schema})
+            picked = np.sort(np.concatenate([picked, best["uid"]]))  # disjoint: free only
+        bid = np.searchsorted(self.bucket_offsets, picked, side="right") - 1
+        for b in _unique_counts(bid)[0]:
+            self.coarse_picks[b] = np.sort(picked[bid == b] - self.bucket_offsets[b])
+
+    # pass: levels c..levels-2 and the remainder, bucket by bucket
+    def _fine_levels(self):
+        g, c = self.grid, self.c
+        rem = self.config.levels - 1
+        with _progress(self.n_total, "octree: select", self.progress) as bar:
+            for b in range(len(self.bucket_starts)):
+                n = int(self.bucket_counts[b])
+                if n <= self.capacity:
+                    rec = _read_records(self._bucket_dir(b), self.schema)
+                    self._select_in_memory(rec, self.coarse_picks[b])
+                else:
+                    self._select_streaming(b, self.coarse_picks[b])
+                shutil.rmtree(self._bucket_dir(b), ignore_errors=True)
+                bar.update(n)
+        for app in self.level_apps:
+            app.close()
+        return [app.count for app in self.level_apps]
+
+    def _select_in_memory(self, rec, coarse_local):
+        """Levels ``c ..`` of one bucket: one stable sort by the finest Morton key, after which the
+        cells of every coarser level are contiguous runs too (their keys are prefixes). The work
+        arrays are 1-D columns compacted per level; the records are gathered once, at writing."""
+        g, c = self.grid, self.c
+        keep = np.ones(len(rec["positions"]), bool)
+        keep[coarse_local] = False
+        base = np.flatnonzero(keep)
+        del keep
+        pos = rec["positions"][base]
+        q = g.coords(pos)
+        kf = morton_encode(q)
+        o = np.argsort(kf, kind="stable")  # stable: exact duplicates keep their input order
+        idx, kf = base[o], kf[o]
+        cols = [np.ascontiguousarray(pos[o, j]) for j in range(3)]
+        qc = [np.ascontiguousarray(q[o, j]) for j in range(3)]
+        del base, pos, q, o
+        for lvl in range(c, g.n_grid):
+            if len(idx) == 0:
+                break
+            shift = g.finest - lvl
+            d2 = g.d2(*cols, *(a >> shift for a in qc), lvl)
+            best = _best_in_runs(kf >> (3 * shift), d2, cols)
+            del d2
+            self.level_apps[lvl].write(_take(rec, idx[best]))
+            mask = np.ones(len(idx), bool)
+            mask[best] = False
+            idx, kf = idx[mask], kf[mask]
+            cols = [a[mask] for a in cols]
+            qc = [a[mask] for a in qc]
+        if len(idx):
+            self.level_apps[-1].write(_take(rec, idx))  # the remainder, in Morton order already
+
+    def _select_streaming(self, b, coarse_local):
+        """Levels of an over-full bucket by per-level running reductions over its spill file."""
+        g, c = self.grid, self.c
+        n = int(self.bucket_counts[b])
+        assigned = np.full(n, -1, np.int8)
+        assigned[coarse_local] = -2  # taken by a coarse level already written
+        for lvl in range(c, g.n_grid):
+            running = None
+            for s, rec in self._bucket_chunks(b):
+                free = np.flatnonzero(assigned[s:s + len(rec["positions"])] == -1)
+                if len(free) == 0:
+                    continue
+                pos = rec["positions"][free]
+                keys, d2 = g.keys_and_d2(pos, g.coords(pos), lvl)
+                part = {"idx": free + s, "key": keys, "d2": d2, "positions": pos}
+                if running is not None:
+                    part = {k: np.concatenate([running[k], part[k]]) for k in part}
+                running = _take(part, _top_m(part["key"], part["d2"], part["positions"], 1))
+            if running is None:
+                break
+            assigned[running["idx"]] = lvl
+        rem = g.n_grid
+        for s, rec in self._bucket_chunks(b):
+            a = assigned[s:s + len(rec["positions"])]
+            for lvl in range(c, g.n_grid + 1):
+                sel = np.flatnonzero(a == (lvl if lvl < rem else -1))
+                if len(sel):
+                    sub = _take(rec, sel)
+                    lk = lvl if lvl < rem else g.finest
+                    keys, _ = g.keys_and_d2(sub["positions"], g.coords(sub["positions"]), lk)
+                    self.level_apps[lvl].write(_take(sub, np.argsort(keys, kind="stable")))

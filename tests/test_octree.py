@@ -1,0 +1,321 @@
+"""Out-of-core levels of detail (dmrt.octree): partition, nesting, evenness, out-of-core equivalence.
+
+The truths here are independent of the implementation: a naive in-memory reference of the level
+definition (per level, per cell, the free point closest to the cell centre, ties by x, y, z), the
+input itself (every point once, attributes attached), and set identities for nesting/coverage.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from dmrt.errors import InputError
+from dmrt.octree import Octree, OctreeConfig, morton_encode
+
+N_BIG = 2_000_000
+CHUNK = 50_000
+
+
+def surface_chunk(i: int, n: int = CHUNK, seed: int = 7):
+    """Chunk ``i`` of a synthetic scanned scene: a 20x20 m ground, a 10 m wall and a sphere, 2 mm noise.
+    Attributes: ``id`` (global input index) and ``colors`` (a function of ``id``)."""
+    rng = np.random.default_rng([seed, i])
+    u = rng.random((n, 2))
+    kind = rng.integers(0, 3, n)
+    p = np.empty((n, 3))
+    p[:, 0], p[:, 1], p[:, 2] = u[:, 0] * 20, u[:, 1] * 20, 0.0
+    m = kind == 1
+    p[m, 2], p[m, 1] = u[m, 1] * 10, 5.0
+    m = kind == 2
+    th, ph = u[m, 0] * 2 * np.pi, np.arccos(1 - 2 * u[m, 1])
+    p[m] = np.c_[np.sin(ph) * np.cos(th), np.sin(ph) * np.sin(th), np.cos(ph)] * 3 + [10, 10, 5]
+    p += rng.normal(0, 0.002, p.shape)
+    ids = np.arange(i * n, (i + 1) * n, dtype=np.int64)
+    return p, {"id": ids, "colors": color_of(ids)}
+
+
+def color_of(ids):
+    return np.stack([ids % 251, (ids // 251) % 253, (ids * 7) % 255], axis=1).astype(np.uint8)
+
+
+def cell_codes(pos, origin, root, levels, level):
+    """Integer code of each point's level-``level`` cell, from the finest grid's integer coordinates
+    shifted down (the definition of the nested grids)."""
+    finest = levels - 2
+    q = np.floor((pos - origin) / (root / 2.0 ** finest)).astype(np.int64) >> (finest - level)
+    assert q.min() >= 0 and q.max() < 2 ** 21
+    return (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
+
+
+def unique(a):
+    """Sorted unique values (sort-based; NumPy 2.4's hash-based np.unique is slow on large arrays)."""
+    s = np.sort(a)
+    return s[np.r_[True, s[1:] != s[:-1]]] if len(s) else s
+
+
+def reference_levels(pos, origin, root, levels):
+    """Naive in-memory reference: (n,) level of each point."""
+    finest = levels - 2
+    q = np.floor((pos - origin) / (root / 2.0 ** finest)).astype(np.int64)
+    level = np.full(len(pos), -1)
+    for lvl in range(levels - 1):
+        free = np.flatnonzero(level < 0)
+        ql = q[free] >> (finest - lvl)
+        p = pos[free]
+        d = p - (origin + (ql + 0.5) * (root / 2.0 ** lvl))
+        d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
+        o = np.lexsort((free, p[:, 2], p[:, 1], p[:, 0], d2, ql[:, 2], ql[:, 1], ql[:, 0]))
+        qs = ql[o]
+        first = np.r_[True, np.any(qs[1:] != qs[:-1], axis=1)]
+        level[free[o[first]]] = lvl
+    level[level < 0] = levels - 1
+    return level
+
+
+def ids_per_level(tree):
+    return [np.sort(tree.read_level(lvl)["id"]) for lvl in range(tree.levels)]
+
+
+# ---------------------------------------------------------------------------------------------
+# a 2M-point cloud (48 MB of float64 positions, 83 MB with attributes) built with an 8 MB limit
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def big(tmp_path_factory):
+    out = tmp_path_factory.mktemp("oct") / "big"
+    # the test keeps the input in RAM only to check the result; the build sees 50k-point chunks
+    data = [surface_chunk(i) for i in range(N_BIG // CHUNK)]
+    pos = np.concatenate([p for p, _ in data])
+    cfg = OctreeConfig(levels=8, memory_limit_mb=8)
+    tree = Octree.build(lambda: iter(data), out, cfg, bbox=(pos.min(0), pos.max(0)), progress=False)
+    return tree, pos
+
+
+def test_partition_every_point_once_with_attributes(big):
+    tree, pos = big
+    assert tree.n_points == N_BIG and sum(tree.level_counts) == N_BIG
+    ids, got_pos = [], []
+    for lvl in range(tree.levels):
+        d = tree.read_level(lvl)
+        assert d["positions"].dtype == np.float64 and d["positions"].shape == (tree.level_counts[lvl], 3)
+        assert d["colors"].dtype == np.uint8 and d["id"].dtype == np.int64
+        np.testing.assert_array_equal(d["colors"], color_of(d["id"]))  # attributes travel with points
+        ids.append(d["id"])
+        got_pos.append(d["positions"])
+    ids = np.concatenate(ids)
+    np.testing.assert_array_equal(np.sort(ids), np.arange(N_BIG))  # each input point exactly once
+    np.testing.assert_array_equal(np.concatenate(got_pos), pos[ids])  # bit-exact positions
+    # and, independent of the ids, the sorted coordinate arrays agree
+    a = np.concatenate(got_pos)
+    for axis in range(3):
+        np.testing.assert_array_equal(np.sort(a[:, axis]), np.sort(pos[:, axis]))
+
+
+def test_levels_even_nested_and_covering(big):
+    tree, pos = big
+    origin, root, L = tree.bbox[0], tree.meta["root_cell"], tree.levels
+    lod = np.zeros((0, 3))
+    for lvl in range(L - 1):
+        p = tree.read_level(lvl)["positions"]
+        # spatially even: no two points of level l share a level-l cell
+        codes = cell_codes(p, origin, root, L, lvl)
+        assert len(unique(codes)) == len(codes), f"level {lvl} has two points in one cell"
+        lod = np.concatenate([lod, p])
+        # LOD l+1 (levels 0..l) covers every occupied level-l cell of the whole cloud, and only those
+        want = unique(cell_codes(pos, origin, root, L, lvl))
+        have = unique(cell_codes(lod, origin, root, L, lvl))
+        np.testing.assert_array_equal(have, want)
+
+
+def test_subsampling_factors(big):
+    tree, _ = big
+    f = tree.subsampling_factors()
+    assert len(f) == tree.levels and f[-1] == 1.0
+    assert all(a > b for a, b in zip(f, f[1:]) if b > 1.0)  # strictly decreasing until all points are in
+    assert all(a >= b for a, b in zip(f, f[1:]))
+    # surfaces: each grid level multiplies the LOD size by about 4 while the cloud is dense enough
+    lods = tree.lod_counts()
+    assert 3.0 < lods[1] / lods[0] < 5.0 and 3.0 < lods[2] / lods[1] < 5.0
+    assert tree.lod_for_factor(f[2]) == 3
+
+
+def test_reopen_gives_same_data(big):
+    tree, _ = big
+    again = Octree.open(tree.path)
+    assert again.level_counts == tree.level_counts and again.fields == tree.fields
+    meta = json.loads((tree.path / "octree.json").read_text())
+    assert meta["level_counts"] == tree.level_counts and meta["format"] == "dmrt-octree"
+    for lvl in (0, 3, tree.levels - 1):
+        a, b = tree.read_level(lvl), again.read_level(lvl)
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k])
+        chunks = list(again.iter_level_chunks(lvl, chunk_size=10_007))
+        assert all(len(c["positions"]) <= 10_007 for c in chunks)
+        for k in a:
+            np.testing.assert_array_equal(np.concatenate([c[k] for c in chunks]), a[k])
+    streamed = list(again.iter_levels(range(3), chunk_size=5000))
+    np.testing.assert_array_equal(np.concatenate([c["id"] for c in streamed]), again.read_lod(3)["id"])
+    assert again.meta["n_buckets"] > 10  # the 8 MB limit really split the cloud
+
+
+# ---------------------------------------------------------------------------------------------
+# exactness against the naive reference, on a small cloud with every hard case:
+# coarse levels spanning buckets, an over-full bucket, exact distance ties, duplicate points
+# ---------------------------------------------------------------------------------------------
+def tricky_cloud(seed=3):
+    rng = np.random.default_rng(seed)
+    parts = [surface_chunk(0, n=20_000, seed=seed)[0]]
+    g = np.stack(np.meshgrid(np.arange(40), np.arange(40), indexing="ij"), -1).reshape(-1, 2) * 0.05
+    parts.append(np.c_[g + 2.0, np.full(len(g), 0.5)])  # exact grid: many exact distance ties
+    parts.append(np.repeat(parts[0][:300], 3, axis=0))  # exact duplicates
+    parts.append(rng.normal([15.0, 15.0, 1.0], 1e-4, (4000, 3)))  # a dense cluster: over-full cell
+    pos = np.concatenate(parts)
+    ids = np.arange(len(pos), dtype=np.int64)
+    return pos, ids
+
+
+def chunked(pos, ids, size, order=None):
+    starts = list(range(0, len(pos), size))
+    if order is not None:
+        starts = [starts[i] for i in order]
+    return lambda: ((pos[s:s + size], {"id": ids[s:s + size]}) for s in starts)
+
+
+def test_matches_naive_reference_out_of_core(tmp_path):
+    pos, ids = tricky_cloud()
+    lo, hi = pos.min(0), pos.max(0)
+    root = float(np.linalg.norm(hi - lo)) / 3  # huge level-0 cells: coarse levels span many buckets
+    cfg = OctreeConfig(levels=9, root_cell=root, memory_limit_mb=0.05)  # ~1000-point buckets
+    tree = Octree.build(chunked(pos, ids, 3001), tmp_path / "a", cfg, bbox=(lo, hi), progress=False)
+    assert tree.meta["bucket_level"] > 0, "the coarse-candidate path was not exercised"
+    assert tree.meta["max_bucket_points"] > tree.meta["bucket_capacity"], "no over-full bucket"
+    ref = reference_levels(pos, lo, root, cfg.levels)
+    got = ids_per_level(tree)
+    for lvl in range(cfg.levels):
+        np.testing.assert_array_equal(got[lvl], np.flatnonzero(ref == lvl), err_msg=f"level {lvl}")
+
+    # the same octree in memory (one bucket), with shuffled chunks and without a given bbox
+    order = np.random.default_rng(0).permutation(len(range(0, len(pos), 3001)))
+    cfg2 = OctreeConfig(levels=9, root_cell=root, memory_limit_mb=512)
+    tree2 = Octree.build(chunked(pos, ids, 3001, order), tmp_path / "b", cfg2, progress=False)
+    assert tree2.meta["n_buckets"] == 1
+    for lvl in range(cfg.levels):
+        # compare positions: which of several exact duplicates lands in which level follows the
+        # input order, which the shuffle changed
+        a, b = pos[got[lvl]], tree2.read_level(lvl)["positions"]
+        np.testing.assert_array_equal(a[np.lexsort(a.T)], b[np.lexsort(b.T)], err_msg=f"level {lvl}")
+
+
+def test_default_root_and_single_level(tmp_path):
+    pos, ids = tricky_cloud(seed=5)
+    tree = Octree.build(chunked(pos, ids, 5000), tmp_path / "d", OctreeConfig(levels=6), progress=False)
+    diag = float(np.linalg.norm(pos.max(0) - pos.min(0)))
+    assert tree.meta["root_cell"] == pytest.approx(diag / 64)
+    ref = reference_levels(pos, pos.min(0), diag / 64, 6)
+    for lvl, got in enumerate(ids_per_level(tree)):
+        np.testing.assert_array_equal(got, np.flatnonzero(ref == lvl))
+    one = Octree.build(chunked(pos, ids, 5000), tmp_path / "e", OctreeConfig(levels=1), progress=False)
+    assert one.level_counts == [len(pos)] and one.subsampling_factors() == [1.0]
+
+
+def test_level_files_are_spatially_coherent(big):
+    """Level files are written in Morton order (per bucket, and buckets in Morton order), which lets
+    later stages stream a level as spatially compact chunks."""
+    tree, _ = big
+    lvl = 4
+    p = tree.read_level(lvl)["positions"]
+    finest = tree.levels - 2
+    q = np.floor((p - tree.bbox[0]) / (tree.meta["root_cell"] / 2.0 ** finest)).astype(np.int64)
+    k = morton_encode(q >> (finest - lvl))
+    assert np.all(np.diff(k) > 0)
+
+
+# ---------------------------------------------------------------------------------------------
+# robustness
+# ---------------------------------------------------------------------------------------------
+def test_interrupted_build_leaves_nothing(tmp_path):
+    pos, ids = tricky_cloud()
+    calls = {"n": 0}
+
+    def chunks_fn():
+        calls["n"] += 1
+        this_call = calls["n"]
+        for k, s in enumerate(range(0, len(pos), 2000)):
+            if this_call == 4 and k == 4:  # 4th call (schema, bbox, count, distribute): mid-way
+                raise KeyboardInterrupt("simulated interruption")
+            yield pos[s:s + 2000], {"id": ids[s:s + 2000]}
+
+    with pytest.raises(KeyboardInterrupt):
+        Octree.build(chunks_fn, tmp_path / "oct", OctreeConfig(levels=6, memory_limit_mb=0.05), progress=False)
+    assert calls["n"] == 4
+    assert not (tmp_path / "oct").exists()
+    assert os.listdir(tmp_path) == []  # no temporary folder left behind either
+    with pytest.raises(InputError, match="octree.json"):
+        Octree.open(tmp_path)
+
+
+def test_replaces_old_octree_but_not_foreign_folders(tmp_path):
+    pos, ids = tricky_cloud()
+    out = tmp_path / "oct"
+    Octree.build(chunked(pos[:5000], ids[:5000], 1000), out, OctreeConfig(levels=4), progress=False)
+    t = Octree.build(chunked(pos, ids, 7000), out, OctreeConfig(levels=5), progress=False)
+    assert Octree.open(out).level_counts == t.level_counts and t.n_points == len(pos)
+    assert sorted(os.listdir(tmp_path)) == ["oct"]
+    foreign = tmp_path / "mine"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("keep")
+    with pytest.raises(InputError, match="not an octree"):
+        Octree.build(chunked(pos, ids, 7000), foreign, OctreeConfig(levels=4), progress=False)
+    assert (foreign / "notes.txt").read_text() == "keep"
+
+
+def test_open_rejects_bad_metadata(tmp_path):
+    pos, ids = tricky_cloud()
+    t = Octree.build(chunked(pos, ids, 7000), tmp_path / "o", OctreeConfig(levels=4), progress=False)
+    meta = json.loads((t.path / "octree.json").read_text())
+    meta["version"] = 99
+    (t.path / "octree.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="version"):
+        Octree.open(t.path)
+    meta["version"] = 1
+    meta["level_counts"][0] += 1
+    (t.path / "octree.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="level_counts"):
+        Octree.open(t.path)
+
+
+def test_inconsistent_chunks_are_rejected(tmp_path):
+    pos, ids = tricky_cloud()
+
+    def bad():
+        yield pos[:100], {"id": ids[:100]}
+        yield pos[100:200], {"id": ids[100:200].astype(np.int32)}
+
+    with pytest.raises(ValueError, match="differ"):
+        Octree.build(bad, tmp_path / "x", OctreeConfig(levels=4), progress=False)
+    assert not (tmp_path / "x").exists()
+    with pytest.raises(TypeError, match="callable"):
+        Octree.build(iter([(pos, {})]), tmp_path / "y", OctreeConfig(levels=4), progress=False)
+
+
+def test_memory_stays_near_the_limit(tmp_path):
+    """Python-heap peak (numpy buffers are traced) of a build of a 600k-point cloud (19 MB of data)
+    under a 4 MB limit. The chunk generator's own ~1 MB peak is included; allow 2x for slack."""
+    n, ch, limit = 600_000, 10_000, 4
+    chunks = lambda: (surface_chunk(i, n=ch, seed=11)[0:1] + ({"id": np.arange(i * ch, (i + 1) * ch)},)
+                      for i in range(n // ch))
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        tree = Octree.build(chunks, tmp_path / "m", OctreeConfig(levels=8, memory_limit_mb=limit),
+                            progress=False)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert tree.n_points == n
+    assert tree.meta["n_buckets"] > 10
+    assert peak < 2 * limit * 2 ** 20, f"peak {peak / 2**20:.1f} MB for a {limit} MB limit"
