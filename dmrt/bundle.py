@@ -6,7 +6,8 @@ Layout (DESIGN.md)::
                                   timings, counts, the command that made it
     BUNDLE/depthmaps/<stem>.exr   one float32 depth map per photo (channel Z, camera z, 0 = empty)
     BUNDLE/proxy.npz              positions (n,3) float32 (relative to the origin), normals (n,3)
-                                  float32, radii (n,) float32 metres, labels (n,) int32
+                                  float32, radii (n,) float32 metres, labels (n,) int32, and
+                                  hd_radii (n,) float32: the points' splat radii in P_HD
     BUNDLE/images/<name>          the photographs (hard links to the scene's when possible)
     BUNDLE/images_low/<stem>.png  low-resolution copies (paper: 256x171)
 
@@ -178,7 +179,7 @@ class BundleWriter:
         return f"images/{name}"
 
     def write_proxy(self, **arrays) -> None:
-        """Write ``proxy.npz``; arrays as in :data:`PROXY_ARRAYS`."""
+        """Write ``proxy.npz``; arrays as in :data:`PROXY_ARRAYS` (and any extra ones)."""
         for key, (dtype, _) in PROXY_ARRAYS.items():
             arrays[key] = np.ascontiguousarray(arrays[key], dtype=dtype)
         np.savez(self.tmp / "proxy.npz", **arrays)

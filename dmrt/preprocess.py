@@ -228,7 +228,8 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
             images_low.append(rel)
         tic("photos_s", t0)
 
-        bw.write_proxy(positions=positions, normals=normals, radii=radii, labels=result.labels)
+        bw.write_proxy(positions=positions, normals=normals, radii=radii, labels=result.labels,
+                       hd_radii=hd_radii)
         shutil.rmtree(work)
         timings["total_s"] = round(time.perf_counter() - t_all, 3)
         counts = cands.counts()

@@ -32,3 +32,12 @@ def tiny_scene(tmp_path_factory):
     from bench.scenes.synthetic import PRESETS, generate_scene
 
     return generate_scene(PRESETS["tiny"], tmp_path_factory.mktemp("scenes") / "tiny", progress=False)
+
+
+@pytest.fixture(scope="session")
+def tiny_bundle(tiny_scene, tmp_path_factory):
+    """The tiny scene preprocessed (256-wide depth maps: the photos' own resolution)."""
+    from dmrt.preprocess import PreprocessConfig, preprocess
+
+    out = tmp_path_factory.mktemp("bundles") / "tiny"
+    return preprocess(tiny_scene, out, PreprocessConfig(depthmap_width=256), progress=False)
