@@ -51,7 +51,7 @@ def cmd_scene_synth(args) -> None:
     from bench.scenes.synthetic import PRESETS, SynthConfig, generate_scene
 
     config = config_from_args(SynthConfig, args, PRESETS[args.preset])
-    out = generate_scene(config, args.out, force=args.force, progress=not args.quiet)
+    out = generate_scene(config, args.out, force=args.force, progress=not args.quiet, workers=args.workers)
     print(f"wrote {out}")
 
 
@@ -99,6 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--out", type=Path, required=True, help="scene directory to write")
     synth.add_argument("--force", action="store_true", help="replace an existing scene")
     synth.add_argument("--quiet", action="store_true", help="no progress bars")
+    synth.add_argument("--workers", type=int, help="processes that scan and photograph (default: CPU cores)")
     add_config_args(synth, SynthConfig, skip=("name",))
     synth.set_defaults(func=cmd_scene_synth)
 

@@ -83,6 +83,14 @@ def test_scan_colors_match_photo_pixels(tiny_scene):
         assert err[(0, 0)] == min(err.values()), err  # any convention slip of half a pixel shows here
 
 
+def test_output_does_not_depend_on_the_worker_count(tmp_path):
+    cfg = SynthConfig(points=30_000, photos=4, photo_size=(64, 43))
+    one = generate_scene(cfg, tmp_path / "one", progress=False, workers=1)
+    two = generate_scene(cfg, tmp_path / "two", progress=False, workers=2)
+    for rel in ["points.ply", "mesh.ply", "sparse/images.txt", "images/photo_0003.png"]:
+        assert (one / rel).read_bytes() == (two / rel).read_bytes(), rel
+
+
 def test_lighting_variation_is_recorded_and_switchable(tmp_path):
     cfg = SynthConfig(points=20_000, photos=4, photo_size=(64, 43), lighting_variation=False)
     out = generate_scene(cfg, tmp_path / "s", progress=False)
@@ -103,8 +111,8 @@ def test_interrupted_generation_leaves_nothing(tmp_path):
     """Ctrl-C in the middle of a scan: neither the scene nor its .partial folder remains."""
     out = tmp_path / "small"
     proc = subprocess.Popen([sys.executable, "-m", "dmrt.cli", "scene", "synth", "--preset", "small",
-                             "--out", str(out), "--quiet"])
-    deadline = time.time() + 60
+                             "--out", str(out), "--quiet", "--workers", "1"])
+    deadline = time.time() + 120
     while not list((tmp_path / "small.partial").glob("points.ply*")):  # the scan has begun
         assert time.time() < deadline and proc.poll() is None
         time.sleep(0.05)

@@ -383,32 +383,59 @@ def place_cameras(config: SynthConfig, geom: Geometry, raycaster, rng) -> list[C
     return cams
 
 
-def scan(config: SynthConfig, geom: Geometry, raycaster, materials, stations, rng):
-    """Simulated TLS: yields (positions (n,3) float64 local, normals (n,3) float32, colors (n,3) uint8).
-
-    Each station sweeps an azimuth x elevation grid at one angular step, chosen so the scene gets
-    about ``config.points`` returns; range noise is Gaussian along the beam.
-    """
+def scan_directions(config: SynthConfig, n_stations: int) -> np.ndarray:
+    """(r, 3) unit beam directions of one station: an azimuth x elevation grid at one angular step,
+    chosen so that all stations together fire about ``config.points`` beams."""
     el0, el1 = np.radians(config.scan_elevation)
     # grid rays per station = (2 pi / step) * ((el1 - el0) / step)
-    step = np.sqrt(2 * np.pi * (el1 - el0) * len(stations) / config.points)
-    az = np.arange(0, 2 * np.pi, step)
-    el = np.arange(el0 + step / 2, el1, step)
-    A, E = np.meshgrid(az, el)
-    dirs_all = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
-    for s in stations:
-        for c in range(0, len(dirs_all), config.chunk_rays):
-            d = dirs_all[c:c + config.chunk_rays]
-            t, face = raycaster.intersect(s, d)
-            hit = face >= 0
-            d, t, face = d[hit], t[hit], face[hit]
-            t_noisy = t + rng.normal(0, config.range_noise, len(t))
-            pos = s + d * t_noisy[:, None]
-            n = raycaster.face_normals[face]
-            n[np.einsum("ij,ij->i", n, d) > 0] *= -1  # the side the scanner saw
-            true_pos = s + d * t[:, None]
-            rgb = albedo(materials, geom.face_material[face], true_pos, n) * shade(n)[:, None]
-            yield pos, n, np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)
+    step = np.sqrt(2 * np.pi * (el1 - el0) * n_stations / config.points)
+    A, E = np.meshgrid(np.arange(0, 2 * np.pi, step), np.arange(el0 + step / 2, el1, step))
+    return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
+
+
+def scan_beams(config: SynthConfig, geom: Geometry, raycaster, materials, station: np.ndarray,
+               dirs: np.ndarray, rng):
+    """Simulated TLS returns of one batch of beams from ``station`` (scene-local metres).
+
+    Returns positions (n, 3) float64 with Gaussian range noise along the beam, the surface normals
+    facing the scanner (n, 3) float32, and the scanner's colours (n, 3) uint8.
+    """
+    t, face = raycaster.intersect(station, dirs)
+    hit = face >= 0
+    d, t, face = dirs[hit], t[hit], face[hit]
+    pos = station + d * (t + rng.normal(0, config.range_noise, len(t)))[:, None]
+    n = raycaster.face_normals[face]
+    n[np.einsum("ij,ij->i", n, d) > 0] *= -1  # the side the scanner saw
+    true_pos = station + d * t[:, None]
+    rgb = albedo(materials, geom.face_material[face], true_pos, n) * shade(n)[:, None]
+    return pos, n, np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)
+
+
+# Each worker process builds the scene once (Embree scenes do not pickle) and serves batches.
+_WORKER: dict = {}
+
+
+def _init_worker(config: SynthConfig) -> None:
+    geom = build_geometry(config)
+    _WORKER.update(config=config, geom=geom, materials=make_materials(),
+                   raycaster=MeshRaycaster(geom.vertices, geom.faces, origin=np.zeros(3)))
+
+
+def _scan_task(args):
+    k, station, dirs = args
+    w = _WORKER
+    rng = np.random.default_rng([w["config"].seed, 2, k])  # per batch: same points for any worker count
+    return scan_beams(w["config"], w["geom"], w["raycaster"], w["materials"], station, dirs, rng)
+
+
+def _photo_task(args):
+    cam, gain, path = args
+    from PIL import Image
+
+    w = _WORKER
+    Image.fromarray(photograph(cam, w["geom"], w["raycaster"], w["materials"], w["config"].supersample,
+                               gain)).save(path)
+    return path
 
 
 def photograph(camera: Camera, geom: Geometry, raycaster, materials, supersample: int,
@@ -431,14 +458,40 @@ def photograph(camera: Camera, geom: Geometry, raycaster, materials, supersample
 # ----------------------------------------------------------------------------------------------
 # The scene on disk
 # ----------------------------------------------------------------------------------------------
-def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool = True) -> Path:
+class _InlinePool:
+    """The pool interface, run in this process (one worker: no start-up cost)."""
+
+    def __init__(self, config):
+        _init_worker(config)
+
+    imap = imap_unordered = staticmethod(map)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        _WORKER.clear()
+
+
+def _pool(config: SynthConfig, workers: int):
+    import multiprocessing
+
+    if workers <= 1:
+        return _InlinePool(config)
+    # spawn, not fork: the parent may hold a GL context or Embree threads
+    return multiprocessing.get_context("spawn").Pool(workers, _init_worker, (config,))
+
+
+def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool = True,
+                   workers: int | None = None) -> Path:
     """Write a synthetic scene in the scene input format to ``out``; returns the path.
+
+    ``workers`` processes (default: one per CPU core) scan and photograph in parallel; the
+    result does not depend on their number.
 
     The scene is assembled in ``<out>.partial`` and renamed when complete, so an interrupted run
     never leaves a scene that looks whole. An existing ``out`` is replaced only with ``force``.
     """
-    from PIL import Image
-
     from dmrt.colmap import write_model
     from dmrt.pointcloud import PointCloud, PointWriter
 
@@ -449,6 +502,7 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "images").mkdir(parents=True)
     rng = np.random.default_rng(config.seed + 1)
+    workers = workers if workers is not None else (os.cpu_count() or 1)
     offset = np.asarray(config.offset, np.float64)
     try:
         geom = build_geometry(config)
@@ -457,21 +511,23 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
         write_mesh_ply(tmp / "mesh.ply", geom.vertices + offset, geom.faces)
 
         stations = place_stations(config, geom, raycaster, rng)
-        bar = tqdm(total=config.points, desc="scanning", unit="pt", unit_scale=True, disable=not progress)
-        with PointWriter(tmp / "points.ply", normals=config.write_normals, colors=True) as writer:
-            for pos, n, rgb in scan(config, geom, raycaster, materials, stations, rng):
-                writer.write(PointCloud(pos + offset, n if config.write_normals else None, rgb))
-                bar.update(len(pos))
-        bar.close()
-
         cameras = place_cameras(config, geom, raycaster, rng)
-        gains = []
-        for cam in tqdm(cameras, desc="photographing", unit="photo", disable=not progress):
-            g = (rng.uniform(*config.exposure_range) * rng.uniform(*config.white_balance_range, 3)
-                 if config.lighting_variation else np.ones(3))
-            gains.append(g)
-            Image.fromarray(photograph(cam, geom, raycaster, materials, config.supersample, g)).save(
-                tmp / "images" / cam.name)
+        gains = [rng.uniform(*config.exposure_range) * rng.uniform(*config.white_balance_range, 3)
+                 if config.lighting_variation else np.ones(3) for _ in cameras]
+        dirs = scan_directions(config, len(stations))
+        beams = [(s, d) for s in stations for d in np.array_split(dirs, -(-len(dirs) // config.chunk_rays))]
+        with _pool(config, workers) as pool:
+            bar = tqdm(total=config.points, desc="scanning", unit="pt", unit_scale=True, disable=not progress)
+            with PointWriter(tmp / "points.ply", normals=config.write_normals, colors=True) as writer:
+                tasks = [(k, s, d) for k, (s, d) in enumerate(beams)]
+                for pos, n, rgb in pool.imap(_scan_task, tasks):  # in order: deterministic files
+                    writer.write(PointCloud(pos + offset, n if config.write_normals else None, rgb))
+                    bar.update(len(pos))
+            bar.close()
+            tasks = [(cam, g, tmp / "images" / cam.name) for cam, g in zip(cameras, gains)]
+            for _ in tqdm(pool.imap_unordered(_photo_task, tasks), total=len(tasks), desc="photographing",
+                          unit="photo", disable=not progress):
+                pass
         # Cameras go to disk in world coordinates: t_world = t_local - R @ offset.
         world = [replace(c, t=c.t - c.R @ offset) for c in cameras]
         write_model(tmp / "sparse", world, binary=False)
