@@ -206,6 +206,12 @@ class ChunkedResult:
     n_buckets : int
     max_bucket_points : int
         Core + halo points of the largest bucket.
+    seconds : float
+        Wall time.
+
+    Limitations: the halo's share of a bucket grows with ``margin`` / bucket size, so tiny budgets
+    with sparse clouds process many halo points; a single grid cell denser than the bucket capacity
+    is still processed in one piece (above the budget).
     """
 
     normals: np.ndarray | None
@@ -245,9 +251,9 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
                     memory_limit_mb: float = 1024, bbox=None, progress: bool = True) -> ChunkedResult:
     """Normals and/or radii of a cloud too large for memory.
 
-    The cloud is cut into spatial buckets (consecutive Morton cells of a grid whose cell is at
-    least ``margin``); each bucket is processed with its *halo*, every point within ``margin`` of
-    the bucket's cells (a point's margin box overlaps at most 2 cells per axis). For a point whose
+    The cloud is cut into spatial buckets (consecutive Morton cells of a grid whose cells are wider
+    than ``2 * margin``); each bucket is processed with its *halo*, every point within ``margin`` of
+    the bucket's occupied cells (a point's margin box overlaps at most 2 cells per axis). For a point whose
     k-th neighbour lies within ``margin`` the neighbourhood is complete, so the result equals the
     in-memory :func:`estimate_normals` / :func:`splat_radii` up to floating-point noise; the others
     are counted in ``n_unverified``.

@@ -10,7 +10,9 @@ Level ``l`` (``0 <= l < levels - 1``) has a grid of cell size ``s_l = root_cell 
 cloud's bounding box (origin = bbox minimum). Every occupied level-``l`` cell receives exactly one
 point: among the points of that cell that no coarser level has taken, the one **closest to the cell
 centre** (ties broken by x, then y, then z). Points that no grid level takes form the last level,
-``levels - 1`` (the remainder). Hence
+``levels - 1`` (the remainder). Cells are defined by the integer coordinates of the finest grid
+level, ``floor((p - origin) / s_finest)``, shifted right by ``finest - l`` bits for level ``l``, so the
+grids nest exactly (no second rounding). Hence
 
 * every input point is in exactly one level (the levels partition the cloud);
 * no two points of level ``l`` share a level-``l`` cell (each level is spatially even);
@@ -24,9 +26,9 @@ Out-of-core build (memory ``M = memory_limit_mb``)
 ------------------------------------------------
 1. (only without ``bbox``) one pass for the bounding box;
 2. *count*: points per cell of a counting grid (sparse: sorted int64 Morton keys + counts; coarsened
-   one level at a time while the table would exceed ``M/64`` entries);
+   one level at a time while the table would exceed ``M/256`` entries, ~3/8 M with merge temporaries);
 3. choose the *bucket level* ``c`` = the coarsest level whose cells each hold at most one bucket's
-   capacity (about ``M/2`` bytes of processing), and cut the Morton-sorted level-``c`` cells into
+   capacity (0.4 M of records plus work arrays), and cut the Morton-sorted level-``c`` cells into
    buckets of consecutive cells, each within capacity;
 4. *distribute*: stream the points into per-bucket spill files (``M/4`` bytes of buffers);
 5. *candidates*: levels ``l < c`` have cells spanning several buckets. A level-``l`` pick is the best
@@ -35,15 +37,22 @@ Out-of-core build (memory ``M = memory_limit_mb``)
    best of that cell. Each bucket contributes those candidates (few: they scale with the coarse
    levels' sizes), and levels ``0 .. c-1`` are resolved exactly in memory;
 6. *select*: each bucket is loaded alone, the coarse picks are removed, and levels ``c .. levels-2``
-   plus the remainder are selected inside it (level ``>= c`` cells never cross a bucket).
+   plus the remainder are selected inside it (level ``>= c`` cells never cross a bucket): one
+   stable sort by the finest Morton key makes every level's cells contiguous runs, and each level
+   is a segmented minimum over them.
 
 A level-``c`` cell that alone exceeds the capacity (extreme point density) is processed by streaming
 per-level reductions over its spill file; then memory is proportional to its number of occupied
 cells per level rather than to its number of points (plus one byte per point).
 
-The caller's chunks count against the budget too: keep ``chunk_size * record_bytes`` well below ``M``
-(``record_bytes`` = 24 for positions plus the attributes' bytes). Python's own ~40 MB and the
-numpy/scipy libraries come on top.
+Input chunks are processed in slices of about ``M / 8`` of work arrays, but the caller's chunk itself
+counts against the budget: keep ``chunk_size * record_bytes`` well below ``M`` (``record_bytes`` = 24
+for positions plus the attributes' bytes). The interpreter with numpy (~40 MB resident) comes on
+top. Measured (``bench/bench_octree.py``, 20M points of 39 bytes = 744 MB, ``M`` = 256 MB): maximum
+RSS 174,724 kB (``/usr/bin/time -v``) including that baseline.
+
+An interrupted build (exception, Ctrl-C) removes its temporary folder; a killed one leaves only
+``.<name>.tmp-<pid>`` without ``octree.json``, which :meth:`Octree.open` refuses.
 
 On disk (written to a temporary sibling folder and renamed when complete)::
 
