@@ -65,13 +65,18 @@ default and both keeping every move energy-decreasing:
   benchmark (1M points, 192 photos) the final energy differs from full moves by ~0.01 % at a
   fraction of the time.
 
-``V`` is not a metric (the colours differ per point), so a move's pairwise term may violate
-submodularity ``E00 + E11 <= E01 + E10`` (here ``E11 = V(α, α) = 0``). Such terms are made
-submodular by *raising* ``E01`` and ``E10`` by half the violation each (a truncation in the sense
-of Rother et al. 2005 / Kolmogorov & Rother 2007 that over-estimates instead of under-estimating):
-the modified move energy is an upper bound of the true one and equals it at "keep every label",
-so the true energy can never increase. Points without a candidate get ``-1``, are left out of the
-graph, and so are their edges.
+``V`` is not a metric in general (colours differ per point and photo, and some are missing), but
+every pairwise term an expansion move builds is submodular: both ends of a pair of graph nodes have
+``α`` as a candidate, so with ``E00 = V(a, b)``, ``E01 = V(a, α)``, ``E10 = V(α, b)``, ``E11 = 0``
+and ``r_p^b`` the (possibly fallback) colour of ``p`` in ``b``, the triangle inequality gives
+``|c_p^a - r_p^b| <= |c_p^a - c_p^α| + |c_p^α - r_p^b|`` (likewise at ``q``), hence
+``E00 <= E01 + E10 - λ0``. (This is why the fallback is per edge end and independent of ``α``.)
+The solver still guards every pair: a term with ``E00 > E01 + E10`` would be made submodular by
+*raising* ``E01`` and ``E10`` by half the violation each (a truncation in the sense of Rother et al.
+2005 that over-estimates instead of under-estimating, so the move energy stays an upper bound that
+is exact at "keep every label" and the true energy cannot increase); ``truncated_terms`` counts
+them (0 in every run so far). Points without a candidate get ``-1`` and are left out of the graph,
+and so are their edges.
 
 Sparse input
 ------------
@@ -102,7 +107,7 @@ __all__ = [
 class LabelingConfig:
     """Parameters of the labeling energy and of its minimisation (units in the module docstring)."""
 
-    #: neighbours per point of the kNN graph (the graph is the symmetric union, ~k*0.7 edges/point)
+    #: neighbours per point of the kNN graph (the symmetric union: about 0.6 k edges per point)
     k_neighbors: int = 6
     #: λ, octaves of footprint per unit RGB distance (colours 0..1): a seam where the two photos'
     #: colours differ by 0.1 per channel at both ends (|Δ| = 0.17 each) costs 0.35 octaves per edge
@@ -132,7 +137,7 @@ class LabelingConfig:
 
 @dataclass
 class LabelingResult:
-    """Output of :func:`label_points`.
+    """Output of :func:`label_points` and :func:`alpha_expansion`.
 
     Attributes
     ----------
@@ -148,6 +153,8 @@ class LabelingResult:
         Graph cuts solved, labels skipped as unchanged, and points relabeled, per sweep.
     n_edges : int
         kNN edges in the graph (both ends with a candidate).
+    truncated_terms : int
+        Pairwise move terms that violated submodularity and were raised (module docstring).
     seconds_setup : float
         kNN graph, data costs and initialisation.
     seconds_total : float
@@ -163,6 +170,7 @@ class LabelingResult:
     skipped_per_sweep: list = field(default_factory=list)
     changed_per_sweep: list = field(default_factory=list)
     n_edges: int = 0
+    truncated_terms: int = 0
     seconds_setup: float = 0.0
     seconds_total: float = 0.0
 
@@ -407,7 +415,7 @@ def data_costs(positions, normals, cam_centers, focal_px, candidates,
     """
     cand = Candidates.from_dense(candidates)
     c = candidate_data_costs(positions, normals, cam_centers, focal_px, cand, config)
-    out = np.full(cand.dense()[0].shape, np.inf, np.float32)
+    out = np.full(np.shape(candidates), np.inf, np.float32)
     out[cand.rows(), cand.photos] = c
     return out
 
@@ -585,16 +593,15 @@ def icm(labels0, data, edges, colors, config: LabelingConfig | None = None, swee
     cnt = cands.counts()
     rows = cands.rows()
     rng = np.random.default_rng(seed)
+    # pair every candidate entry of a point p with each incidence (p, q) of p
+    per_entry = np.diff(inc_ptr)[rows]
+    ent = np.repeat(np.arange(cands.nnz), per_entry)
+    inc = _ranges(inc_ptr[rows], per_entry)
+    p, q = src[inc], dst[inc]
+    x = cands.photos[ent]
     for _ in range(sweeps):
         # local energy of each candidate entry: data + sum over incident edges
         loc = cands.costs.astype(np.float64).copy()
-        deg = np.diff(inc_ptr)
-        # pair every entry of point p with each incidence of p
-        per_entry = deg[rows]
-        ent = np.repeat(np.arange(cands.nnz), per_entry)
-        inc = _ranges(inc_ptr[rows], per_entry)
-        p, q = src[inc], dst[inc]
-        x = cands.photos[ent]
         v = _pair_costs(cands, p, x, q, labels[q], cfg, keys)
         loc += np.bincount(ent, v, minlength=cands.nnz)
         nzr = np.flatnonzero(cnt > 0)
@@ -612,14 +619,11 @@ def icm(labels0, data, edges, colors, config: LabelingConfig | None = None, swee
         loser = np.where(prio[src] < prio[dst], src, dst)[both]
         accept = improving.copy()
         accept[loser] = False
-        pts = np.flatnonzero(accept)
         # the best entry of each accepted point (first minimum)
-        is_best = loc <= best[rows]
-        cand_ent = np.flatnonzero(is_best & accept[rows])
+        cand_ent = np.flatnonzero((loc <= best[rows]) & accept[rows])
         r = rows[cand_ent]
         _, first = np.unique(r, return_index=True)
         labels[r[first]] = cands.photos[cand_ent[first]]
-        assert pts.size == first.size
     return labels
 
 
@@ -666,6 +670,17 @@ def _dist(c1, c2) -> np.ndarray:
     return np.sqrt(s, out=s)
 
 
+def _submodular(E00, E01, E10):
+    """Make binary pair terms (with ``E11 = 0``) submodular by raising ``E01`` and ``E10``.
+
+    Returns ``(E01', E10', cap, n_raised)``: ``E01' >= E01``, ``E10' >= E10``,
+    ``E01' + E10' >= E00``, and ``cap = E01' + E10' - E00 >= 0``, the capacity of the graph edge.
+    """
+    fix = np.maximum(E00 - E01 - E10, 0) * 0.5
+    E01, E10 = E01 + fix, E10 + fix
+    return E01, E10, np.maximum(E01 + E10 - E00, 0), int(np.count_nonzero(fix))
+
+
 class _Expansion:
     """Alpha-expansion state: current labels plus per-half-edge caches, all vectorised.
 
@@ -710,7 +725,7 @@ class _Expansion:
         self.deg = np.diff(self.ptr).astype(np.int32)
         # photo -> its candidate points and their entries (radix sort on 16-bit photo ids)
         ph = cands.photos.astype(np.uint16) if m <= 65535 else cands.photos
-        self.csc_ent = np.argsort(ph, kind="stable")
+        self.csc_ent = np.argsort(ph, kind="stable").astype(np.int32)
         self.csc_rows = cands.rows()[self.csc_ent]
         self.csc_ptr = np.zeros(m + 1, np.int64)
         np.cumsum(np.bincount(cands.photos, minlength=m), out=self.csc_ptr[1:])
@@ -747,6 +762,7 @@ class _Expansion:
         self.stamp = np.zeros(n, np.int64)    # move at which a point or a neighbour last changed
         self.last = np.full(m, -1, np.int64)  # move at which each label was last expanded
         self.step = 0
+        self.n_truncated = 0                  # pair terms made submodular so far
 
     def energy(self):
         d = float(self.cur_cost[self.labels >= 0].sum(dtype=np.float64))
@@ -818,10 +834,8 @@ class _Expansion:
         tgp = tg[pr]
         B = C[bstart[tgp] + self.rev_off[h[pr]]]   # C of the opposite half-edge
         Cp, Ap = C[pr], A[pr]
-        fix = np.maximum(Ap - B - Cp, np.float32(0)) * np.float32(0.5)  # submodular: raise E01, E10
-        B += fix
-        Cp += fix
-        cap = np.maximum(B + Cp - Ap, np.float32(0))
+        B, Cp, cap, nt = _submodular(Ap, B, Cp)
+        self.n_truncated += nt
         slp = sl[pr]
         # unary terms as the difference cost(x=1) - cost(x=0): data, edges to fixed targets
         # (C - A), and the pairs' reparametrisation (C - A at the source, -C at the target)
@@ -938,6 +952,7 @@ def alpha_expansion(data, edges, colors=None, config: LabelingConfig | None = No
             break
         e_prev = e_now
     _, res.data_energy, res.smooth_energy = st.energy()
+    res.truncated_terms = st.n_truncated
     res.labels = st.labels.astype(np.int32)
     res.seconds_total = time.perf_counter() - t_start
     return res

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from dmrt.camera import Camera
-from dmrt.labeling import (Candidates, LabelingConfig, _Expansion, alpha_expansion,
+from dmrt.labeling import (Candidates, LabelingConfig, _Expansion, _submodular, alpha_expansion,
                            candidate_data_costs, data_costs, energy, icm, knn_edges,
                            label_points, smoothness_costs, winner_take_all)
 
@@ -280,15 +280,17 @@ def test_dense_and_sparse_inputs_agree(scene, scene_result):
 
 
 @pytest.mark.parametrize("local_moves", [False, True])
-def test_every_move_decreases_energy(local_moves):
-    """Random colours make V far from a metric (many non-submodular move terms): the
-    truncation must still make every single move energy-decreasing, and the solver's cached
-    per-edge costs must stay equal to the independent energy."""
-    cand, cost, col, edges = random_problem(300, 6, 900, seed=6, no_cand=(0, 1))
-    cfg = LabelingConfig(smoothness_weight=2.0, label_change_cost=0.05, local_moves=local_moves)
+@pytest.mark.parametrize("p_cand", [0.6, 0.2])
+def test_every_move_decreases_energy(local_moves, p_cand):
+    """Random colours and sparse candidates (many seam fallbacks, V far from a metric): every
+    single move lowers the energy, every move's pair terms are submodular (the triangle-
+    inequality argument of the module docstring), and the solver's cached per-edge costs stay
+    equal to the independent energy."""
+    cand, cost, col, edges = random_problem(300, 6, 900, seed=6, p_cand=p_cand, no_cand=(0, 1))
+    cfg = LabelingConfig(smoothness_weight=2.0, label_change_cost=0.0, local_moves=local_moves)
     st = _Expansion(Candidates.from_dense(cand, col, cost), edges, cfg)
     e_prev = st.energy()[0]
-    assert e_prev == pytest.approx(loop_energy(st.labels, cand, col, cost, edges, 2.0, 0.05)[0])
+    assert e_prev == pytest.approx(loop_energy(st.labels, cand, col, cost, edges, 2.0, 0.0)[0])
     n_changed = 0
     for sweep in range(4):
         for alpha in range(6):
@@ -298,6 +300,20 @@ def test_every_move_decreases_energy(local_moves):
             assert e == pytest.approx(energy(st.labels, cost, edges, col, cfg)[0], rel=1e-5)
             e_prev = e
     assert n_changed > 0
+    assert st.n_truncated == 0
+
+
+def test_submodular_truncation():
+    """The guard raises E01 and E10 (never lowers E00): an upper bound exact at (0, 0)."""
+    rng = np.random.default_rng(11)
+    E00, E01, E10 = (rng.random(1000).astype(np.float32) * s for s in (3, 1, 1))
+    B, C, cap, n = _submodular(E00, E01, E10)
+    viol = E00 > E01 + E10
+    assert n == viol.sum() > 0
+    assert np.all(B >= E01) and np.all(C >= E10) and np.all(cap >= 0)
+    np.testing.assert_allclose((B + C)[viol], E00[viol], rtol=1e-6)
+    assert np.array_equal(B[~viol], E01[~viol]) and np.array_equal(C[~viol], E10[~viol])
+    np.testing.assert_allclose(cap[~viol], (E01 + E10 - E00)[~viol], rtol=1e-5, atol=1e-6)
 
 
 def brute_force(cand, cost, col, edges, lam, lam0):
