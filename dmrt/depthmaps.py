@@ -19,14 +19,19 @@ Two GPU paths produce the same maps (``DepthMapConfig.method``):
     exact minimum); discs too big for a point sprite are drawn as geometry-shader quads.
 
 Neither path cuts large discs: a disc close to the camera covers all of its pixels.
+For many photos of one cloud (preprocessing renders one map per photo), use
+``DepthMapRenderer.render_many``: it uploads the cloud once and splats it for every camera (or, when
+the cloud exceeds its GPU budget, uploads it in parts, each splatted into every camera's map).
 The module also reads and writes depth maps as OpenEXR files with one float32 channel ``Z``.
 """
 
 from __future__ import annotations
 
+import itertools
 import os
 import tempfile
-from collections.abc import Iterable
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,6 +71,51 @@ def depth_map_size(camera: Camera, width: int) -> tuple[int, int]:
     return int(width), max(1, int(round(width * camera.height / camera.width)))
 
 
+class _Target:
+    """One depth map being rendered on the GPU, ``size = (w, h)`` pixels.
+
+    Compute path: ``depth``, a buffer of w x h uints (the float bits of z). Raster path: a float32
+    colour texture ``color`` (the exact z, MIN-blended) and a depth texture for the depth test,
+    with their framebuffer and a scope that binds it.
+    """
+
+    def __init__(self, ctx: moderngl.Context, method: str, w: int, h: int):
+        self.size = (w, h)
+        if method == "compute":
+            self.depth = ctx.buffer(reserve=4 * w * h)
+        else:
+            self.color = ctx.texture((w, h), 1, dtype="f4")
+            self.zbuf = ctx.depth_texture((w, h))
+            self.fbo = ctx.framebuffer([self.color], self.zbuf)
+            # one scope per target, reused: moderngl only frees scopes on release()
+            flags = moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.PROGRAM_POINT_SIZE
+            self.scope = ctx.scope(self.fbo, enable_only=flags)
+
+    def release(self) -> None:
+        for name in ("scope", "fbo", "depth", "color", "zbuf"):
+            obj = self.__dict__.pop(name, None)
+            if obj is not None:
+                obj.release()
+
+
+class _Splats:
+    """A batch of splats on the GPU: ``count`` rows of 7 float32 in ``buffer`` (the raster path
+    also gets its two vertex arrays over the buffer)."""
+
+    def __init__(self, renderer: "DepthMapRenderer", buffer: moderngl.Buffer, count: int = 0):
+        self.buffer, self.count = buffer, count
+        self.vaos = ()
+        if renderer.config.method == "raster":
+            layout = [(buffer, "3f 3f 1f", "in_position", "in_normal", "in_radius")]
+            self.vaos = tuple(renderer.ctx.vertex_array(p, layout) for p in (renderer._points, renderer._quads))
+
+    def release(self) -> None:
+        if self.buffer is not None:
+            for obj in (*self.vaos, self.buffer):
+                obj.release()
+        self.vaos, self.buffer = (), None
+
+
 class DepthMapRenderer:
     """Renders depth maps from streamed point chunks on one GL context.
 
@@ -75,10 +125,23 @@ class DepthMapRenderer:
         GL 4.3+ context (:func:`dmrt.gl.get_context`).
     config : DepthMapConfig, optional
     timer : GpuTimer, optional
-        When given, GPU milliseconds are accumulated under ``"depthmap"`` (splatting) and
-        ``"depthmap_upload"`` (the copy of each batch to the GPU, which the driver runs on the GPU
-        timeline: 28 MB per million points, 3.5-12 ms per million measured on an H200).
-        Do not also wrap :meth:`render` in a section of the same timer: sections cannot nest.
+        When given, GPU milliseconds are accumulated under ``"depthmap"`` (splatting),
+        ``"depthmap_upload"`` (the copy of each batch to the GPU: 28 MB per million points; for
+        :meth:`render`'s rewritten batch the driver runs it on the GPU timeline, 3.5-18 ms per
+        million measured on an H200, while :meth:`render_many`'s one-time uploads read ~0 ms there:
+        see ``last_stats["upload_s"]``) and ``"depthmap_readback"`` (copying finished maps back,
+        ~3 ms for 1024 x 684 on an H200).
+        Do not also wrap :meth:`render` or :meth:`render_many` in a section of the same timer:
+        sections cannot nest.
+
+    Attributes
+    ----------
+    last_stats : dict
+        Set by :meth:`render_many`: ``mode`` (``"resident"``, ``"grouped"`` or ``"streamed"``),
+        ``groups`` (parts the cloud was uploaded in; streamed: once whole per camera), ``points``
+        (points in the cloud; None when streamed), ``upload_s`` / ``readback_s`` (wall seconds in
+        uploads, producing and packing the chunks included, and in read-backs, waiting for the GPU
+        to finish the map included).
     """
 
     def __init__(self, ctx: moderngl.Context, config: DepthMapConfig | None = None,
@@ -86,26 +149,29 @@ class DepthMapRenderer:
         self.ctx = ctx
         self.config = config or DepthMapConfig()
         self.timer = timer
+        self.last_stats: dict = {}
         if self.config.method not in ("compute", "raster"):
             raise ValueError(f"DepthMapConfig.method must be 'compute' or 'raster', not {self.config.method!r}")
         if self.config.chunk_points < 1 or self.config.width < 1:
             raise ValueError("DepthMapConfig.width and chunk_points must be positive")
-        self._splats = ctx.buffer(reserve=self.config.chunk_points * _FLOATS_PER_SPLAT * 4, dynamic=True)
-        self._size: tuple[int, int] | None = None
         if self.config.method == "compute":
             defines = {"MAX_THREAD_PIXELS": int(self.config.max_thread_pixels)}
             self._cs = load_program(ctx, "splat_depth_compute", defines)
             self._cs_large = load_program(ctx, "splat_depth_compute_large")
             self._large = ctx.buffer(reserve=4 * (1 + self.config.chunk_points))
             self._fill = load_program(ctx, "fill_u32")
+            self._programs = (self._cs, self._cs_large)
         else:
             self._points = load_program(ctx, "splat_depth_raster")
             self._quads = load_program(ctx, "splat_depth_raster_large")
-            layout = [(self._splats, "3f 3f 1f", "in_position", "in_normal", "in_radius")]
-            self._vao_points = ctx.vertex_array(self._points, layout)
-            self._vao_quads = ctx.vertex_array(self._quads, layout)
+            self._programs = (self._points, self._quads)
             # the implementation's largest sprite (llvmpipe: 255 px; NVIDIA: thousands)
             self.max_point_size = float(ctx.info["GL_POINT_SIZE_RANGE"][1])
+        # the batch that render() streams through, rewritten for every batch
+        stream = ctx.buffer(reserve=self.config.chunk_points * _FLOATS_PER_SPLAT * 4, dynamic=True)
+        self._stream = _Splats(self, stream)
+        self._targets: dict[int, _Target] = {}  # reusable maps, by slot (render_many alternates two)
+        self._wall = {"upload_s": 0.0, "readback_s": 0.0}  # wall seconds spent, ever (for last_stats)
 
     # -- public -------------------------------------------------------------------------------
     def render(self, camera: Camera, chunks: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
@@ -118,70 +184,227 @@ class DepthMapRenderer:
             to ``config.width`` x the matching height).
         chunks : iterable of (positions, normals, radii)
             ``positions`` (n, 3) float32, metres, scene-origin-relative; ``normals`` (n, 3) float32
-            (any length; zero = face the camera); ``radii`` (n,) float32, metres. Chunks larger than
-            ``config.chunk_points`` are split.
+            (any length; zero = face the camera); ``radii`` (n,) float32, metres. Chunks are
+            re-cut into GPU batches of ``config.chunk_points``.
 
         Returns
         -------
         depth : (height, width) float32
             Camera-space z in metres, row 0 at the top of the photo; 0.0 where no disc was hit.
         """
+        target = self._begin(camera, self._target(camera, slot=0))
+        t0 = time.perf_counter()
+        for data in _batches(chunks, self.config.chunk_points):
+            with self._timed("depthmap_upload"):
+                self._stream.buffer.orphan(self._stream.buffer.size)  # the GPU may still read the last batch
+                self._stream.buffer.write(data)
+            self._stream.count = len(data)
+            self._wall["upload_s"] += time.perf_counter() - t0
+            with self._timed("depthmap"):
+                self._splat(self._stream, target)
+            t0 = time.perf_counter()
+        return self._read(target)
+
+    def render_many(self, cameras: Sequence[Camera],
+                    chunks_fn: Callable[[], Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]]],
+                    resident_mb: float = 4096, progress: bool = False) -> Iterator[tuple[int, np.ndarray]]:
+        """Depth maps of many cameras from one point cloud, uploading each point once if possible.
+
+        Equal, bit for bit, to ``render(cameras[i], chunks_fn())`` for every ``i``, in one of
+        three ways (:attr:`last_stats` says which ran):
+
+        ``"resident"``
+            The cloud (28 bytes per point) fits in ``resident_mb``: it is uploaded once, then
+            splatted whole for each camera in turn.
+        ``"grouped"``
+            It does not, but one depth map per camera (4 bytes per pixel compute, 8 raster:
+            :meth:`map_bytes`) plus one batch of ``config.chunk_points`` do: the maps stay on the GPU
+            while the cloud is uploaded in parts of what is left of the budget, each part splatted
+            into every map; the maps are read back at the end. The first attempt at ``"resident"``
+            uploaded a part already: ``chunks_fn()`` is iterated a second time, skipping that part.
+        ``"streamed"``
+            Not even the maps fit: :meth:`render` per camera (``chunks_fn()`` once per camera).
+
+        Parameters
+        ----------
+        cameras : sequence of Camera
+            As :meth:`render` takes them; sizes may differ.
+        chunks_fn : callable
+            Returns a fresh iterator over the same (positions, normals, radii) chunks each call,
+            as :meth:`render` takes them.
+        resident_mb : float
+            GPU memory, in MiB, that point batches and kept depth maps may take together.
+        progress : bool
+            A tqdm bar over the maps.
+
+        Yields
+        ------
+        index : int
+            ``i`` of ``cameras[i]``, in order.
+        depth : (height, width) float32
+            Its depth map, as :meth:`render` returns it; the caller may keep or drop it.
+        """
+        cameras = list(cameras)
+        budget = float(resident_mb) * 2**20
+        stats = self.last_stats = {"mode": None, "groups": 0, "points": None, "upload_s": 0.0, "readback_s": 0.0}
+        bar = _progress_bar(len(cameras), progress)
+        wall = dict(self._wall)
+        try:
+            # try to upload the whole cloud, stopping before the batch that would exceed the budget
+            group, pending = self._upload_until(_batches(chunks_fn(), self.config.chunk_points), budget)
+            if pending is None:
+                stats.update(mode="resident", groups=1, points=sum(s.count for s in group))
+                yield from self._render_resident(cameras, group, bar)
+                return
+            room = budget - sum(self.map_bytes(c) for c in cameras)  # left for points beside the maps
+            if room < self.config.chunk_points * _FLOATS_PER_SPLAT * 4:
+                _release(group)
+                stats.update(mode="streamed", groups=len(cameras))
+                for i, camera in enumerate(cameras):
+                    yield i, self.render(camera, chunks_fn())
+                    bar.update()
+                return
+            stats["mode"] = "grouped"
+            # keep the part of the first upload that fits beside the maps, re-read the rest
+            keep, used = 0, 0
+            while keep < len(group) and used + group[keep].buffer.size <= room:
+                used += group[keep].buffer.size
+                keep += 1
+            _release(group[keep:])
+            group = group[:keep]
+            rest = itertools.islice(_batches(chunks_fn(), self.config.chunk_points), keep, None)
+            yield from self._render_grouped(cameras, group, rest, room, bar)
+        finally:
+            stats.update({k: self._wall[k] - wall[k] for k in wall})
+            bar.close()
+
+    def map_bytes(self, camera: Camera) -> int:
+        """GPU bytes of one depth map being rendered for ``camera`` (4 per pixel compute, 8 raster)."""
         w, h = depth_map_size(camera, self.config.width)
-        cam = camera.scaled(w, h)
-        self._begin(w, h)
-        programs = (self._cs, self._cs_large) if self.config.method == "compute" else (self._points, self._quads)
-        for program in programs:
-            set_uniforms(program, u_R=cam.R.T.ravel(), u_t=cam.t, u_size=(w, h),
-                         u_K=(cam.fx, cam.fy, cam.cx, cam.cy))
-        for positions, normals, radii in chunks:
-            data = _pack(positions, normals, radii)
-            for start in range(0, len(data), self.config.chunk_points):
-                self._splat(data[start:start + self.config.chunk_points])
-        return self._finish()
+        return w * h * (4 if self.config.method == "compute" else 8)
+
+    def release(self) -> None:
+        """Free this renderer's GPU buffers (the cached programs stay with the context)."""
+        _release(self._targets.values())
+        self._targets.clear()
+        for name in ("_stream", "_large"):
+            obj = self.__dict__.pop(name, None)
+            if obj is not None:
+                obj.release()
+
+    # -- render_many's strategies -------------------------------------------------------------
+    def _render_resident(self, cameras, splats, bar):
+        # Two maps alternate: camera i is splatted while camera i - 1 is read back (and handed to
+        # the caller, who may write it to disk) so that the GPU has work during both.
+        try:
+            previous = None
+            for i, camera in enumerate(cameras):
+                target = self._begin(camera, self._target(camera, slot=i % 2))
+                with self._timed("depthmap"):
+                    for s in splats:
+                        self._splat(s, target)
+                if previous is not None:
+                    yield previous[0], self._read(previous[1])
+                    bar.update()
+                previous = (i, target)
+            if previous is not None:
+                yield previous[0], self._read(previous[1])
+                bar.update()
+        finally:
+            _release(splats)
+
+    def _render_grouped(self, cameras, group, rest, room, bar):
+        stats = self.last_stats
+        targets = [_Target(self.ctx, self.config.method, *depth_map_size(c, self.config.width)) for c in cameras]
+        try:
+            for camera, target in zip(cameras, targets):
+                self._begin(camera, target)
+            pending = next(rest, None)
+            while True:
+                stats["groups"] += 1
+                stats["points"] = (stats["points"] or 0) + sum(s.count for s in group)
+                for camera, target in zip(cameras, targets):
+                    self._set_camera(camera)
+                    with self._timed("depthmap"):
+                        for s in group:
+                            self._splat(s, target)
+                _release(group)
+                if pending is None:
+                    break
+                group, pending = self._upload_until(itertools.chain([pending], rest), room)
+            for i, target in enumerate(targets):
+                yield i, self._read(target)
+                target.release()  # the maps' memory goes as they go
+                bar.update()
+        finally:
+            _release(group)
+            _release(targets)
+
+    def _upload_until(self, batches, budget: float) -> tuple[list[_Splats], np.ndarray | None]:
+        """Upload batches while their bytes stay within ``budget``.
+
+        Returns the uploaded batches and the first batch that did not fit (None when none is left).
+        """
+        group, used = [], 0
+        t0 = time.perf_counter()
+        try:
+            for data in batches:
+                if used + data.nbytes > budget:
+                    return group, data
+                with self._timed("depthmap_upload"):
+                    group.append(_Splats(self, self.ctx.buffer(data), len(data)))
+                used += data.nbytes
+            return group, None
+        finally:
+            self._wall["upload_s"] += time.perf_counter() - t0
 
     # -- internals ----------------------------------------------------------------------------
-    def _begin(self, w: int, h: int) -> None:
-        if self._size != (w, h):
-            self._release_targets()
-            if self.config.method == "compute":
-                self._depth = self.ctx.buffer(reserve=4 * w * h)
-            else:
-                self._color = self.ctx.texture((w, h), 1, dtype="f4")
-                self._zbuf = self.ctx.depth_texture((w, h))
-                self._fbo = self.ctx.framebuffer([self._color], self._zbuf)
-                # one scope per target, reused: moderngl only frees scopes on release()
-                flags = moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.PROGRAM_POINT_SIZE
-                self._scope = self.ctx.scope(self._fbo, enable_only=flags)
-            self._size = (w, h)
+    def _target(self, camera: Camera, slot: int) -> _Target:
+        """The reusable map of ``slot``, (re)made at ``camera``'s size."""
+        size = depth_map_size(camera, self.config.width)
+        target = self._targets.get(slot)
+        if target is None or target.size != size:
+            if target is not None:
+                target.release()
+            target = self._targets[slot] = _Target(self.ctx, self.config.method, *size)
+        return target
+
+    def _set_camera(self, camera: Camera) -> None:
+        w, h = depth_map_size(camera, self.config.width)
+        cam = camera.scaled(w, h)
+        for program in self._programs:
+            set_uniforms(program, u_R=cam.R.T.ravel(), u_t=cam.t, u_size=(w, h),
+                         u_K=(cam.fx, cam.fy, cam.cx, cam.cy))
+
+    def _begin(self, camera: Camera, target: _Target) -> _Target:
+        """Point the programs at ``camera`` and clear ``target``."""
+        self._set_camera(camera)
+        w, h = target.size
         if self.config.method == "compute":
-            self._depth.bind_to_storage_buffer(0)
+            target.depth.bind_to_storage_buffer(0)
             set_uniforms(self._fill, u_value=_EMPTY_BITS, u_count=w * h)
             self._fill.run(min(-(-w * h // 256), 65535))
             self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
         else:
-            self._fbo.clear(_EMPTY_Z, 0.0, 0.0, 0.0, depth=1.0)
-
-    def _splat(self, data: np.ndarray) -> None:
-        n = len(data)
-        if n == 0:
-            return
-        # the driver's copy of the batch runs on the GPU timeline: time it apart from the splatting
-        with self._timed("depthmap_upload"):
-            self._splats.orphan(self._splats.size)  # let the GPU keep reading the previous batch
-            self._splats.write(data)
-        with self._timed("depthmap"):
-            if self.config.method == "compute":
-                self._splat_compute(n)
-            else:
-                self._splat_raster(n)
+            target.fbo.clear(_EMPTY_Z, 0.0, 0.0, 0.0, depth=1.0)
+        return target
 
     def _timed(self, name: str):
         return self.timer.section(name) if self.timer is not None else nullcontext()
 
-    def _splat_compute(self, n: int) -> None:
+    def _splat(self, splats: _Splats, target: _Target) -> None:
+        if splats.count == 0:
+            return
+        if self.config.method == "compute":
+            self._splat_compute(splats, target)
+        else:
+            self._splat_raster(splats, target)
+
+    def _splat_compute(self, splats: _Splats, target: _Target) -> None:
+        n = splats.count
         self._large.write(b"\0\0\0\0")  # empty large-disc list
-        self._splats.bind_to_storage_buffer(0)
-        self._depth.bind_to_storage_buffer(1)
+        splats.buffer.bind_to_storage_buffer(0)
+        target.depth.bind_to_storage_buffer(1)
         self._large.bind_to_storage_buffer(2)
         set_uniforms(self._cs, u_count=n)
         set_uniforms(self._cs_large, u_count=n)
@@ -190,64 +413,92 @@ class DepthMapRenderer:
         self._cs_large.run(_LARGE_GROUPS)
         self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)  # the next batch's atomics
 
-    def _splat_raster(self, n: int) -> None:
+    def _splat_raster(self, splats: _Splats, target: _Target) -> None:
         ctx = self.ctx
         set_uniforms(self._points, u_max_point_size=self.max_point_size)
         set_uniforms(self._quads, u_max_point_size=self.max_point_size)
-        with self._scope:  # binds the target and the flags, restores the caller's on exit
+        with target.scope:  # binds the target and the flags, restores the caller's on exit
             # LEQUAL lets depth-key ties (1.4e-6 relative) through to the MIN blend, which keeps
             # the exact nearest float32 z
             ctx.depth_func, ctx.blend_equation = "<=", moderngl.MIN
             try:
-                self._vao_points.render(moderngl.POINTS, vertices=n)
-                self._vao_quads.render(moderngl.POINTS, vertices=n)
+                for vao in splats.vaos:
+                    vao.render(moderngl.POINTS, vertices=splats.count)
             finally:
                 # moderngl cannot read these back: restore its defaults
                 ctx.depth_func, ctx.blend_equation = "<", moderngl.FUNC_ADD
 
-    def _finish(self) -> np.ndarray:
-        w, h = self._size
-        if self.config.method == "compute":
-            self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
-            bits = np.frombuffer(self._depth.read(), dtype=np.uint32).reshape(h, w)
-            depth = bits.view(np.float32).copy()
-            depth[bits == _EMPTY_BITS] = 0.0
-        else:
-            # row 0 of the texture is image row 0 (Camera.gl_view_projection's unflipped clip y)
-            depth = np.frombuffer(self._color.read(), dtype=np.float32).reshape(h, w).copy()
-            depth[depth >= _EMPTY_Z] = 0.0
+    def _read(self, target: _Target) -> np.ndarray:
+        """Copy a finished map back: (h, w) float32 camera z, 0.0 where empty."""
+        w, h = target.size
+        t0 = time.perf_counter()
+        with self._timed("depthmap_readback"):
+            if self.config.method == "compute":
+                self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
+                bits = np.empty((h, w), dtype=np.uint32)
+                target.depth.read_into(bits)
+                depth = bits.view(np.float32)
+                depth[bits == _EMPTY_BITS] = 0.0
+            else:
+                # row 0 of the texture is image row 0 (Camera.gl_view_projection's unflipped clip y)
+                depth = np.empty((h, w), dtype=np.float32)
+                target.color.read_into(depth)
+                depth[depth >= _EMPTY_Z] = 0.0
+        self._wall["readback_s"] += time.perf_counter() - t0
         return depth
 
-    def _release_targets(self) -> None:
-        for name in ("_scope", "_depth", "_fbo", "_color", "_zbuf"):
-            obj = self.__dict__.pop(name, None)
-            if obj is not None:
-                obj.release()
 
-    def release(self) -> None:
-        """Free this renderer's GPU buffers (the cached programs stay with the context)."""
-        self._release_targets()
-        self._size = None
-        for name in ("_splats", "_large", "_vao_points", "_vao_quads"):
-            obj = self.__dict__.pop(name, None)
-            if obj is not None:
-                obj.release()
+def _release(objects) -> None:
+    for obj in objects:
+        obj.release()
 
 
-def _pack(positions, normals, radii) -> np.ndarray:
-    """Interleave one chunk into (n, 7) float32 rows: position, normal, radius."""
-    positions = np.asarray(positions, dtype=np.float32)
-    normals = np.asarray(normals, dtype=np.float32)
-    radii = np.asarray(radii, dtype=np.float32)
+def _progress_bar(total: int, enabled: bool):
+    if enabled:
+        from tqdm import tqdm
+
+        return tqdm(total=total, desc="depth maps", unit="map")
+    return _NoBar()
+
+
+class _NoBar:
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _batches(chunks, size: int) -> Iterator[np.ndarray]:
+    """Interleave (positions, normals, radii) chunks into (m, 7) float32 rows (position, normal,
+    radius), in batches of exactly ``size`` rows (the last one: fewer) whatever the chunks' sizes.
+    Each value is copied once, straight into its batch."""
+    batch, n = np.empty((size, _FLOATS_PER_SPLAT), np.float32), 0
+    for chunk in chunks:
+        positions, normals, radii = _checked(*chunk)
+        start, m = 0, len(positions)
+        while start < m:
+            take = min(m - start, size - n)
+            rows, part = batch[n:n + take], slice(start, start + take)
+            rows[:, 0:3] = positions[part]
+            rows[:, 3:6] = normals[part]
+            rows[:, 6] = radii[part]
+            n, start = n + take, start + take
+            if n == size:
+                yield batch
+                batch, n = np.empty((size, _FLOATS_PER_SPLAT), np.float32), 0
+    if n:
+        yield batch[:n]
+
+
+def _checked(positions, normals, radii):
+    """One chunk's arrays, shapes checked (values are cast to float32 as they are packed)."""
+    positions, normals, radii = np.asarray(positions), np.asarray(normals), np.asarray(radii)
     n = len(positions)
     if positions.shape != (n, 3) or normals.shape != (n, 3) or radii.shape != (n,):
         raise ValueError(f"a depth-map chunk needs positions (n, 3), normals (n, 3), radii (n,); got "
                          f"{positions.shape}, {normals.shape}, {radii.shape}")
-    data = np.empty((n, _FLOATS_PER_SPLAT), dtype=np.float32)
-    data[:, 0:3] = positions
-    data[:, 3:6] = normals
-    data[:, 6] = radii
-    return data
+    return positions, normals, radii
 
 
 # -- OpenEXR ----------------------------------------------------------------------------------

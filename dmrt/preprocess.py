@@ -170,8 +170,9 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         t0 = time.perf_counter()
         ctx = get_context()
         timer = GpuTimer(ctx)
-        renderer = DepthMapRenderer(ctx, DepthMapConfig(width=config.depthmap_width, method=config.depthmap_method),
-                                    timer=timer)
+        # GPU batches of one read chunk: on a CPU renderer (llvmpipe) GPU buffers are host memory
+        renderer = DepthMapRenderer(ctx, DepthMapConfig(width=config.depthmap_width, method=config.depthmap_method,
+                                                        chunk_points=config.chunk_points), timer=timer)
         depth_files, depth_sizes = [], []
         bar = tqdm(total=len(cams_local), desc="depth maps", unit="map", disable=not progress)
         for j, depth in _render_all(renderer, cams_local, hd_chunks, config.resident_mb):

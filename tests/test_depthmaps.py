@@ -239,6 +239,111 @@ def test_renderer_reuse_timer_and_size(ctx, random_scene):
         DepthMapRenderer(ctx, DepthMapConfig(width=W)).render(camera, [(p, n[:5], r)])
 
 
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_discs_through_the_camera_plane_match_reference(ctx, variant):
+    # Discs whose bounding sphere reaches the camera plane (z <= r) have no bounded projection, but
+    # those beside the optical axis (|x| > r or |y| > r) reach into the view from one side only.
+    # Every wall and floor of a room scan has such discs near each camera.
+    rng = np.random.default_rng(5)
+    camera = Camera.look_at("plane", eye=(0.0, 0.0, 0.0), target=(0.0, 1.0, 0.0), **PHOTO)
+    n = 80
+    r = rng.uniform(0.2, 0.6, n)
+    z = rng.uniform(-0.5, 1.0, n) * r
+    half = np.array([0.5, 0.5 * PHOTO["height"] / PHOTO["width"]])  # tan of the half fields of view
+    # one coordinate beside the axis by r plus up to 1.2x the view's half extent at depth z + r, the
+    # other anywhere within that extent
+    xy = rng.uniform(-1, 1, (n, 2)) * half * (z + r)[:, None]
+    k = rng.integers(2, size=n)
+    xy[np.arange(n), k] = rng.choice([-1, 1], n) * (r + rng.uniform(0, 1.2, n) * half[k] * (z + r))
+    p = np.column_stack([xy, z]) @ camera.R + camera.center  # camera -> world
+    nrm = rng.normal(size=(n, 3))
+    # a back wall, 6 m away
+    g = np.arange(-4.0, 4.0 + 1e-9, 0.2)
+    u, v = (x.ravel() for x in np.meshgrid(g, g))
+    wall = np.stack([u, np.full_like(u, 6.0), v], axis=1)
+    p = np.concatenate([p, wall]).astype(np.float32)
+    nrm = np.concatenate([nrm, np.tile([0.0, 1.0, 0.0], (len(u), 1))]).astype(np.float32)
+    r = np.concatenate([r, np.full(len(u), 0.15)]).astype(np.float32)
+    ref, ambiguous = splat_depth_numpy(camera, p, nrm, r, W, H)
+    near = (ref > 0) & (ref < 1.0)
+    assert 0.2 < near.mean() < 0.8  # the camera-plane discs cover part of the map, not all of it
+    depth = _render(ctx, variant, camera, [(p, nrm, r)])
+    covered = (depth > 0) | (ref > 0)
+    bad = _mismatch(depth, ref, 1e-4) & covered
+    assert bad.sum() <= 0.01 * covered.sum()
+    assert not (bad & ~ambiguous).any(), np.argwhere(bad & ~ambiguous)[:10]
+
+
+# -- many cameras, one upload ------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def many_scene():
+    """Two cameras of different sizes and a cloud of ~6300 discs (four random scenes' discs)."""
+    cams = [_random_scene(0)[0],
+            Camera.look_at("side", eye=(4.0, -3.0, 2.0), target=(0.0, 0.0, 1.0), width=800, height=600)]
+    parts = [_random_scene(seed)[1:] for seed in range(4)]
+    p, n, r = (np.concatenate(a) for a in zip(*parts))
+    # irregular chunks, an empty one among them: render_many re-cuts them into batches
+    cuts = [0, 700, 701, 701, 2900, 3000, len(p)]
+    chunks = [(p[a:b], n[a:b], r[a:b]) for a, b in zip(cuts[:-1], cuts[1:])]
+    return cams, chunks
+
+
+@pytest.mark.parametrize("method", ["compute", "raster"])
+@pytest.mark.parametrize("mode", ["resident", "grouped", "streamed"])
+def test_render_many_equals_render(ctx, many_scene, method, mode):
+    cams, chunks = many_scene
+    chunk_points = 256
+    timer = GpuTimer(ctx)
+    renderer = DepthMapRenderer(ctx, DepthMapConfig(width=W, method=method, chunk_points=chunk_points),
+                                timer=timer)
+    try:
+        expected = [renderer.render(c, iter(chunks)) for c in cams]
+        maps = sum(renderer.map_bytes(c) for c in cams)
+        assert maps == W * (H + 72) * (4 if method == "compute" else 8)
+        batch = chunk_points * 7 * 4
+        cloud = sum(len(c[0]) for c in chunks) * 7 * 4
+        # resident: the whole cloud; grouped: the maps and three batches; streamed: not even the maps
+        budget = {"resident": cloud, "grouped": maps + 3 * batch, "streamed": maps}[mode]
+        assert budget < cloud or mode == "resident"
+        calls = []
+
+        def chunks_fn():
+            calls.append(1)
+            return iter(chunks)
+
+        timer.reset()
+        got = list(renderer.render_many(cams, chunks_fn, resident_mb=budget / 2**20))
+        stats = renderer.last_stats
+        assert stats["mode"] == mode
+        assert [i for i, _ in got] == list(range(len(cams)))
+        for (_, depth), want in zip(got, expected):
+            assert depth.dtype == np.float32 and depth.shape == want.shape
+            np.testing.assert_array_equal(depth, want)  # nearest-wins in any order: bit-identical
+        if mode == "resident":
+            assert len(calls) == 1 and stats["groups"] == 1
+            assert timer.counts["depthmap"] == len(cams)  # one section per camera
+            assert timer.counts["depthmap_upload"] == -(-cloud // batch)  # every batch once
+        elif mode == "grouped":
+            # the first try uploads up to the budget, then the source is read once more
+            assert len(calls) == 2 and stats["groups"] == -(-cloud // (3 * batch))
+            assert timer.counts["depthmap_upload"] < 2 * -(-cloud // batch)
+        else:
+            assert len(calls) == 1 + len(cams)
+        if mode != "streamed":
+            assert stats["points"] == cloud // 28
+        assert timer.counts["depthmap_readback"] == len(cams)
+        # stopping early is fine: the generator frees what it holds
+        first = renderer.render_many(cams, chunks_fn, resident_mb=budget / 2**20)
+        np.testing.assert_array_equal(next(first)[1], expected[0])
+        first.close()
+        # no points at all: empty maps
+        empty = list(renderer.render_many(cams, lambda: iter([])))
+        assert all((d == 0).all() for _, d in empty) and renderer.last_stats["mode"] == "resident"
+    finally:
+        renderer.release()
+        renderer.release()  # twice is fine
+
+
 # -- OpenEXR ------------------------------------------------------------------------------------
 def test_exr_round_trip(tmp_path):
     rng = np.random.default_rng(1)
