@@ -34,6 +34,7 @@ def main(argv=None) -> None:
     p.add_argument("--out", type=Path, required=True, help="folder for the results JSON")
     p.add_argument("--depthmap-width", type=int, default=1024)
     p.add_argument("--method", choices=["compute", "raster"], default="compute")
+    p.add_argument("--memory-limit-mb", type=float, default=2048)
     p.add_argument("--keep", action="store_true", help="keep the scene and bundle in --work")
     args = p.parse_args(argv)
 
@@ -46,7 +47,8 @@ def main(argv=None) -> None:
     t_scene = time.perf_counter() - t0
     t0 = time.perf_counter()
     bundle = preprocess(scene, args.work / "bundle",
-                        PreprocessConfig(depthmap_width=args.depthmap_width, depthmap_method=args.method))
+                        PreprocessConfig(depthmap_width=args.depthmap_width, depthmap_method=args.method,
+                                         memory_limit_mb=args.memory_limit_mb))
     t_pre = time.perf_counter() - t0
     meta = json.loads((bundle / "bundle.json").read_text())
     counts, timings = meta["counts"], meta["timings"]
