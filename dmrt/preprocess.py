@@ -38,7 +38,7 @@ class PreprocessConfig:
     depthmap_method: str = "compute"  # "compute" (fast on GPUs with few raster units) | "raster"
     octree_levels: int = 8            # levels of detail of P_HD
     proxy_levels: int | None = None   # P_LD = this many coarsest levels; default from proxy_factor
-    proxy_factor: float = 32.0        # else: coarsest LOD with |P_HD| / |P_LD| <= this (32M -> 1M)
+    proxy_factor: float = 32.0        # else: the LOD whose |P_HD| / |P_LD| is nearest this (32M -> ~1M)
     memory_limit_mb: float = 2048     # point data held at once by the out-of-core phases
     normals_k: int = 16               # neighbours of the normal plane fit
     radius_k: int = 8                 # neighbour rank of the density-based splat radius
@@ -62,10 +62,9 @@ def choose_proxy_levels(lod_counts: list[int], n_points: int, config: Preprocess
     """Number of coarsest octree levels that form P_LD."""
     if config.proxy_levels is not None:
         return max(1, min(int(config.proxy_levels), len(lod_counts)))
-    for k, count in enumerate(lod_counts, start=1):
-        if n_points / count <= config.proxy_factor:
-            return k
-    return len(lod_counts)
+    # levels of detail grow ~4x apart on surfaces: take the nearest on a log scale
+    error = [abs(np.log(n_points / count / config.proxy_factor)) for count in lod_counts]
+    return int(np.argmin(error)) + 1
 
 
 def find_candidates(positions: np.ndarray, normals: np.ndarray, hd_radii: np.ndarray, cameras,
