@@ -85,10 +85,66 @@ def cmd_scene_mesh(args) -> None:
     print(f"wrote {out}")
 
 
+def load_pose(path) -> "Camera":
+    """A camera from a JSON file in the bundle's camera format (``name, width, height, fx, fy, cx,
+    cy, R, t``; world frame, COLMAP convention)."""
+    import json
+
+    from dmrt.bundle import camera_from_json
+
+    path = Path(path)
+    try:
+        return camera_from_json(json.loads(path.read_text()))
+    except FileNotFoundError as exc:
+        raise InputError(path, "pose file not found") from exc
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise InputError(path, f"not a camera pose (JSON with name, width, height, fx, fy, cx, cy, R, t): {exc}") from exc
+
+
+def cmd_render(args) -> None:
+    import json
+
+    import numpy as np
+
+    from dmrt.bundle import read_bundle
+    from dmrt.frames import write_frame
+    from dmrt.renderer import RenderConfig, Renderer
+
+    bundle = read_bundle(args.bundle)
+    if (args.camera is None) == (args.pose is None):
+        raise InputError(args.bundle, "give exactly one of --camera IMAGE_NAME or --pose FILE")
+    if args.camera is not None:
+        names = [c.name for c in bundle.cameras]
+        if args.camera not in names:
+            raise InputError(args.bundle / "bundle.json", f"no photo named {args.camera!r} "
+                                                          f"(e.g. {', '.join(names[:3])})")
+        camera = bundle.cameras[names.index(args.camera)]
+    else:
+        camera = load_pose(args.pose)
+    config = config_from_args(RenderConfig, args)
+    if args.visibility:
+        config = dataclasses.replace(config, method=args.visibility)
+    renderer = Renderer(bundle, config)
+    frame = renderer.render(camera, args.width, args.height)
+    write_frame(args.out, frame)
+    if args.stats:
+        hit = frame["depth"] > 0
+        stats = {"timings_ms": frame["timings"], "width": int(frame["depth"].shape[1]),
+                 "height": int(frame["depth"].shape[0]), "surface_fraction": float(hit.mean()),
+                 "mean_iterations": float(frame["iterations"][hit].mean()) if hit.any() else 0.0,
+                 "layer_used_histogram": np.bincount(frame["layer_used"][hit].ravel(),
+                                                     minlength=config.layers).tolist(),
+                 "gpu_bytes": renderer.gpu_bytes, "config": dataclasses.asdict(config)}
+        Path(args.stats).write_text(json.dumps(stats, indent=1))
+    t = frame["timings"]
+    print(f"wrote {args.out}: " + ", ".join(f"{k} {v:.2f} ms" for k, v in t.items()))
+
+
 def build_parser() -> argparse.ArgumentParser:
     from bench.scenes.synthetic import PRESETS, SynthConfig
     from dmrt.labeling import LabelingConfig
     from dmrt.preprocess import PreprocessConfig
+    from dmrt.renderer import RenderConfig
 
     p = argparse.ArgumentParser(prog="dmrt", description="Multi-Depth-Map Raytracing suite")
     sub = p.add_subparsers(dest="command", required=True)
@@ -117,6 +173,18 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_args(pre, PreprocessConfig)
     add_config_args(pre, LabelingConfig)
     pre.set_defaults(func=cmd_preprocess)
+
+    ren = sub.add_parser("render", help="render a frame of a bundle with DMRT")
+    ren.add_argument("bundle", type=Path)
+    ren.add_argument("--camera", help="image name of the photo whose camera to use")
+    ren.add_argument("--pose", type=Path, help="JSON camera (bundle.json's camera format)")
+    ren.add_argument("--width", type=int, help="frame width (default: the camera's)")
+    ren.add_argument("--height", type=int, help="frame height (default: keeps the camera's aspect)")
+    ren.add_argument("--visibility", choices=["compute", "raster"], help="visibility-stage path")
+    ren.add_argument("--out", type=Path, required=True, help="frame file, .png (colour) or .exr (all buffers)")
+    ren.add_argument("--stats", type=Path, help="write per-stage GPU ms and statistics as JSON")
+    add_config_args(ren, RenderConfig, skip=("method", "width", "height", "leveling"))
+    ren.set_defaults(func=cmd_render)
 
     ref = sub.add_parser("reference", help="Embree ground-truth frame of a scene's mesh.ply")
     ref.add_argument("scene", type=Path)

@@ -1,0 +1,332 @@
+"""The DMRT runtime renderer (paper Section 5): a scene bundle in, frame dicts out.
+
+Per frame, each stage its own shader and GPU timer section:
+
+1. ``visibility`` - the proxy splats in k label layers, depth peeling (:mod:`dmrt.visibility`);
+2. ``raytracing`` - per pixel, the depth map of each layer's label is raytraced from the layer's
+   splat depth (adaptive-step search, bisection, discontinuity test), first valid layer wins
+   (``shaders/dmrt_raytrace.glsl`` documents the surface and the step formula);
+3. ``labeling`` - the proxies splatted again with the 3D distance to the raytraced point as depth:
+   each pixel takes the label of its nearest covering proxy (``shaders/dmrt_labeling.glsl``);
+4. ``image_management`` - label histogram on the GPU, the most frequent photos made resident at
+   full resolution (:mod:`dmrt.texturing`);
+5. ``texturing`` - colour from the label's photo at the projection of the raytraced point.
+
+Screen-space leveling (paper 5.2.3, last step) is not implemented: ``RenderConfig.leveling``
+must stay False.
+
+Usage::
+
+    renderer = Renderer(read_bundle("scene.bundle"), RenderConfig(layers=3))
+    frame = renderer.render(camera, 1280, 720)   # camera in world coordinates
+    frame["depth"], frame["label"], frame["color"], frame["timings"]
+
+Everything on the GPU is relative to the bundle's scene origin (float32 keeps millimetres).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import moderngl
+import numpy as np
+
+from dmrt.bundle import Bundle
+from dmrt.camera import Camera
+from dmrt.errors import InputError
+from dmrt.frames import empty_frame
+from dmrt.gl.context import get_context
+from dmrt.gl.shaders import load_program, set_uniforms
+from dmrt.gl.timer import GpuTimer
+from dmrt.texturing import ImageCache
+from dmrt.visibility import EMPTY_BITS, EMPTY_LABEL, ProxySplats, VisibilityStage, groups
+
+_BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
+HIT_DTYPE = np.dtype([("depth", "<f4"), ("label", "<i4"), ("layer", "<i4"), ("iters", "<i4"),
+                      ("normal", "<f4", 3), ("final_label", "<i4")])  # shaders/dmrt_frame.glsl
+STAGES = ("visibility", "raytracing", "labeling", "image_management", "texturing")
+
+
+@dataclass
+class RenderConfig:
+    """Parameters of the DMRT runtime (defaults: the paper's)."""
+
+    # Number of label layers k (paper: 3-5 give high quality, Fig. 13; 11 for the worst case).
+    layers: int = 5
+    # Iterative-search steps per layer (paper: <= 100) and bisection steps (paper: 20).
+    max_steps: int = 100
+    binary_steps: int = 20
+    # Depth disparity (metres) between texels of a depth-map quad that marks a discontinuity
+    # (paper: 20 cm).
+    discontinuity_threshold: float = 0.20
+    # Which texels the discontinuity test checks: "quad" (paper: both triangles of the four texels
+    # around the hit) or "triangle" (only the triangle containing the hit; loses half as wide a band
+    # along each depth edge of a depth map). See shaders/dmrt_raytrace.glsl.
+    discontinuity_test: str = "quad"
+    # Visibility stage: "compute" (atomicMin splatting, fast on Hopper) or "raster" (the paper's
+    # GL_POINTS with depth peeling); both give the same layers.
+    method: str = "compute"
+    # GPU memory for the full-resolution photo cache, MiB (paper: 1 GB); 0 = low-res only.
+    cache_mb: float = 1024.0
+    # The per-pixel labeling pass (paper 5.2.1); False keeps the raytraced layer's label (ablation).
+    labeling: bool = True
+    # Addition to the paper: a labeling-pass label whose depth map does not see the pixel's point
+    # (|depth difference| > label_check_tolerance) falls back to the raytraced layer's label, so
+    # that no pixel is textured from a photo in which it is occluded.
+    label_check: bool = True
+    label_check_tolerance: float = 0.05
+    # Screen-space leveling (paper 5.2.3): not implemented, must be False.
+    leveling: bool = False
+    # Frame size; None = the camera's own (render() arguments override these).
+    width: int | None = None
+    height: int | None = None
+    # Compute splatting: discs with a larger pixel box are splatted by a whole workgroup each.
+    max_thread_pixels: int = 256
+
+    def __post_init__(self):
+        if self.layers < 1 or self.max_steps < 1 or self.binary_steps < 0:
+            raise ValueError("RenderConfig: layers and max_steps must be >= 1, binary_steps >= 0")
+        if self.discontinuity_test not in ("quad", "triangle"):
+            raise ValueError(f"RenderConfig.discontinuity_test must be 'quad' or 'triangle', "
+                             f"not {self.discontinuity_test!r}")
+        if self.method not in ("compute", "raster"):
+            raise ValueError(f"RenderConfig.method must be 'compute' or 'raster', not {self.method!r}")
+        if self.leveling:
+            raise NotImplementedError("screen-space leveling is not implemented (RenderConfig.leveling)")
+
+
+def photo_params(cameras: list[Camera], origin, depth_sizes, low_sizes) -> np.ndarray:
+    """(n, 24) float32 rows of the ``Photo`` struct of ``shaders/dmrt_photos.glsl``.
+
+    ``cameras`` in world coordinates; intrinsics are scaled to each depth map's resolution.
+    """
+    out = np.zeros((len(cameras), 24), np.float32)
+    for j, (cam, (dw, dh), (lw, lh)) in enumerate(zip(cameras, depth_sizes, low_sizes)):
+        c = cam.relative_to(origin).scaled(dw, dh)
+        out[j, 0:12] = np.concatenate([c.R, c.t[:, None]], axis=1).ravel()
+        out[j, 12:16] = (c.fx, c.fy, c.cx, c.cy)
+        out[j, 16:20] = (dw, dh, lw, lh)
+        out[j, 20:22] = (cam.width, cam.height)
+    return out
+
+
+class Renderer:
+    """Multi-depth-map raytracing of a scene bundle on one GL context.
+
+    Parameters
+    ----------
+    bundle : Bundle
+        From :func:`dmrt.bundle.read_bundle`. Every depth map, the low-resolution photos, the
+        proxies and the photos' cameras are uploaded here, once.
+    config : RenderConfig, optional
+    ctx : moderngl.Context, optional
+        Default: the process-wide context (:func:`dmrt.gl.get_context`).
+
+    Attributes
+    ----------
+    gpu_bytes : dict
+        GPU memory per resource (``depthmaps``, ``images_low``, ``image_cache``, ``proxies``,
+        ``photos``, and after a frame ``layers`` and ``frame``), bytes.
+    """
+
+    name = "dmrt"
+
+    def __init__(self, bundle: Bundle, config: RenderConfig | None = None, ctx: moderngl.Context | None = None):
+        self.bundle = bundle
+        self.config = config or RenderConfig()
+        self.ctx = ctx or get_context()
+        self.origin = np.asarray(bundle.origin, np.float64)
+        self.cameras = bundle.cameras
+        n = len(self.cameras)
+        if n == 0:
+            raise ValueError(f"{bundle.root}: the bundle has no photos")
+        self.timer = GpuTimer(self.ctx)
+
+        # depth maps: one R32F layer each, written one at a time (no n x h x w host copy)
+        self.depth_sizes = []
+        for i in range(n):
+            m = bundle.depth_map(i)
+            self.depth_sizes.append((m.shape[1], m.shape[0]))
+            if i == 0:
+                # maps share one width; heights follow each photo's aspect (dmrt.depthmaps rule)
+                w0 = m.shape[1]
+                h0 = max([m.shape[0]] + [int(round(w0 * c.height / c.width)) for c in self.cameras])
+                dims = self._depth_dims = (w0, h0)
+                self.depthmaps = self.ctx.texture_array((*dims, n), 1, dtype="f4")
+                self.depthmaps.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            if m.shape[0] > dims[1] or m.shape[1] > dims[0]:
+                raise InputError(bundle.path("depthmaps", i), f"depth map {m.shape[1]}x{m.shape[0]} "
+                                 f"larger than the first one's {dims[0]}x{dims[1]}")
+            self.depthmaps.write(np.ascontiguousarray(m, np.float32).tobytes(),
+                                 viewport=(0, 0, i, m.shape[1], m.shape[0], 1))
+        self.images = ImageCache(self.ctx, bundle, self.config.cache_mb)
+        self.photos = self.ctx.buffer(photo_params(self.cameras, self.origin, self.depth_sizes,
+                                                   self.images.low_sizes).tobytes())
+        labels = np.asarray(bundle.proxy["labels"])
+        if len(labels) and labels.max() >= n:
+            raise InputError(bundle.root / "proxy.npz", f"array 'labels' holds photo index {labels.max()} "
+                                                        f"but the bundle has {n} photos")
+        self.splats = ProxySplats(self.ctx, bundle.proxy, self.config.max_thread_pixels)
+        self.visibility = VisibilityStage(self.ctx, self.splats, self.config.method)
+        self._raytrace = load_program(self.ctx, "dmrt_raytrace",
+                                      {"QUAD_TEST": int(self.config.discontinuity_test == "quad")})
+        self._finalize = load_program(self.ctx, "dmrt_label_finalize")
+        self._texturing = load_program(self.ctx, "dmrt_texturing")
+        self.counts = self.ctx.buffer(reserve=4 * n)
+        self._size: tuple[int, int] | None = None
+        self._buffers: dict = {}
+        self.gpu_bytes = {"depthmaps": self._depth_dims[0] * self._depth_dims[1] * n * 4, **self.images.nbytes,
+                          "proxies": self.splats.nbytes, "photos": self.photos.size}
+
+    # -- public -------------------------------------------------------------------------------
+    def render(self, camera: Camera, width: int | None = None, height: int | None = None) -> dict:
+        """Render one frame.
+
+        Parameters
+        ----------
+        camera : Camera
+            World coordinates (as the bundle's cameras); any resolution.
+        width, height : int, optional
+            Frame size (default ``config.width/height``, else the camera's; a missing side follows
+            the camera's aspect ratio).
+
+        Returns
+        -------
+        dict
+            The frame contract of :mod:`dmrt.frames` - ``depth`` (h, w) float32 camera z (0 =
+            background), ``label`` (h, w) int32 (-1 = none), ``color`` (h, w, 3) uint8, ``normal``
+            (h, w, 3) float32 unit world normal - plus ``label_raw`` (h, w) int32 (the label of
+            the layer whose depth map was hit, before the labeling pass), ``layer_used`` (h, w)
+            int32 (0-based layer, -1 = none), ``iterations`` (h, w) int32 (iterative-search steps
+            over all layers tried) and ``timings`` {stage: GPU ms} (meaningless on llvmpipe,
+            see :class:`dmrt.gl.GpuTimer`).
+        """
+        cfg = self.config
+        cam = camera.resized(width or cfg.width, height or cfg.height)
+        w, h = cam.width, cam.height
+        self._allocate(w, h)
+        b = self._buffers
+        local = cam.relative_to(self.origin)
+        cam_uniforms = {"u_R": local.R.T.ravel(), "u_t": local.t, "u_K": (local.fx, local.fy, local.cx, local.cy),
+                        "u_size": (w, h)}
+        npix = w * h
+        grid = (groups(w, 8), groups(h, 8))
+        ctx, timer = self.ctx, self.timer
+        timer.reset()
+        self.splats.begin_frame()
+
+        with timer.section("visibility"):
+            self.visibility.run(cam_uniforms, (w, h), cfg.layers, b["layer_depth"], b["layer_label"])
+
+        with timer.section("raytracing"):
+            b["layer_depth"].bind_to_storage_buffer(1)
+            b["layer_label"].bind_to_storage_buffer(2)
+            b["hits"].bind_to_storage_buffer(4)
+            self.photos.bind_to_storage_buffer(5)
+            self.depthmaps.use(0)
+            set_uniforms(self._raytrace, u_layers=cfg.layers, u_max_steps=cfg.max_steps,
+                         u_binary_steps=cfg.binary_steps, u_threshold=float(cfg.discontinuity_threshold),
+                         u_depthmaps=0, **cam_uniforms)
+            self._raytrace.run(*grid)
+            ctx.memory_barrier(_BARRIER)
+
+        with timer.section("labeling"):
+            self.visibility.fill(b["key"], EMPTY_BITS, npix)
+            self.visibility.fill(b["vlabel"], EMPTY_LABEL, npix)
+            ctx.memory_barrier(_BARRIER)
+            if cfg.labeling:
+                for resolve in (0, 1):
+                    self.splats.run("dmrt_labeling", {"RESOLVE": resolve}, cam_uniforms,
+                                    {1: b["key"], 2: b["vlabel"], 4: b["hits"]})
+
+        with timer.section("image_management"):
+            self.visibility.fill(self.counts, 0, len(self.cameras))
+            ctx.memory_barrier(_BARRIER)
+            b["vlabel"].bind_to_storage_buffer(2)
+            b["hits"].bind_to_storage_buffer(4)
+            self.counts.bind_to_storage_buffer(6)
+            self.photos.bind_to_storage_buffer(5)
+            self.depthmaps.use(0)
+            set_uniforms(self._finalize, u_use_labeling=int(cfg.labeling), u_label_check=int(cfg.label_check),
+                         u_visibility_tol=float(cfg.label_check_tolerance), u_depthmaps=0, **cam_uniforms)
+            self._finalize.run(*grid)
+            ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
+            counts = np.frombuffer(self.counts.read(), np.uint32)
+            self.images.update(counts)
+        self.label_counts = counts.copy()
+
+        with timer.section("texturing"):
+            b["hits"].bind_to_storage_buffer(4)
+            self.photos.bind_to_storage_buffer(5)
+            self.images.slots.bind_to_storage_buffer(6)
+            b["colors"].bind_to_storage_buffer(7)
+            self.images.low.use(1)
+            self.images.high.use(2)
+            set_uniforms(self._texturing, u_low=1, u_high=2, u_low_dims=self.images.low_dims,
+                         u_high_dims=(self.images.high.width, self.images.high.height), **cam_uniforms)
+            self._texturing.run(*grid)
+            ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
+
+        hits = np.frombuffer(b["hits"].read(), HIT_DTYPE).reshape(h, w)
+        colors = np.frombuffer(b["colors"].read(), np.uint8).reshape(h, w, 4)
+        frame = empty_frame(h, w)
+        frame["depth"] = hits["depth"].copy()
+        frame["label"] = hits["final_label"].copy()
+        frame["color"] = colors[..., :3].copy()
+        frame["normal"] = hits["normal"].copy()
+        frame["label_raw"] = hits["label"].copy()
+        frame["layer_used"] = hits["layer"].copy()
+        frame["iterations"] = hits["iters"].copy()
+        frame["timings"] = {stage: self.timer.ms.get(stage, 0.0) for stage in STAGES}
+        return frame
+
+    def layers(self) -> dict:
+        """The last frame's label layers.
+
+        Returns
+        -------
+        dict
+            ``depth`` (k, h, w) float32 camera z of each layer's splat (0 = empty) and ``label``
+            (k, h, w) int32 (-1 = empty).
+        """
+        w, h = self._size
+        k = self.config.layers
+        bits = np.frombuffer(self._buffers["layer_depth"].read(), np.uint32)[:k * w * h].reshape(k, h, w)
+        label = np.frombuffer(self._buffers["layer_label"].read(), np.int32)[:k * w * h].reshape(k, h, w).copy()
+        depth = bits.view(np.float32).copy()
+        depth[bits == EMPTY_BITS] = 0.0
+        label[label == EMPTY_LABEL] = -1
+        return {"depth": depth, "label": label}
+
+    def release(self) -> None:
+        """Free this renderer's GPU resources (cached programs stay with the context)."""
+        self._release_frame()
+        self.visibility.release()
+        self.splats.release()
+        self.images.release()
+        for obj in (self.depthmaps, self.photos, self.counts):
+            obj.release()
+
+    # -- internals ----------------------------------------------------------------------------
+    def _allocate(self, w: int, h: int) -> None:
+        if self._size == (w, h):
+            return
+        self._release_frame()
+        npix, k = w * h, self.config.layers
+        self._buffers = {
+            "layer_depth": self.ctx.buffer(reserve=4 * k * npix),
+            "layer_label": self.ctx.buffer(reserve=4 * k * npix),
+            "hits": self.ctx.buffer(reserve=HIT_DTYPE.itemsize * npix),
+            "key": self.ctx.buffer(reserve=4 * npix),
+            "vlabel": self.ctx.buffer(reserve=4 * npix),
+            "colors": self.ctx.buffer(reserve=4 * npix),
+        }
+        self._size = (w, h)
+        self.gpu_bytes["layers"] = 8 * k * npix
+        self.gpu_bytes["frame"] = (HIT_DTYPE.itemsize + 12) * npix
+
+    def _release_frame(self) -> None:
+        for buf in self._buffers.values():
+            buf.release()
+        self._buffers = {}
+        self._size = None

@@ -1,0 +1,209 @@
+"""DMRT visibility stage (paper Section 5.1.1): the proxy splats P_LD in k label layers.
+
+Layer 1 is the z-buffered nearest proxy disc per pixel (depth + label); layer i+1 is obtained by
+splatting the proxies again and discarding, per pixel, disc hits whose label equals layer i's label
+there or whose depth is <= layer i's depth (depth peeling, one geometry pass per layer as in the
+paper). A disc "hits" a pixel when the ray through the pixel centre meets the oriented disc
+(``shaders/splat_depth_common.glsl``, the same primitive as the depth maps); its depth is the camera z
+of that intersection. Equal depths at a pixel resolve to the smallest label.
+
+Two GPU paths write the same layer buffers (``RenderConfig.method``):
+
+``"compute"`` (default)
+    Per layer two compute passes: ``atomicMin`` on the float bits of z, then a resolve pass where
+    discs whose z equals the stored one ``atomicMin`` their label. Portable (no 64-bit atomics,
+    which Mesa llvmpipe lacks); discs larger than ``max_thread_pixels`` pixels are splatted by a
+    whole workgroup each (dispatch-indirect), as in :mod:`dmrt.depthmaps`.
+``"raster"``
+    The paper's way: GL_POINTS sprites (geometry-shader quads for discs larger than the largest
+    sprite) with the per-fragment ray-disc test and the peeling test in the fragment shader,
+    z-buffered by a MIN blend on a float32 target (exact nearest z), then the same label resolve as
+    a second draw; each target is copied into the layer buffers by a small compute pass.
+
+Layer buffers (GPU): ``layer_depth`` k x h x w uint (float bits of camera z, 0xFFFFFFFF = empty) and
+``layer_label`` k x h x w int32 (0x7FFFFFFF = empty), layer after layer, rows from the top.
+"""
+
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+
+from dmrt.gl.shaders import load_program, set_uniforms
+
+EMPTY_BITS = 0xFFFFFFFF
+EMPTY_LABEL = 0x7FFFFFFF
+_EMPTY_Z = float(np.finfo(np.float32).max)  # raster targets' clear value
+_BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
+PROXY_FLOATS = 8  # position xyz, radius, normal xyz, label bits: see shaders/dmrt_splat_common.glsl
+
+
+def pack_proxies(proxy: dict) -> np.ndarray:
+    """(n, 8) float32 rows ``x y z r nx ny nz label`` (label as int32 bits) of the labelled proxies.
+
+    Proxies with label -1 (seen by no photo) have no depth map to raytrace and are left out.
+    """
+    keep = np.asarray(proxy["labels"]) >= 0
+    n = int(keep.sum())
+    data = np.empty((n, PROXY_FLOATS), np.float32)
+    data[:, 0:3] = np.asarray(proxy["positions"], np.float32)[keep]
+    data[:, 3] = np.asarray(proxy["radii"], np.float32)[keep]
+    data[:, 4:7] = np.asarray(proxy["normals"], np.float32)[keep]
+    data[:, 7] = np.asarray(proxy["labels"], np.int32)[keep].view(np.float32)
+    return data
+
+
+def groups(n: int, size: int) -> int:
+    return max(1, min(-(-n // size), 65535))
+
+
+class ProxySplats:
+    """The proxies on the GPU and the per-frame list of large discs, shared by the splat passes.
+
+    Parameters
+    ----------
+    ctx : moderngl.Context
+    proxy : dict
+        ``positions`` (n, 3) float32 scene-origin-relative metres, ``normals`` (n, 3) float32,
+        ``radii`` (n,) float32 metres, ``labels`` (n,) int32 (as :attr:`dmrt.bundle.Bundle.proxy`).
+    max_thread_pixels : int
+        Compute passes: discs whose pixel box exceeds this go to the workgroup-per-disc pass.
+    """
+
+    def __init__(self, ctx: moderngl.Context, proxy: dict, max_thread_pixels: int = 256):
+        self.ctx = ctx
+        self.data = pack_proxies(proxy)
+        self.n = len(self.data)
+        self.max_thread_pixels = int(max_thread_pixels)
+        self.buffer = ctx.buffer(self.data.tobytes() if self.n else b"\0" * 32)
+        self.large = ctx.buffer(reserve=16 + 4 * max(self.n, 1))
+        self._built = False
+
+    @property
+    def nbytes(self) -> int:
+        return self.buffer.size + self.large.size
+
+    def begin_frame(self) -> None:
+        """Forget the previous camera's large-disc list (the next compute pass rebuilds it)."""
+        self.large.write(np.array([0, 1, 1, 0], np.uint32).tobytes())
+        self._built = False
+
+    def run(self, name: str, defines: dict, uniforms: dict, bindings: dict) -> None:
+        """One compute splat pass of program ``name`` over every proxy (both entry points).
+
+        ``bindings`` maps storage-buffer binding points to buffers (0 and 3 are the proxies' own).
+        """
+        d = {**defines, "MAX_THREAD_PIXELS": self.max_thread_pixels}
+        small = load_program(self.ctx, name, {**d, "LARGE": 0})
+        large = load_program(self.ctx, name, {**d, "LARGE": 1})
+        self.buffer.bind_to_storage_buffer(0)
+        self.large.bind_to_storage_buffer(3)
+        for binding, buf in bindings.items():
+            buf.bind_to_storage_buffer(binding)
+        set_uniforms(small, u_count=self.n, u_build_list=int(not self._built), **uniforms)
+        small.run(groups(self.n, 64))
+        self.ctx.memory_barrier(_BARRIER)
+        self._built = True
+        set_uniforms(large, **uniforms)
+        large.run_indirect(self.large)
+        self.ctx.memory_barrier(_BARRIER)
+
+    def release(self) -> None:
+        self.buffer.release()
+        self.large.release()
+
+
+class VisibilityStage:
+    """Extracts k label layers into the caller's layer buffers.
+
+    Parameters
+    ----------
+    ctx : moderngl.Context
+    splats : ProxySplats
+    method : ``"compute"`` or ``"raster"``
+    """
+
+    def __init__(self, ctx: moderngl.Context, splats: ProxySplats, method: str = "compute"):
+        if method not in ("compute", "raster"):
+            raise ValueError(f"RenderConfig.method must be 'compute' or 'raster', not {method!r}")
+        self.ctx, self.splats, self.method = ctx, splats, method
+        self._fill = load_program(ctx, "fill_u32")
+        self._size = None
+        if method == "raster":
+            self._points = load_program(ctx, "dmrt_visibility_raster")
+            self._quads = load_program(ctx, "dmrt_visibility_raster_large")
+            self._copy = load_program(ctx, "dmrt_layer_copy")
+            layout = [(splats.buffer, "3f 1f 3f 1i", "in_position", "in_radius", "in_normal", "in_label")]
+            self._vao_points = ctx.vertex_array(self._points, layout)
+            self._vao_quads = ctx.vertex_array(self._quads, layout)
+            self.max_point_size = float(ctx.info["GL_POINT_SIZE_RANGE"][1])
+
+    def fill(self, buf, value: int, count: int) -> None:
+        """Set the first ``count`` uint32 words of ``buf`` to ``value`` on the GPU."""
+        buf.bind_to_storage_buffer(0)
+        set_uniforms(self._fill, u_value=int(value), u_count=int(count))
+        self._fill.run(groups(count, 256))
+
+    def run(self, uniforms: dict, size: tuple[int, int], layers: int, layer_depth, layer_label) -> None:
+        """Fill ``layers`` label layers for the camera in ``uniforms`` (u_R, u_t, u_K, u_size)."""
+        w, h = size
+        self.fill(layer_depth, EMPTY_BITS, layers * w * h)
+        self.fill(layer_label, EMPTY_LABEL, layers * w * h)
+        self.ctx.memory_barrier(_BARRIER)
+        for layer in range(layers):
+            if self.method == "compute":
+                for resolve in (0, 1):
+                    self.splats.run("dmrt_visibility", {"RESOLVE": resolve}, {**uniforms, "u_layer": layer},
+                                    {1: layer_depth, 2: layer_label})
+            else:
+                self._raster_layer(uniforms, size, layer, layer_depth, layer_label)
+
+    # -- raster path ------------------------------------------------------------------------
+    def _targets(self, size):
+        if self._size != size:
+            self._release_targets()
+            self._tex = self.ctx.texture(size, 1, dtype="f4")
+            self._fbo = self.ctx.framebuffer([self._tex])
+            self._scope = self.ctx.scope(self._fbo, enable_only=moderngl.BLEND | moderngl.PROGRAM_POINT_SIZE)
+            self._size = size
+
+    def _raster_layer(self, uniforms, size, layer, layer_depth, layer_label) -> None:
+        ctx = self.ctx
+        self._targets(size)
+        n = self.splats.n
+        for program in (self._points, self._quads):
+            set_uniforms(program, u_layer=layer, u_max_point_size=self.max_point_size, **uniforms)
+        set_uniforms(self._copy, u_layer=layer, u_size=size, u_src=0)
+        layer_depth.bind_to_storage_buffer(1)
+        layer_label.bind_to_storage_buffer(2)
+        for resolve in (0, 1):
+            self._fbo.clear(_EMPTY_Z, 0.0, 0.0, 0.0)
+            if n:
+                for program in (self._points, self._quads):
+                    set_uniforms(program, u_resolve=resolve)
+                with self._scope:
+                    # MIN blend on float32: the stored value is the exact smallest z (or label)
+                    ctx.blend_equation = moderngl.MIN
+                    try:
+                        self._vao_points.render(moderngl.POINTS, vertices=n)
+                        self._vao_quads.render(moderngl.POINTS, vertices=n)
+                    finally:
+                        ctx.blend_equation = moderngl.FUNC_ADD
+            self._tex.use(0)
+            set_uniforms(self._copy, u_resolve=resolve)
+            self._copy.run(groups(size[0], 8), groups(size[1], 8))
+            ctx.memory_barrier(_BARRIER)
+
+    def _release_targets(self) -> None:
+        for name in ("_scope", "_fbo", "_tex"):
+            obj = self.__dict__.pop(name, None)
+            if obj is not None:
+                obj.release()
+        self._size = None
+
+    def release(self) -> None:
+        self._release_targets()
+        for name in ("_vao_points", "_vao_quads"):
+            obj = self.__dict__.pop(name, None)
+            if obj is not None:
+                obj.release()

@@ -1,0 +1,75 @@
+// The photographs' cameras and depth maps D_j on the GPU. Included; no #version.
+// World coordinates are scene-origin-relative metres, as everywhere on the GPU.
+
+struct Photo {
+    vec4 r0, r1, r2;  // rows of [R | t]: world -> photo camera (COLMAP/OpenCV axes)
+    vec4 k;           // fx, fy, cx, cy in texels of the photo's depth map
+    vec4 size;        // depth-map width, height; low-resolution image width, height (pixels)
+    vec4 full;        // full-resolution image width, height; unused, unused
+};
+
+layout(std430, binding = 5) readonly buffer Photos { Photo photos[]; };
+
+// All depth maps, one layer per photo (R32F camera z, 0 = empty; row 0 = the photo's top row);
+// a map smaller than the array only fills its top-left corner: lookups use texelFetch.
+uniform sampler2DArray u_depthmaps;
+
+vec3 to_photo(Photo ph, vec3 q) {
+    return vec3(dot(ph.r0.xyz, q) + ph.r0.w, dot(ph.r1.xyz, q) + ph.r1.w, dot(ph.r2.xyz, q) + ph.r2.w);
+}
+
+// photo camera -> world direction (R^T v)
+vec3 photo_dir_to_world(Photo ph, vec3 v) {
+    return v.x * ph.r0.xyz + v.y * ph.r1.xyz + v.z * ph.r2.xyz;
+}
+
+// Depth-map position (texels, corner origin) of a photo-camera point with pc.z > 0.
+vec2 photo_uv(Photo ph, vec3 pc) {
+    return ph.k.xy * pc.xy / pc.z + ph.k.zw;
+}
+
+// The four texels nearest to depth-map position uv: i0 = the top-left one's (column, row), f = the
+// bilinear weights, d = depths of (i0, i0 + (1,0), i0 + (0,1), i0 + (1,1)). False when the quad is
+// not wholly inside the map.
+bool depth_quad(int l, Photo ph, vec2 uv, out ivec2 i0, out vec2 f, out vec4 d) {
+    vec2 x = clamp(uv, vec2(-4.0), ph.size.xy + 4.0) - 0.5;  // clamp: keep int conversion defined
+    vec2 fl = floor(x);
+    i0 = ivec2(fl);
+    f = x - fl;
+    d = vec4(0.0);
+    if (any(lessThan(i0, ivec2(0))) || any(greaterThanEqual(i0 + 1, ivec2(ph.size.xy)))) return false;
+    d = vec4(texelFetch(u_depthmaps, ivec3(i0, l), 0).r,
+             texelFetch(u_depthmaps, ivec3(i0 + ivec2(1, 0), l), 0).r,
+             texelFetch(u_depthmaps, ivec3(i0 + ivec2(0, 1), l), 0).r,
+             texelFetch(u_depthmaps, ivec3(i0 + ivec2(1, 1), l), 0).r);
+    return true;
+}
+
+// Photo-camera point of depth-map texel (col, row) holding depth z.
+vec3 unproject_texel(Photo ph, ivec2 t, float z) {
+    vec2 uv = vec2(t) + 0.5;
+    return z * vec3((uv - ph.k.zw) / ph.k.xy, 1.0);
+}
+
+// Depth of D_l's surface at depth-map position uv: the texel centres around uv form the quad
+// (00, 10, 01, 11), split along the 10-01 diagonal into T0 = (00, 10, 01) and T1 = (10, 11, 01);
+// inside the triangle holding uv, inverse depth is interpolated linearly in image coordinates,
+// which is exact for a plane (1/z is affine in image coordinates on a plane). ok = false outside
+// the map or where the triangle has an empty texel.
+float surface_depth(int l, Photo ph, vec2 uv, out bool ok) {
+    ivec2 i0;
+    vec2 f;
+    vec4 d;
+    ok = false;
+    if (!depth_quad(l, ph, uv, i0, f, d)) return 0.0;
+    float inv;
+    if (f.x + f.y <= 1.0) {  // T0
+        if (d.x == 0.0 || d.y == 0.0 || d.z == 0.0) return 0.0;
+        inv = 1.0 / d.x + f.x * (1.0 / d.y - 1.0 / d.x) + f.y * (1.0 / d.z - 1.0 / d.x);
+    } else {                 // T1
+        if (d.y == 0.0 || d.w == 0.0 || d.z == 0.0) return 0.0;
+        inv = 1.0 / d.w + (1.0 - f.y) * (1.0 / d.y - 1.0 / d.w) + (1.0 - f.x) * (1.0 / d.z - 1.0 / d.w);
+    }
+    ok = true;
+    return 1.0 / inv;
+}

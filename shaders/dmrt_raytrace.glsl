@@ -1,0 +1,170 @@
+// DMRT raytracing pass (paper Section 5.1.2): one thread per pixel. For each label layer in turn
+// (front to back) the pixel's ray is intersected with the depth map D_l of the layer's label l,
+// starting at the layer's splat depth; the first valid intersection wins, none = background.
+//
+// Surface of D_l (paper: "the four texels ... yielding two triangles in 3D"): surface_depth() of
+// dmrt_photos.glsl - the quad of texel centres around a position split into two triangles, inverse
+// depth interpolated linearly inside each, so each triangle is exactly the 3D triangle through its
+// three unprojected texels and planar regions are reproduced exactly. Empty texels: no surface.
+//
+// Iterative search (paper Eq. 1, Fig. 5). With q on the ray, its photo-camera coordinates
+// p = R_l q + t_l and D = the surface depth at p's projection, the surface point on the line from
+// C_l through q is p * D / p.z, so the signed distance from q to the surface along that line is
+//         h(q) = (D - p.z) * |p| / p.z          (> 0: q lies between C_l and the surface)
+// and the next point is q' = q + h(q) * r_p, r_p the unit ray direction (for a plane seen from the
+// same side by both cameras this converges, or overshoots into an enclosing pair). The search stops
+// when two consecutive points enclose the surface (h changes sign) or when |h| <= 1e-5 of the camera
+// z (landed on the surface, float32 precision); it fails when a point leaves the depth map, falls
+// on empty texels, goes behind the camera, or after u_max_steps steps. An enclosed interval is
+// refined by u_binary_steps bisection steps and a final secant step.
+//
+// Discontinuity test on the four texels around the hit's projection (triangles T0 = (00,10,01),
+// T1 = (10,11,01)), as chosen by QUAD_TEST:
+//   1 (paper): invalid if any two vertices of either triangle differ in depth by more than
+//     u_threshold (or a texel is empty);
+//   0: only the triangle that contains the hit is tested, so that a hit on a continuous
+//     triangle next to a depth edge counts (halves the band lost along each discontinuity).
+// An invalid hit sends the search to the next layer. The pixel's normal is the average of the
+// unit normals of the triangles that pass the test (the paper: of both triangles).
+#include "splat_depth_common.glsl"
+#include "dmrt_frame.glsl"
+#include "dmrt_photos.glsl"
+
+#if defined COMPUTE_SHADER
+
+layout(local_size_x = 8, local_size_y = 8) in;
+
+layout(std430, binding = 1) readonly buffer LayerDepth { uint layer_depth[]; };
+layout(std430, binding = 2) readonly buffer LayerLabel { int layer_label[]; };
+
+uniform int u_layers;
+uniform int u_max_steps;
+uniform int u_binary_steps;
+uniform float u_threshold;  // metres
+
+#ifndef QUAD_TEST
+#define QUAD_TEST 1
+#endif
+
+const uint EMPTY_BITS = 0xFFFFFFFFu;
+const float CONVERGED = 1e-5;  // |h| / camera z below which the search has landed on the surface
+
+// h(q) of the header; ok = false where it is undefined.
+float signed_distance(int l, vec3 q, out bool ok) {
+    Photo ph = photos[l];
+    vec3 pc = to_photo(ph, q);
+    ok = false;
+    if (pc.z <= 1e-6) return 0.0;
+    float depth = surface_depth(l, ph, photo_uv(ph, pc), ok);
+    return ok ? (depth - pc.z) * length(pc) / pc.z : 0.0;
+}
+
+// Search D_l along the ray C + s * dir (s = camera z) from s0. True with s_hit and the unit world
+// normal n on a valid intersection.
+bool trace(int l, vec3 C, vec3 dir, float dlen, float s0, inout int iters, out float s_hit, out vec3 n) {
+    s_hit = 0.0;
+    n = vec3(0.0);
+    bool ok;
+    float s = s0;
+    float f = signed_distance(l, C + s * dir, ok);
+    if (!ok) return false;
+    float sa = s, fa = f, sb = s, fb = f;
+    bool found = false;
+    for (int i = 0; i < u_max_steps; ++i) {
+        iters++;
+        if (abs(f) <= CONVERGED * s) {  // on the surface: no interval to refine
+            sa = sb = s;
+            found = true;
+            break;
+        }
+        float sn = s + f / dlen;  // a step of h metres along the unit ray
+        if (sn <= 0.0) return false;
+        float fn = signed_distance(l, C + sn * dir, ok);
+        if (!ok) return false;
+        if ((fn > 0.0) != (f > 0.0)) {  // enclosed
+            sa = s; fa = f; sb = sn; fb = fn;
+            found = true;
+            break;
+        }
+        s = sn;
+        f = fn;
+    }
+    if (!found) return false;
+    if (sa != sb) {
+        for (int b = 0; b < u_binary_steps; ++b) {
+            float sm = 0.5 * (sa + sb);
+            float fm = signed_distance(l, C + sm * dir, ok);
+            if (!ok) return false;
+            if ((fm > 0.0) == (fa > 0.0)) { sa = sm; fa = fm; } else { sb = sm; fb = fm; }
+        }
+        s_hit = (fa == fb) ? 0.5 * (sa + sb) : sa + (sb - sa) * fa / (fa - fb);
+    } else {
+        s_hit = sa;
+    }
+
+    // discontinuity test on the four texels around the hit
+    Photo ph = photos[l];
+    vec3 pc = to_photo(ph, C + s_hit * dir);
+    if (pc.z <= 1e-6) return false;
+    ivec2 i0;
+    vec2 f2;
+    vec4 d;
+    if (!depth_quad(l, ph, photo_uv(ph, pc), i0, f2, d)) return false;
+    float t = u_threshold;
+    // each triangle: all three texels present and no two depths further apart than t
+    bool ok0 = d.x > 0.0 && d.y > 0.0 && d.z > 0.0 &&
+               abs(d.x - d.y) <= t && abs(d.x - d.z) <= t && abs(d.y - d.z) <= t;
+    bool ok1 = d.y > 0.0 && d.w > 0.0 && d.z > 0.0 &&
+               abs(d.y - d.w) <= t && abs(d.w - d.z) <= t && abs(d.y - d.z) <= t;
+#if QUAD_TEST
+    if (!(ok0 && ok1)) return false;
+#else
+    if (!(f2.x + f2.y <= 1.0 ? ok0 : ok1)) return false;
+#endif
+
+    vec3 p00 = unproject_texel(ph, i0, d.x);
+    vec3 p10 = unproject_texel(ph, i0 + ivec2(1, 0), d.y);
+    vec3 p01 = unproject_texel(ph, i0 + ivec2(0, 1), d.z);
+    vec3 p11 = unproject_texel(ph, i0 + ivec2(1, 1), d.w);
+    vec3 n1 = cross(p10 - p00, p01 - p00);
+    vec3 n2 = cross(p11 - p10, p01 - p10);
+    vec3 nc = (ok0 ? n1 / max(length(n1), 1e-30) : vec3(0.0)) + (ok1 ? n2 / max(length(n2), 1e-30) : vec3(0.0));
+    n = photo_dir_to_world(ph, nc);
+    float len = length(n);
+    n = len > 0.0 ? n / len : -dir / dlen;
+    if (dot(n, dir) > 0.0) n = -n;
+    return true;
+}
+
+void main() {
+    ivec2 p = ivec2(gl_GlobalInvocationID.xy);
+    if (p.x >= u_size.x || p.y >= u_size.y) return;
+    uint npix = uint(u_size.x * u_size.y);
+    uint pix = uint(p.y * u_size.x + p.x);
+
+    mat3 Rt = transpose(u_R);  // camera -> world
+    vec3 C = -(Rt * u_t);
+    vec3 dir = Rt * camera_ray(vec2(p) + 0.5);
+    float dlen = length(dir);
+
+    Hit hit = Hit(0.0, -1, -1, 0, 0.0, 0.0, 0.0, -1);
+    int iters = 0;
+    for (int layer = 0; layer < u_layers; ++layer) {
+        uint bits = layer_depth[uint(layer) * npix + pix];
+        if (bits == EMPTY_BITS) break;  // peeling: every later layer is empty too
+        int l = layer_label[uint(layer) * npix + pix];
+        float s_hit;
+        vec3 n;
+        if (trace(l, C, dir, dlen, uintBitsToFloat(bits), iters, s_hit, n)) {
+            hit.depth = s_hit;
+            hit.label = l;
+            hit.layer = layer;
+            hit.nx = n.x; hit.ny = n.y; hit.nz = n.z;
+            break;
+        }
+    }
+    hit.iters = iters;
+    hits[pix] = hit;
+}
+
+#endif
