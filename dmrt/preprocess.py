@@ -38,6 +38,7 @@ class PreprocessConfig:
     depthmap_method: str = "compute"  # "compute" (fast on GPUs with few raster units) | "raster"
     octree_levels: int = 8            # levels of detail of P_HD
     proxy_levels: int | None = None   # P_LD = this many coarsest levels; default from proxy_factor
+    proxy_count: int | None = None    # else: the LOD whose size is nearest this many proxies
     proxy_factor: float = 32.0        # else: the LOD whose |P_HD| / |P_LD| is nearest this (32M -> ~1M)
     memory_limit_mb: float = 2048     # point data held at once by the out-of-core phases
     normals_k: int = 16               # neighbours of the normal plane fit
@@ -62,8 +63,9 @@ def choose_proxy_levels(lod_counts: list[int], n_points: int, config: Preprocess
     """Number of coarsest octree levels that form P_LD."""
     if config.proxy_levels is not None:
         return max(1, min(int(config.proxy_levels), len(lod_counts)))
+    factor = n_points / config.proxy_count if config.proxy_count else config.proxy_factor
     # levels of detail grow ~4x apart on surfaces: take the nearest on a log scale
-    error = [abs(np.log(n_points / count / config.proxy_factor)) for count in lod_counts]
+    error = [abs(np.log(n_points / count / factor)) for count in lod_counts]
     return int(np.argmin(error)) + 1
 
 

@@ -71,6 +71,17 @@ def test_depth_maps_match_embree(tiny_bundle, tiny_scene):
         assert np.median(dz / spacing) < 0.5, (j, np.median(dz), np.median(spacing))
 
 
+def test_proxy_level_choice():
+    from dmrt.preprocess import choose_proxy_levels
+
+    lods = [1_000, 4_000, 16_000, 64_000]
+    assert choose_proxy_levels(lods, 64_000, PreprocessConfig(proxy_factor=40)) == 1  # 64x nearer 40x than 16x
+    assert choose_proxy_levels(lods, 64_000, PreprocessConfig(proxy_factor=20)) == 2
+    assert choose_proxy_levels(lods, 64_000, PreprocessConfig(proxy_count=5_000)) == 2
+    assert choose_proxy_levels(lods, 64_000, PreprocessConfig(proxy_levels=3)) == 3
+    assert choose_proxy_levels(lods, 64_000, PreprocessConfig(proxy_levels=9)) == 4
+
+
 def _candidates(b, scene):
     cams = [c.relative_to(b.origin) for c in b.cameras]
     return find_candidates(b.proxy["positions"], b.proxy["normals"], b.proxy["hd_radii"], cams,
