@@ -26,6 +26,7 @@ Everything on the GPU is relative to the bundle's scene origin (float32 keeps mi
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import moderngl
@@ -66,8 +67,21 @@ class RenderConfig:
     # Visibility stage: "compute" (atomicMin splatting, fast on Hopper) or "raster" (the paper's
     # GL_POINTS with depth peeling); both give the same layers.
     method: str = "compute"
+    # Compute splatting (visibility and labeling passes): "int64" = one pass with 64-bit atomicMin
+    # on (depth bits, label) (NVIDIA GL_NV_shader_atomic_int64), "portable" = an atomicMin pass on
+    # the depth then a label-resolve pass (any GL 4.3, e.g. Mesa llvmpipe); "auto" = int64 where
+    # the driver has it. Same results.
+    atomics: str = "auto"
     # GPU memory for the full-resolution photo cache, MiB (paper: 1 GB); 0 = low-res only.
     cache_mb: float = 1024.0
+    # Photo streaming (dmrt.texturing): decode photos on background threads so that no frame waits
+    # for a disk read (the low-res copy stands in until the upload), and upload at most this many
+    # photos per frame (0 = no bound). False / 0 make every frame's cache exactly its most frequent
+    # labels (deterministic colours: use for quality measurements, or call flush_photos()).
+    async_photos: bool = True
+    max_uploads_per_frame: int = 4
+    # Decoded photos kept in CPU memory, MiB.
+    cpu_cache_mb: float = 1024.0
     # The per-pixel labeling pass (paper 5.2.1); False keeps the raytraced layer's label (ablation).
     labeling: bool = True
     # Addition to the paper: a labeling-pass label whose depth map does not see the pixel's point
@@ -89,6 +103,8 @@ class RenderConfig:
         if self.discontinuity_test not in ("quad", "triangle"):
             raise ValueError(f"RenderConfig.discontinuity_test must be 'quad' or 'triangle', "
                              f"not {self.discontinuity_test!r}")
+        if self.atomics not in ("auto", "int64", "portable"):
+            raise ValueError(f"RenderConfig.atomics must be 'auto', 'int64' or 'portable', not {self.atomics!r}")
         if self.method not in ("compute", "raster"):
             raise ValueError(f"RenderConfig.method must be 'compute' or 'raster', not {self.method!r}")
         if self.leveling:
@@ -141,6 +157,10 @@ class Renderer:
         if n == 0:
             raise ValueError(f"{bundle.root}: the bundle has no photos")
         self.timer = GpuTimer(self.ctx)
+        has_int64 = {"GL_NV_shader_atomic_int64", "GL_ARB_gpu_shader_int64"} <= set(self.ctx.extensions)
+        if self.config.atomics == "int64" and not has_int64:
+            raise ValueError("RenderConfig.atomics='int64': this driver lacks GL_NV_shader_atomic_int64")
+        self.int64 = self.config.atomics == "int64" or (self.config.atomics == "auto" and has_int64)
 
         # depth maps: one R32F layer each, written one at a time (no n x h x w host copy)
         self.depth_sizes = []
@@ -159,7 +179,8 @@ class Renderer:
                                  f"larger than the first one's {dims[0]}x{dims[1]}")
             self.depthmaps.write(np.ascontiguousarray(m, np.float32).tobytes(),
                                  viewport=(0, 0, i, m.shape[1], m.shape[0], 1))
-        self.images = ImageCache(self.ctx, bundle, self.config.cache_mb)
+        self.images = ImageCache(self.ctx, bundle, self.config.cache_mb, self.config.max_uploads_per_frame,
+                                 self.config.async_photos, self.config.cpu_cache_mb)
         self.photos = self.ctx.buffer(photo_params(self.cameras, self.origin, self.depth_sizes,
                                                    self.images.low_sizes).tobytes())
         labels = np.asarray(bundle.proxy["labels"])
@@ -167,10 +188,10 @@ class Renderer:
             raise InputError(bundle.root / "proxy.npz", f"array 'labels' holds photo index {labels.max()} "
                                                         f"but the bundle has {n} photos")
         self.splats = ProxySplats(self.ctx, bundle.proxy, self.config.max_thread_pixels)
-        self.visibility = VisibilityStage(self.ctx, self.splats, self.config.method)
+        self.visibility = VisibilityStage(self.ctx, self.splats, self.config.method, self.int64)
         self._raytrace = load_program(self.ctx, "dmrt_raytrace",
                                       {"QUAD_TEST": int(self.config.discontinuity_test == "quad")})
-        self._finalize = load_program(self.ctx, "dmrt_label_finalize")
+        self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64), "N_PHOTOS": n})
         self._texturing = load_program(self.ctx, "dmrt_texturing")
         self.counts = self.ctx.buffer(reserve=4 * n)
         self._size: tuple[int, int] | None = None
@@ -198,8 +219,10 @@ class Renderer:
             (h, w, 3) float32 unit world normal - plus ``label_raw`` (h, w) int32 (the label of
             the layer whose depth map was hit, before the labeling pass), ``layer_used`` (h, w)
             int32 (0-based layer, -1 = none), ``iterations`` (h, w) int32 (iterative-search steps
-            over all layers tried) and ``timings`` {stage: GPU ms} (meaningless on llvmpipe,
-            see :class:`dmrt.gl.GpuTimer`).
+            over all layers tried), ``timings`` {stage: GPU ms} (meaningless on llvmpipe, see
+            :class:`dmrt.gl.GpuTimer`) and ``cpu_ms`` {``label_readback``: wall ms waiting for
+            the label histogram (the GPU finishing the frame so far), ``image_management``: wall
+            ms choosing, decoding (synchronous streaming) and uploading photos}.
         """
         cfg = self.config
         cam = camera.resized(width or cfg.width, height or cfg.height)
@@ -231,17 +254,23 @@ class Renderer:
             ctx.memory_barrier(_BARRIER)
 
         with timer.section("labeling"):
-            self.visibility.fill(b["key"], EMPTY_BITS, npix)
-            self.visibility.fill(b["vlabel"], EMPTY_LABEL, npix)
+            self.visibility.fill(b["key"], EMPTY_BITS, 2 * npix if self.int64 else npix)
+            if not self.int64:
+                self.visibility.fill(b["vlabel"], EMPTY_LABEL, npix)
             ctx.memory_barrier(_BARRIER)
-            if cfg.labeling:
+            if cfg.labeling and self.int64:
+                self.splats.run("dmrt_labeling", {"INT64": 1}, cam_uniforms, {1: b["key"], 4: b["hits"]})
+            elif cfg.labeling:
                 for resolve in (0, 1):
                     self.splats.run("dmrt_labeling", {"RESOLVE": resolve}, cam_uniforms,
                                     {1: b["key"], 2: b["vlabel"], 4: b["hits"]})
 
+        # image management: the histogram pass and the uploads are timed on the GPU; the readback
+        # between them waits for the frame so far and is CPU time (frame["cpu_ms"])
         with timer.section("image_management"):
             self.visibility.fill(self.counts, 0, len(self.cameras))
             ctx.memory_barrier(_BARRIER)
+            b["key"].bind_to_storage_buffer(1)
             b["vlabel"].bind_to_storage_buffer(2)
             b["hits"].bind_to_storage_buffer(4)
             self.counts.bind_to_storage_buffer(6)
@@ -251,8 +280,12 @@ class Renderer:
                          u_visibility_tol=float(cfg.label_check_tolerance), u_depthmaps=0, **cam_uniforms)
             self._finalize.run(*grid)
             ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
-            counts = np.frombuffer(self.counts.read(), np.uint32)
+        t0 = time.perf_counter()
+        counts = np.frombuffer(self.counts.read(), np.uint32)
+        t1 = time.perf_counter()
+        with timer.section("image_management"):
             self.images.update(counts)
+        t2 = time.perf_counter()
         self.label_counts = counts.copy()
 
         with timer.section("texturing"):
@@ -277,8 +310,15 @@ class Renderer:
         frame["label_raw"] = hits["label"].copy()
         frame["layer_used"] = hits["layer"].copy()
         frame["iterations"] = hits["iters"].copy()
-        frame["timings"] = {stage: self.timer.ms.get(stage, 0.0) for stage in STAGES}
+        ms = self.timer.ms
+        frame["timings"] = {stage: ms.get(stage, 0.0) for stage in STAGES}
+        frame["cpu_ms"] = {"label_readback": (t1 - t0) * 1e3, "image_management": (t2 - t1) * 1e3}
         return frame
+
+    def flush_photos(self) -> int:
+        """Wait for the photos being streamed and upload all that the last frame wanted; the next
+        frame of the same view is then textured as with synchronous, unbounded streaming."""
+        return self.images.flush()
 
     def layers(self) -> dict:
         """The last frame's label layers.
@@ -317,7 +357,7 @@ class Renderer:
             "layer_depth": self.ctx.buffer(reserve=4 * k * npix),
             "layer_label": self.ctx.buffer(reserve=4 * k * npix),
             "hits": self.ctx.buffer(reserve=HIT_DTYPE.itemsize * npix),
-            "key": self.ctx.buffer(reserve=4 * npix),
+            "key": self.ctx.buffer(reserve=8 * npix),  # 64-bit keys on the int64 path
             "vlabel": self.ctx.buffer(reserve=4 * npix),
             "colors": self.ctx.buffer(reserve=4 * npix),
         }

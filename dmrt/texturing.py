@@ -1,15 +1,20 @@
 """DMRT image management and texturing (paper Sections 5.2.2 and 5.2.3).
 
 * Low-resolution copies of every photo (the bundle's ``images_low``, paper: 256x171) stay on the
-  GPU in one RGBA8 texture array, one layer per photo: the fallback of every lookup.
-* Full-resolution photos are cached in a second RGBA8 texture array of as many layers ("slots")
+  GPU in one RGB8 texture array, one layer per photo: the fallback of every lookup.
+* Full-resolution photos are cached in a second RGB8 texture array of as many layers ("slots")
   as ``cache_mb`` holds. Relevance of a photo = the frequency of its label in the frame's final
   label buffer, counted on the GPU (``atomicAdd``; the readback is 4 bytes per photo). After each
   frame's labeling, the most relevant photos (count > 0, at most as many as there are slots) are
-  made resident; a photo already resident keeps its slot, so a steady view uploads nothing, and a
-  newcomer takes an empty slot, else that of the least recently wanted photo.
-  Photos are decoded from disk on upload (the paper streams them out of core); :attr:`ImageCache.
-  uploads` counts uploads. With ``cache_mb = 0`` everything is textured from the low-res copies.
+  made resident, most frequent first; a photo already resident keeps its slot, so a steady view
+  uploads nothing, and a newcomer takes an empty slot, else that of the least recently wanted
+  photo. :attr:`ImageCache.uploads` counts uploads. ``cache_mb = 0``: low-res copies only.
+* Streaming (the paper streams photos out of core [8]). Photos are decoded from the bundle's
+  files into a CPU-side LRU of ``cpu_cache_mb``. With ``asynchronous`` the decoding runs on
+  background threads: a wanted photo whose decode is not finished is uploaded by a later frame
+  (the low-res copy stands in meanwhile), so no frame waits for a disk read or a PNG decode.
+  ``max_uploads`` bounds the uploads of one frame (0 = no bound). Synchronous and unbounded, a
+  frame's cache is exactly its most frequent labels (what the tests check).
 
 The texturing pass then colours each pixel from its label's photo at the projection of its
 raytraced point: from the cache when resident, else from the low-res copy (bilinear both).
@@ -17,17 +22,13 @@ raytraced point: from the cache when resident, else from the low-res copy (bilin
 
 from __future__ import annotations
 
+from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor, wait
+
 import numpy as np
 
 from dmrt.bundle import Bundle
 from dmrt.errors import InputError
-
-
-def _rgba(image: np.ndarray) -> np.ndarray:
-    h, w = image.shape[:2]
-    out = np.full((h, w, 4), 255, np.uint8)
-    out[..., :3] = image[..., :3]
-    return out
 
 
 class ImageCache:
@@ -39,82 +40,139 @@ class ImageCache:
     bundle : Bundle
     cache_mb : float
         GPU memory for full-resolution photos, MiB (paper: 1 GB). Each slot holds the largest
-        photo's size in RGBA8.
+        photo's size in RGB8.
+    max_uploads : int
+        Full-resolution uploads per frame at most; 0 = unbounded.
+    asynchronous : bool
+        Decode photos on background threads (see the module doc).
+    cpu_cache_mb : float
+        Decoded photos kept in CPU memory, MiB (least recently used dropped first).
 
     Attributes
     ----------
     low_sizes : list of (width, height) of the low-resolution copies.
     n_slots : int, number of full-resolution slots.
     slot_of : (n_photos,) int32, the cache slot of each photo, -1 = not resident.
+    slots : moderngl.Buffer, ``slot_of`` on the GPU.
     uploads : int, full-resolution uploads so far.
     """
 
-    def __init__(self, ctx, bundle: Bundle, cache_mb: float):
+    def __init__(self, ctx, bundle: Bundle, cache_mb: float, max_uploads: int = 0, asynchronous: bool = False,
+                 cpu_cache_mb: float = 1024.0):
         self.ctx, self.bundle = ctx, bundle
         n = len(bundle.cameras)
-        low = [_rgba(bundle.image(i, low=True)) for i in range(n)]  # small: 0.13 MB each (paper)
+        low = [bundle.image(i, low=True) for i in range(n)]  # small: 0.13 MB each (paper)
         self.low_sizes = [(im.shape[1], im.shape[0]) for im in low]
         self.low_dims = (max(s[0] for s in self.low_sizes), max(s[1] for s in self.low_sizes))
-        self.low = ctx.texture_array((*self.low_dims, n), 4)
+        self.low = ctx.texture_array((*self.low_dims, n), 3)
         for i, im in enumerate(low):
-            self.low.write(im.tobytes(), viewport=(0, 0, i, im.shape[1], im.shape[0], 1))
+            self.low.write(np.ascontiguousarray(im).tobytes(), viewport=(0, 0, i, im.shape[1], im.shape[0], 1))
         self.full_dims = (max(c.width for c in bundle.cameras), max(c.height for c in bundle.cameras))
-        slot_bytes = self.full_dims[0] * self.full_dims[1] * 4
+        slot_bytes = self.full_dims[0] * self.full_dims[1] * 3
         self.n_slots = int(min(n, max(0.0, cache_mb) * 2 ** 20 // slot_bytes))
         # a 1x1 stand-in keeps the sampler bound when the cache has no slot
-        dims = (*self.full_dims, self.n_slots) if self.n_slots else (1, 1, 1)
-        self.high = ctx.texture_array(dims, 4)
+        self.high = ctx.texture_array((*self.full_dims, self.n_slots) if self.n_slots else (1, 1, 1), 3)
+        for tex in (self.low, self.high):
+            tex.repeat_x = tex.repeat_y = False
         self.slot_of = np.full(n, -1, np.int32)
+        self.slots = ctx.buffer(self.slot_of.tobytes())
+        self.uploads = 0
+        self.max_uploads = int(max_uploads)
         self._photo_in = np.full(max(self.n_slots, 1), -1, np.int64)
         self._last_used = np.zeros(max(self.n_slots, 1), np.int64)
         self._frame = 0
-        self.slots = ctx.buffer(self.slot_of.tobytes())
-        self.uploads = 0
-        for tex in (self.low, self.high):
-            tex.repeat_x = tex.repeat_y = False
+        self._wanted: list[int] = []
+        self._pool = ThreadPoolExecutor(2, thread_name_prefix="dmrt-photos") if asynchronous else None
+        self._pending: dict[int, Future] = {}
+        self._decoded: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._cpu_budget = max(0.0, cpu_cache_mb) * 2 ** 20
 
     @property
     def nbytes(self) -> dict:
         """GPU bytes: ``images_low`` and ``image_cache``."""
-        return {"images_low": self.low.width * self.low.height * self.low.layers * 4,
-                "image_cache": self.high.width * self.high.height * self.high.layers * 4 if self.n_slots else 0}
+        return {"images_low": self.low.width * self.low.height * self.low.layers * 3,
+                "image_cache": self.high.width * self.high.height * self.high.layers * 3 if self.n_slots else 0}
 
     def update(self, counts: np.ndarray) -> int:
-        """Make the most frequent labels resident. ``counts`` (n_photos,) uint32 label histogram.
+        """Make the most frequent labels resident. ``counts`` (n_photos,) label histogram.
 
         Returns the number of photos uploaded.
         """
         if self.n_slots == 0:
             return 0
-        order = np.argsort(-counts.astype(np.int64), kind="stable")
-        wanted = [int(j) for j in order[:self.n_slots] if counts[j] > 0]
-        missing = [j for j in wanted if self.slot_of[j] < 0]
-        wanted_set = set(wanted)
+        counts = np.asarray(counts).astype(np.int64)
+        order = np.argsort(-counts, kind="stable")
+        self._wanted = [int(j) for j in order[:self.n_slots] if counts[j] > 0]
         self._frame += 1
-        for j in wanted:
+        for j in self._wanted:
             if self.slot_of[j] >= 0:
                 self._last_used[self.slot_of[j]] = self._frame
+        return self._upload(self.max_uploads, block=self._pool is None)
+
+    def flush(self) -> int:
+        """Finish the pending decodes and upload every photo the last frame wanted."""
+        if self._pending:
+            wait(list(self._pending.values()))
+        return self._upload(0, block=True) if self.n_slots else 0
+
+    def _upload(self, limit: int, block: bool) -> int:
+        wanted_set = set(self._wanted)
+        missing = [j for j in self._wanted if self.slot_of[j] < 0]
         # empty slots first, then the least recently wanted photos that this frame does not want
         free = sorted((s for s in range(self.n_slots) if int(self._photo_in[s]) not in wanted_set),
                       key=lambda s: (self._photo_in[s] >= 0, self._last_used[s]))
-        for j, s in zip(missing, free):
+        done = 0
+        for j in missing:
+            if not free or (limit and done >= limit):
+                break
+            image = self._image(j, block)
+            if image is None:  # still decoding: a later frame uploads it
+                continue
+            s = free.pop(0)
             old = int(self._photo_in[s])
             if old >= 0:
                 self.slot_of[old] = -1
-            image = _rgba(self.bundle.image(j))
             h, w = image.shape[:2]
-            cam = self.bundle.cameras[j]
-            if (w, h) != (cam.width, cam.height):
-                raise InputError(self.bundle.path("images", j), f"image is {w}x{h}, its camera {cam.width}x{cam.height}")
             self.high.write(image.tobytes(), viewport=(0, 0, s, w, h, 1))
-            self._photo_in[s] = j
-            self._last_used[s] = self._frame
-            self.slot_of[j] = s
-            self.uploads += 1
-        if missing:
+            self._photo_in[s], self._last_used[s], self.slot_of[j] = j, self._frame, s
+            done += 1
+        if done:
+            self.uploads += done
             self.slots.write(self.slot_of.tobytes())
-        return len(missing)
+        if self._pool is not None:  # prefetch what is still missing
+            for j in missing:
+                if self.slot_of[j] < 0:
+                    self._image(j, False)
+        return done
+
+    def _image(self, j: int, block: bool) -> np.ndarray | None:
+        """Photo ``j`` decoded (h, w, 3) uint8, or None while its background decode runs."""
+        if j in self._decoded:
+            self._decoded.move_to_end(j)
+            return self._decoded[j]
+        fut = self._pending.get(j)
+        if fut is None and self._pool is not None and not block:
+            self._pending[j] = self._pool.submit(self._decode, j)
+            return None
+        if fut is not None and not (block or fut.done()):
+            return None
+        image = fut.result() if fut is not None else self._decode(j)
+        self._pending.pop(j, None)
+        self._decoded[j] = image
+        while len(self._decoded) > 1 and sum(a.nbytes for a in self._decoded.values()) > self._cpu_budget:
+            self._decoded.popitem(last=False)
+        return image
+
+    def _decode(self, j: int) -> np.ndarray:
+        image = np.ascontiguousarray(self.bundle.image(j))
+        cam = self.bundle.cameras[j]
+        if image.shape[:2] != (cam.height, cam.width):
+            raise InputError(self.bundle.path("images", j), f"image is {image.shape[1]}x{image.shape[0]}, "
+                                                            f"its camera {cam.width}x{cam.height}")
+        return image
 
     def release(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
         for obj in (self.low, self.high, self.slots):
             obj.release()

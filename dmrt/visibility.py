@@ -121,14 +121,20 @@ class VisibilityStage:
     ctx : moderngl.Context
     splats : ProxySplats
     method : ``"compute"`` or ``"raster"``
+    int64 : bool
+        Compute path: one pass per layer with 64-bit atomics (see module doc).
     """
 
-    def __init__(self, ctx: moderngl.Context, splats: ProxySplats, method: str = "compute"):
+    def __init__(self, ctx: moderngl.Context, splats: ProxySplats, method: str = "compute", int64: bool = False):
         if method not in ("compute", "raster"):
             raise ValueError(f"RenderConfig.method must be 'compute' or 'raster', not {method!r}")
         self.ctx, self.splats, self.method = ctx, splats, method
+        self.int64 = bool(int64) and method == "compute"
         self._fill = load_program(ctx, "fill_u32")
         self._size = None
+        self._packed = None
+        if self.int64:
+            self._unpack = load_program(ctx, "dmrt_layer_unpack")
         if method == "raster":
             self._points = load_program(ctx, "dmrt_visibility_raster")
             self._quads = load_program(ctx, "dmrt_visibility_raster_large")
@@ -150,8 +156,23 @@ class VisibilityStage:
         self.fill(layer_depth, EMPTY_BITS, layers * w * h)
         self.fill(layer_label, EMPTY_LABEL, layers * w * h)
         self.ctx.memory_barrier(_BARRIER)
+        if self.int64:
+            if self._packed is None or self._packed.size < 8 * w * h:
+                if self._packed is not None:
+                    self._packed.release()
+                self._packed = self.ctx.buffer(reserve=8 * w * h)
+            self.fill(self._packed, EMPTY_BITS, 2 * w * h)
+            self.ctx.memory_barrier(_BARRIER)
         for layer in range(layers):
-            if self.method == "compute":
+            if self.int64:
+                self.splats.run("dmrt_visibility", {"INT64": 1}, {**uniforms, "u_layer": layer},
+                                {1: layer_depth, 2: layer_label, 4: self._packed})
+                for binding, buf in ((1, layer_depth), (2, layer_label), (4, self._packed)):
+                    buf.bind_to_storage_buffer(binding)
+                set_uniforms(self._unpack, u_size=size, u_layer=layer)
+                self._unpack.run(groups(w, 8), groups(h, 8))
+                self.ctx.memory_barrier(_BARRIER)
+            elif self.method == "compute":
                 for resolve in (0, 1):
                     self.splats.run("dmrt_visibility", {"RESOLVE": resolve}, {**uniforms, "u_layer": layer},
                                     {1: layer_depth, 2: layer_label})
@@ -203,7 +224,7 @@ class VisibilityStage:
 
     def release(self) -> None:
         self._release_targets()
-        for name in ("_vao_points", "_vao_quads"):
+        for name in ("_vao_points", "_vao_quads", "_packed"):
             obj = self.__dict__.pop(name, None)
             if obj is not None:
                 obj.release()

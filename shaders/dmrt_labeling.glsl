@@ -3,15 +3,27 @@
 // same test as the visibility stage), but the z-buffer key of disc c_j at pixel p is the 3D
 // distance |c_j - q_p| to the raytraced surface point q_p of that pixel, so each pixel keeps the
 // label of its nearest covering proxy. Only pixels with a raytraced hit take part.
-//   RESOLVE 0: atomicMin of the distance bits;  RESOLVE 1: equal distance -> atomicMin label.
+//   RESOLVE 0: atomicMin of the distance bits;  RESOLVE 1: equal distance -> atomicMin label;
+//   INT64 1 (NVIDIA): one pass, atomicMin of (distance bits << 32 | label) into Key (8 bytes/pixel).
 // Distances are taken in the render camera's space (rotation invariant: the same as in the world).
+#ifndef INT64
+#define INT64 0
+#endif
+#if INT64
+#extension GL_ARB_gpu_shader_int64 : require
+#extension GL_NV_shader_atomic_int64 : require
+#endif
 #include "dmrt_splat_common.glsl"
 #include "dmrt_frame.glsl"
 
 #if defined COMPUTE_SHADER
 
+#if INT64
+layout(std430, binding = 1) buffer Key { uint64_t key[]; };
+#else
 layout(std430, binding = 1) buffer Key { uint key[]; };
 layout(std430, binding = 2) buffer Label { int vlabel[]; };
+#endif
 
 void visit(Splat s, int label, int col, int row) {
     vec2 uv = vec2(col, row) + 0.5;
@@ -20,7 +32,10 @@ void visit(Splat s, int label, int col, int row) {
     float z = hits[pix].depth;
     if (z <= 0.0) return;
     uint bits = floatBitsToUint(distance(z * camera_ray(uv), s.pc));
-#if RESOLVE
+#if INT64
+    uint64_t k = packUint2x32(uvec2(uint(label), bits));
+    if (k < key[pix]) atomicMin(key[pix], k);
+#elif RESOLVE
     if (bits == key[pix]) atomicMin(vlabel[pix], label);
 #else
     if (bits < key[pix]) atomicMin(key[pix], bits);

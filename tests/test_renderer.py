@@ -172,10 +172,12 @@ def scan_tree(tiny_scene, bundle):
 
 @pytest.fixture(scope="module")
 def renderers(ctx, bundle):
-    """One renderer per layer count (the same GL context); released after the module."""
+    """One renderer per layer count (the same GL context), synchronous photo streaming so that
+    colours are deterministic; released after the module."""
     from dmrt.renderer import RenderConfig, Renderer
 
-    out = {k: Renderer(bundle, RenderConfig(layers=k), ctx) for k in (1, 2, 3)}
+    cfg = {"async_photos": False, "max_uploads_per_frame": 0}
+    out = {k: Renderer(bundle, RenderConfig(layers=k, **cfg), ctx) for k in (1, 2, 3)}
     yield out
     for r in out.values():
         r.release()
@@ -643,6 +645,7 @@ def test_image_cache_and_texturing(ctx, bundle):
 
     * The most frequent labels of the frame (GPU histogram) get the full-resolution slots, and a
       steady view uploads nothing.
+    * Streaming decodes on background threads and bounds the uploads per frame.
     * Colours against a numpy texturing of the same frame (each pixel's raytraced point projected
       into the full-resolution photo of its label, bilinear): with every photo cached, 99 % of the
       pixels are within 3 levels (8-bit filtering weights on the GPU); the low-resolution copies
@@ -653,10 +656,12 @@ def test_image_cache_and_texturing(ctx, bundle):
     from reference.render import sample_bilinear
 
     cam = bundle.cameras[2].resized(W)
-    slot_mb = max(c.width * c.height for c in bundle.cameras) * 4 / 2 ** 20
+    slot_mb = max(c.width * c.height for c in bundle.cameras) * 3 / 2 ** 20
+    sync = {"async_photos": False, "max_uploads_per_frame": 0}
     low = Renderer(bundle, RenderConfig(layers=3, cache_mb=0), ctx)
-    two = Renderer(bundle, RenderConfig(layers=3, cache_mb=2.5 * slot_mb), ctx)
-    full = Renderer(bundle, RenderConfig(layers=3), ctx)
+    two = Renderer(bundle, RenderConfig(layers=3, cache_mb=2.5 * slot_mb, **sync), ctx)
+    full = Renderer(bundle, RenderConfig(layers=3, **sync), ctx)
+    streamed = Renderer(bundle, RenderConfig(layers=3, max_uploads_per_frame=1), ctx)  # asynchronous
     try:
         assert low.images.n_slots == 0 and two.images.n_slots == 2
         assert full.images.n_slots == len(bundle.cameras)  # the default 1 GB holds them all
@@ -687,6 +692,16 @@ def test_image_cache_and_texturing(ctx, bundle):
               f"low-res {p_low:.2f} dB")
         assert np.percentile(err, 99) <= 3
         assert p_full > p_low + 3.0
+
+        # streaming: the first frame waits for nothing (decodes run in the background), at most
+        # one upload per frame, and once flushed the frame equals the synchronous one
+        f0 = streamed.render(cam)
+        assert streamed.images.uploads <= 1
+        streamed.render(cam)
+        assert streamed.images.uploads <= 2
+        streamed.flush_photos()
+        np.testing.assert_array_equal(streamed.render(cam)["color"], f_full["color"])
+        assert (f0["depth"] == f_full["depth"]).all()
     finally:
-        for r in (low, two, full):
+        for r in (low, two, full, streamed):
             r.release()
