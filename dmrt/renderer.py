@@ -8,8 +8,10 @@ Per frame, each stage its own shader and GPU timer section:
    (``shaders/dmrt_raytrace.glsl`` documents the surface and the step formula);
 3. ``labeling`` - the proxies splatted again with the 3D distance to the raytraced point as depth:
    each pixel takes the label of its nearest covering proxy (``shaders/dmrt_labeling.glsl``);
-4. ``image_management`` - label histogram on the GPU, the most frequent photos made resident at
-   full resolution (:mod:`dmrt.texturing`);
+4. ``image_management`` - final labels (``shaders/dmrt_label_finalize.glsl``), the label
+   histogram on the GPU (``shaders/dmrt_label_histogram.glsl``), read back (CPU time, reported in
+   ``frame["cpu_ms"]``, not in the GPU timings), and the most frequent photos streamed into the
+   full-resolution cache (:mod:`dmrt.texturing`);
 5. ``texturing`` - colour from the label's photo at the projection of the raytraced point.
 
 Screen-space leveling (paper 5.2.3, last step) is not implemented: ``RenderConfig.leveling``
@@ -191,7 +193,8 @@ class Renderer:
         self.visibility = VisibilityStage(self.ctx, self.splats, self.config.method, self.int64)
         self._raytrace = load_program(self.ctx, "dmrt_raytrace",
                                       {"QUAD_TEST": int(self.config.discontinuity_test == "quad")})
-        self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64), "N_PHOTOS": n})
+        self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
+        self._histogram = load_program(self.ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
         self._texturing = load_program(self.ctx, "dmrt_texturing")
         self.counts = self.ctx.buffer(reserve=4 * n)
         self._size: tuple[int, int] | None = None
@@ -279,6 +282,9 @@ class Renderer:
             set_uniforms(self._finalize, u_use_labeling=int(cfg.labeling), u_label_check=int(cfg.label_check),
                          u_visibility_tol=float(cfg.label_check_tolerance), u_depthmaps=0, **cam_uniforms)
             self._finalize.run(*grid)
+            ctx.memory_barrier(_BARRIER)
+            set_uniforms(self._histogram, u_count=npix)
+            self._histogram.run(groups(npix, 64 * 64))
             ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
         t0 = time.perf_counter()
         counts = np.frombuffer(self.counts.read(), np.uint32)

@@ -1,5 +1,4 @@
-// DMRT: each pixel's final label, and the frame's label histogram that image management ranks
-// photos by (paper Section 5.2.2: relevance = frequency of the label in the label buffer).
+// DMRT: each pixel's final label (dmrt_label_histogram then counts them for image management).
 //
 // The final label is the labeling pass's (the nearest covering proxy's, paper 5.2.1) where it found
 // one, else the raytraced layer's. With u_label_check (an addition to the paper), a labeling-pass
@@ -24,7 +23,6 @@ layout(std430, binding = 1) readonly buffer Key { uvec2 key[]; };
 #else
 layout(std430, binding = 2) readonly buffer Label { int vlabel[]; };
 #endif
-layout(std430, binding = 6) buffer Counts { uint counts[]; };
 
 uniform int u_use_labeling;
 uniform int u_label_check;
@@ -41,25 +39,11 @@ bool sees(int l, vec3 q) {
     return ok && abs(depth - pc.z) <= u_visibility_tol;
 }
 
-// The histogram is gathered per workgroup in shared memory first: a million atomicAdds on a handful
-// of global counters serialise (tens of ms on an H200); one global add per label per workgroup
-// does not.
-#ifndef N_PHOTOS
-#define N_PHOTOS 1
-#endif
-shared uint local_counts[N_PHOTOS];
-
 void finalize(ivec2 p);
 
 void main() {
-    uint lid = gl_LocalInvocationIndex;
-    for (uint i = lid; i < uint(N_PHOTOS); i += 64u) local_counts[i] = 0u;
-    barrier();
     ivec2 p = ivec2(gl_GlobalInvocationID.xy);
     if (p.x < u_size.x && p.y < u_size.y) finalize(p);
-    barrier();
-    for (uint i = lid; i < uint(N_PHOTOS); i += 64u)
-        if (local_counts[i] > 0u) atomicAdd(counts[i], local_counts[i]);
 }
 
 void finalize(ivec2 p) {
@@ -77,7 +61,6 @@ void finalize(ivec2 p) {
             vec3 q = transpose(u_R) * (hit.depth * camera_ray(vec2(p) + 0.5) - u_t);
             if (u_label_check == 0 || sees(v, q)) label = v;
         }
-        atomicAdd(local_counts[label], 1u);
     }
     hits[pix].final_label = label;
 }

@@ -449,6 +449,7 @@ def test_frame_contract(renderers, bundle):
     for key in ("label", "label_raw", "layer_used", "iterations"):
         assert frame[key].shape == (h, W) and frame[key].dtype == np.int32, key
     assert set(frame["timings"]) == {"visibility", "raytracing", "labeling", "image_management", "texturing"}
+    assert set(frame["cpu_ms"]) == {"label_readback", "image_management"}
     hit = frame["depth"] > 0
     assert 0.5 < hit.mean() <= 1.0
     # background is background in every buffer, surface is surface in every buffer
