@@ -125,6 +125,10 @@ def cmd_render(args) -> None:
     if args.visibility:
         config = dataclasses.replace(config, method=args.visibility)
     renderer = Renderer(bundle, config)
+    # A still frame: the first render tells which photos the view needs, then they are made
+    # resident at full resolution and the frame is rendered again with them.
+    renderer.render(camera, args.width, args.height)
+    renderer.flush_photos()
     frame = renderer.render(camera, args.width, args.height)
     write_frame(args.out, frame)
     if args.stats:
