@@ -1,0 +1,54 @@
+"""`dmrt render` end to end on the preprocessed tiny scene, checked against the Embree reference."""
+
+import json
+
+import numpy as np
+import pytest
+
+from dmrt.bundle import camera_to_json, read_bundle
+from dmrt.cli import main
+from dmrt.frames import read_frame
+from dmrt.scene import load_scene
+from reference.metrics import compare
+from reference.render import EmbreeReference
+
+
+def test_render_photo_camera_matches_reference(tiny_bundle, tiny_scene, tmp_path):
+    out, stats = tmp_path / "f.exr", tmp_path / "s.json"
+    assert main(["render", str(tiny_bundle), "--camera", "photo_0002.png", "--width", "256",
+                 "--layers", "3", "--out", str(out), "--stats", str(stats)]) == 0
+    frame = read_frame(out)
+    scene = load_scene(tiny_scene)
+    ref = EmbreeReference.from_scene(scene).render(scene.cameras[2], 256)
+    # At a photo's own camera and resolution, what DMRT can show is what that photo's depth map
+    # holds (the scan has shadows the mesh has not): judge holes against the depth map's coverage.
+    dm = read_bundle(tiny_bundle).depth_map(2)
+    ref["depth"] = np.where(dm > 0, ref["depth"], 0)
+    m = compare(frame, ref)
+    # Measured 4.5 % here (0.5-6 % over the tiny scene's photos): besides silhouette pixels, patches
+    # whose proxies carry the label of a photo in whose depth map the raytrace then fails (a known
+    # gap between candidate test and runtime, see the closing note of this change). The bound
+    # catches a broken pipeline (holes everywhere), not that gap.
+    assert m["hole_rate"] < 0.08, m["hole_rate"]
+    assert m["depth_median_m"] < 0.005  # well below a texel footprint (~2 cm at 3 m)
+    s = json.loads(stats.read_text())
+    assert set(s["timings_ms"]) == {"visibility", "raytracing", "labeling", "image_management", "texturing"}
+    assert s["config"]["layers"] == 3 and s["mean_iterations"] > 0 and s["gpu_bytes"]["depthmaps"] > 0
+
+
+def test_render_pose_file_and_bad_requests(tiny_bundle, tmp_path, capsys):
+    cam = read_bundle(tiny_bundle).cameras[4]
+    pose = tmp_path / "pose.json"
+    pose.write_text(json.dumps(camera_to_json(cam)))
+    a, b = tmp_path / "a.png", tmp_path / "b.png"
+    assert main(["render", str(tiny_bundle), "--pose", str(pose), "--width", "96", "--out", str(a)]) == 0
+    assert main(["render", str(tiny_bundle), "--camera", cam.name, "--width", "96", "--out", str(b)]) == 0
+    fa, fb = read_frame(a)["color"], read_frame(b)["color"]
+    assert fa.shape == (64, 96, 3) and np.mean(np.all(fa == fb, axis=-1)) > 0.99
+    assert main(["render", str(tiny_bundle), "--camera", "nope.png", "--out", str(a)]) == 2
+    assert "no photo named 'nope.png'" in capsys.readouterr().err
+    assert main(["render", str(tiny_bundle), "--out", str(a)]) == 2
+    assert "exactly one of --camera" in capsys.readouterr().err
+    pose.write_text("{}")
+    assert main(["render", str(tiny_bundle), "--pose", str(pose), "--out", str(a)]) == 2
+    assert "pose.json" in capsys.readouterr().err
