@@ -15,6 +15,7 @@ Phases, each with a progress bar and a wall-clock timing in ``bundle.json``:
 
 from __future__ import annotations
 
+import resource
 import shlex
 import shutil
 import sys
@@ -129,13 +130,17 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
     config = config or PreprocessConfig()
     labeling = labeling or LabelingConfig()
     t_all = time.perf_counter()
-    scene: Scene = load_scene(scene_dir)
+    scene: Scene = load_scene(scene_dir, chunk_size=config.chunk_points)
     origin = scene.origin
     timings: dict[str, float] = {}
     cams_local = [c.relative_to(origin) for c in scene.cameras]
 
+    peak_rss: dict[str, float] = {}
+
     def tic(name, t0):
         timings[name] = round(time.perf_counter() - t0, 3)
+        # peak resident memory so far (MiB), so the phase that raised it can be read off
+        peak_rss[name] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
 
     with BundleWriter(out, force=force) as bw:
         work = bw.tmp / "work"
@@ -246,6 +251,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
             "depthmap_sizes": depth_sizes,
             "parameters": {"preprocess": asdict(config), "labeling": asdict(labeling)},
             "timings": timings,
+            "peak_rss_mb_after": peak_rss,
             "counts": {
                 "points": octree.n_points, "photos": len(scene.cameras), "proxies": n_proxy,
                 "proxy_levels": k, "octree_level_counts": list(octree.level_counts),

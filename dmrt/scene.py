@@ -125,7 +125,7 @@ def _check_mesh(path: Path) -> None:
         raise InputError(path, "reference mesh is empty (no triangles)")
 
 
-def load_scene(root, check_images: bool = True) -> Scene:
+def load_scene(root, check_images: bool = True, chunk_size: int = 1_000_000) -> Scene:
     """Load and validate a scene directory.
 
     Parameters
@@ -174,6 +174,7 @@ def load_scene(root, check_images: bool = True) -> Scene:
     n_points = pointcloud.count_points(points_path)
     if n_points == 0:
         raise InputError(points_path, "empty point cloud (0 points)")
-    lo, hi = pointcloud.bounds(points_path)  # also validates every point (finite, not truncated)
+    # also validates every point (finite, not truncated); chunk_size bounds the memory it takes
+    lo, hi = pointcloud.bounds(points_path, chunk_size)
     origin = np.round((lo + hi) / 2.0)
     return Scene(root, points_path, cameras, image_paths, mesh_path, origin, n_points)
