@@ -111,8 +111,10 @@ def cmd_render(args) -> None:
     from dmrt.renderer import RenderConfig, Renderer
 
     bundle = read_bundle(args.bundle)
-    if (args.camera is None) == (args.pose is None):
-        raise InputError(args.bundle, "give exactly one of --camera IMAGE_NAME or --pose FILE")
+    if sum(x is not None for x in (args.camera, args.pose, args.path)) != 1:
+        raise InputError(args.bundle, "give exactly one of --camera IMAGE_NAME, --pose FILE or --path FILE")
+    if args.path is not None:
+        return render_walkthrough(bundle, args)
     if args.camera is not None:
         names = [c.name for c in bundle.cameras]
         if args.camera not in names:
@@ -142,6 +144,45 @@ def cmd_render(args) -> None:
         Path(args.stats).write_text(json.dumps(stats, indent=1))
     t = frame["timings"]
     print(f"wrote {args.out}: " + ", ".join(f"{k} {v:.2f} ms" for k, v in t.items()))
+
+
+def render_walkthrough(bundle, args) -> None:
+    """Render a camera path into ``--out`` (a folder): one PNG per frame and ``timings.json``."""
+    import json
+
+    from dmrt.renderer import RenderConfig, Renderer
+    from dmrt.walkthrough import load_path
+
+    cameras = load_path(args.path)
+    config = config_from_args(RenderConfig, args)
+    if args.visibility:
+        config = dataclasses.replace(config, method=args.visibility)
+    renderer = Renderer(bundle, config)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    from tqdm import tqdm
+
+    from dmrt.frames import write_frame
+
+    per_frame = []
+    for n, cam in enumerate(tqdm(cameras, desc="walkthrough", unit="frame")):
+        frame = renderer.render(cam, args.width, args.height)
+        write_frame(out / f"frame_{n:05d}.png", frame)
+        per_frame.append(frame["timings"])
+    totals = [sum(t.values()) for t in per_frame]
+    (out / "timings.json").write_text(json.dumps(
+        {"frames": per_frame, "total_ms": totals, "config": dataclasses.asdict(config)}, indent=1))
+    print(f"wrote {len(cameras)} frames to {out}: median {sorted(totals)[len(totals) // 2]:.2f} GPU ms per frame")
+
+
+def cmd_path(args) -> None:
+    from dmrt.bundle import read_bundle
+    from dmrt.walkthrough import camera_path, save_path
+
+    bundle = read_bundle(args.bundle)
+    keys = bundle.cameras[:: max(1, args.every)]
+    save_path(args.out, camera_path(keys, args.frames, args.width, args.height, args.fov))
+    print(f"wrote {args.out}: {args.frames} cameras through {len(keys)} photo cameras")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -182,6 +223,7 @@ def build_parser() -> argparse.ArgumentParser:
     ren.add_argument("bundle", type=Path)
     ren.add_argument("--camera", help="image name of the photo whose camera to use")
     ren.add_argument("--pose", type=Path, help="JSON camera (bundle.json's camera format)")
+    ren.add_argument("--path", type=Path, help="camera path JSON (dmrt path): --out is then a folder")
     ren.add_argument("--width", type=int, help="frame width (default: the camera's)")
     ren.add_argument("--height", type=int, help="frame height (default: keeps the camera's aspect)")
     ren.add_argument("--visibility", choices=["compute", "raster"], help="visibility-stage path")
@@ -189,6 +231,16 @@ def build_parser() -> argparse.ArgumentParser:
     ren.add_argument("--stats", type=Path, help="write per-stage GPU ms and statistics as JSON")
     add_config_args(ren, RenderConfig, skip=("method", "width", "height", "leveling"))
     ren.set_defaults(func=cmd_render)
+
+    path = sub.add_parser("path", help="a walkthrough camera path through a bundle's photo cameras")
+    path.add_argument("bundle", type=Path)
+    path.add_argument("--frames", type=int, default=120)
+    path.add_argument("--every", type=int, default=1, help="use every n-th photo camera as a key")
+    path.add_argument("--width", type=int, default=1280)
+    path.add_argument("--height", type=int, default=720)
+    path.add_argument("--fov", type=float, default=70.0, help="horizontal field of view, degrees")
+    path.add_argument("--out", type=Path, required=True, help="path JSON to write")
+    path.set_defaults(func=cmd_path)
 
     ref = sub.add_parser("reference", help="Embree ground-truth frame of a scene's mesh.ply")
     ref.add_argument("scene", type=Path)

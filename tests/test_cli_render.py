@@ -52,3 +52,17 @@ def test_render_pose_file_and_bad_requests(tiny_bundle, tmp_path, capsys):
     pose.write_text("{}")
     assert main(["render", str(tiny_bundle), "--pose", str(pose), "--out", str(a)]) == 2
     assert "pose.json" in capsys.readouterr().err
+
+
+def test_walkthrough_path_renders_frames_and_timings(tiny_bundle, tmp_path):
+    path = tmp_path / "path.json"
+    assert main(["path", str(tiny_bundle), "--frames", "3", "--every", "4", "--width", "64", "--height", "36",
+                 "--out", str(path)]) == 0
+    out = tmp_path / "walk"
+    assert main(["render", str(tiny_bundle), "--path", str(path), "--layers", "2", "--out", str(out)]) == 0
+    frames = sorted(out.glob("frame_*.png"))
+    assert len(frames) == 3 and read_frame(frames[0])["color"].shape == (36, 64, 3)
+    t = json.loads((out / "timings.json").read_text())
+    assert len(t["frames"]) == 3 and t["config"]["layers"] == 2
+    # the path starts at the first key camera: the first frame shows the scene, not background
+    assert np.mean(read_frame(frames[0])["color"].sum(-1) > 0) > 0.5
