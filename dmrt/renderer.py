@@ -66,6 +66,9 @@ class RenderConfig:
     # around the hit) or "triangle" (only the triangle containing the hit; loses half as wide a band
     # along each depth edge of a depth map). See shaders/dmrt_raytrace.glsl.
     discontinuity_test: str = "quad"
+    # Iterative search: "adaptive" (paper: every step is h, the signed distance along the line to
+    # the photo's centre) or "secant" (h first, then secant steps along the pixel ray).
+    search: str = "secant"
     # Visibility stage: "compute" (atomicMin splatting, fast on Hopper) or "raster" (the paper's
     # GL_POINTS with depth peeling); both give the same layers.
     method: str = "compute"
@@ -107,6 +110,8 @@ class RenderConfig:
                              f"not {self.discontinuity_test!r}")
         if self.atomics not in ("auto", "int64", "portable"):
             raise ValueError(f"RenderConfig.atomics must be 'auto', 'int64' or 'portable', not {self.atomics!r}")
+        if self.search not in ("adaptive", "secant"):
+            raise ValueError(f"RenderConfig.search must be 'adaptive' or 'secant', not {self.search!r}")
         if self.method not in ("compute", "raster"):
             raise ValueError(f"RenderConfig.method must be 'compute' or 'raster', not {self.method!r}")
         if self.leveling:
@@ -192,7 +197,8 @@ class Renderer:
         self.splats = ProxySplats(self.ctx, bundle.proxy, self.config.max_thread_pixels)
         self.visibility = VisibilityStage(self.ctx, self.splats, self.config.method, self.int64)
         self._raytrace = load_program(self.ctx, "dmrt_raytrace",
-                                      {"QUAD_TEST": int(self.config.discontinuity_test == "quad")})
+                                      {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
+                                       "SECANT": int(self.config.search == "secant")})
         self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
         self._histogram = load_program(self.ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
         self._texturing = load_program(self.ctx, "dmrt_texturing")

@@ -42,6 +42,10 @@ uniform int u_max_steps;
 uniform int u_binary_steps;
 uniform float u_threshold;  // metres
 
+#ifndef SECANT
+#define SECANT 0
+#endif
+
 #ifndef QUAD_TEST
 #define QUAD_TEST 1
 #endif
@@ -68,7 +72,7 @@ bool trace(int l, vec3 C, vec3 dir, float dlen, float s0, inout int iters, out f
     float s = s0;
     float f = signed_distance(l, C + s * dir, ok);
     if (!ok) return false;
-    float sa = s, fa = f, sb = s, fb = f;
+    float sa = s, fa = f, sb = s, fb = f, sp = s, fp = f;
     bool found = false;
     for (int i = 0; i < u_max_steps; ++i) {
         iters++;
@@ -77,15 +81,31 @@ bool trace(int l, vec3 C, vec3 dir, float dlen, float s0, inout int iters, out f
             found = true;
             break;
         }
-        float sn = s + f / dlen;  // a step of h metres along the unit ray
+        float step = f / dlen;  // the paper's step: h metres along the unit ray
+#if SECANT
+        // after the first step, the secant through the last two samples: h is measured along the
+        // line to the photo's centre, which converges slowly (or jumps off the surface) when that
+        // line and the pixel ray differ by a large angle
+        if (i > 0 && fp != f) step = -f * (s - sp) / (f - fp);
+#endif
+        float sn = s + step;
         if (sn <= 0.0) return false;
         float fn = signed_distance(l, C + sn * dir, ok);
+#if SECANT
+        // a step that lands on an empty or outside texel is halved (a few times) before giving up
+        for (int k = 0; k < 4 && !ok; ++k) {
+            step *= 0.5;
+            sn = s + step;
+            fn = signed_distance(l, C + sn * dir, ok);
+        }
+#endif
         if (!ok) return false;
         if ((fn > 0.0) != (f > 0.0)) {  // enclosed
             sa = s; fa = f; sb = sn; fb = fn;
             found = true;
             break;
         }
+        sp = s; fp = f;
         s = sn;
         f = fn;
     }

@@ -516,19 +516,40 @@ def test_layers_match_numpy_peeling(renderers, bundle):
     assert (label[1] >= 0).mean() > 0.05  # the scene has second layers to peel
 
 
-def test_raytracing_matches_numpy(renderers, bundle, depthmaps):
-    """The raytracing pass against its float64 numpy version on the GPU's own layers. Rounding can
-    flip a decision (enclosure, discontinuity threshold) on a few pixels: >= 99.5 % of the pixels
-    agree on hit / miss and layer, and common hits agree to 1e-4 relative depth."""
+def test_raytracing_matches_numpy(ctx, bundle, depthmaps):
+    """The raytracing pass (the paper's adaptive search) against its float64 numpy version on the
+    GPU's own layers. Rounding can flip a decision (enclosure, discontinuity threshold) on a few
+    pixels: >= 99.5 % of the pixels agree on hit / miss and layer, and common hits agree to 1e-4
+    relative depth."""
+    from dmrt.renderer import RenderConfig, Renderer
+
+    paper = Renderer(bundle, RenderConfig(layers=3, search="adaptive", async_photos=False,
+                                          max_uploads_per_frame=0), ctx)
     for cam in (bundle.cameras[5].resized(W), novel_camera(bundle.cameras[6], bundle.cameras[7]).resized(W)):
-        frame = renderers[3].render(cam)
-        layers = renderers[3].layers()
+        frame = paper.render(cam)
+        layers = paper.layers()
         depth, layer = raytrace_numpy(cam, bundle.cameras, depthmaps, layers["depth"], layers["label"])
         assert np.mean((depth > 0) == (frame["depth"] > 0)) >= 0.995
         assert np.mean(layer == frame["layer_used"]) >= 0.995
         both = (depth > 0) & (frame["depth"] > 0)
         rel = np.abs(frame["depth"][both] - depth[both]) / depth[both]
         assert np.mean(rel <= 1e-4) >= 0.995
+    paper.release()
+
+
+def test_secant_search_loses_fewer_pixels_than_the_papers(ctx, bundle):
+    """The secant search (default) finds the surface wherever the paper's adaptive search does,
+    give or take rounding, and more pixels overall."""
+    from dmrt.renderer import RenderConfig, Renderer
+
+    found = {}
+    for search in ("adaptive", "secant"):
+        r = Renderer(bundle, RenderConfig(layers=1, search=search, async_photos=False, max_uploads_per_frame=0), ctx)
+        found[search] = [r.render(c, W)["depth"] > 0 for c in bundle.cameras[::3]]
+        r.release()
+    a, s = np.concatenate([x.ravel() for x in found["adaptive"]]), np.concatenate([x.ravel() for x in found["secant"]])
+    assert s.sum() >= a.sum()
+    assert np.mean(s[a]) >= 0.995
 
 
 def test_against_embree_reference(renderers, bundle, depthmaps, reference, scan_tree):
