@@ -181,7 +181,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                                                         chunk_points=config.chunk_points), timer=timer)
         depth_files, depth_sizes = [], []
         bar = tqdm(total=len(cams_local), desc="depth maps", unit="map", disable=not progress)
-        for j, depth in _render_all(renderer, cams_local, hd_chunks, config.resident_mb):
+        for j, depth in renderer.render_many(cams_local, hd_chunks, resident_mb=config.resident_mb):
             rel = f"depthmaps/{Path(scene.cameras[j].name).stem}.exr"
             write_depth_exr(bw.tmp / rel, depth)
             depth_files.append(rel)
@@ -267,11 +267,3 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         }
         return bw.finish(meta)
 
-
-def _render_all(renderer, cameras, chunks_fn, resident_mb):
-    """Depth maps of every camera, in order: GPU-resident P_HD when the renderer supports it."""
-    if hasattr(renderer, "render_many"):
-        yield from renderer.render_many(cameras, chunks_fn, resident_mb=resident_mb)
-    else:
-        for j, cam in enumerate(cameras):
-            yield j, renderer.render(cam, chunks_fn())

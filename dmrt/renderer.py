@@ -156,7 +156,7 @@ class Renderer:
 
     def __init__(self, bundle: Bundle, config: RenderConfig | None = None, ctx: moderngl.Context | None = None):
         self.bundle = bundle
-        self.config = config or RenderConfig()
+        self._config = config or RenderConfig()
         self.ctx = ctx or get_context()
         self.origin = np.asarray(bundle.origin, np.float64)
         self.cameras = bundle.cameras
@@ -207,6 +207,16 @@ class Renderer:
         self._buffers: dict = {}
         self.gpu_bytes = {"depthmaps": self._depth_dims[0] * self._depth_dims[1] * n * 4, **self.images.nbytes,
                           "proxies": self.splats.nbytes, "photos": self.photos.size}
+
+    @property
+    def config(self) -> RenderConfig:
+        """The configuration; fixed at construction (programs and buffers are built from it)."""
+        return self._config
+
+    @config.setter
+    def config(self, value) -> None:
+        raise AttributeError("Renderer.config is fixed at construction: make a new Renderer for another "
+                             "configuration")
 
     # -- public -------------------------------------------------------------------------------
     def render(self, camera: Camera, width: int | None = None, height: int | None = None) -> dict:

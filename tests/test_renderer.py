@@ -727,3 +727,14 @@ def test_image_cache_and_texturing(ctx, bundle):
     finally:
         for r in (low, two, full, streamed):
             r.release()
+
+
+def test_config_is_fixed_at_construction(renderers):
+    """Programs and buffers are built from the configuration: changing it afterwards would be
+    silently ignored, so it is refused."""
+    import dataclasses
+
+    r = renderers[1]
+    with pytest.raises(AttributeError, match="fixed at construction"):
+        r.config = dataclasses.replace(r.config, layers=3)
+    assert r.config.layers == 1
