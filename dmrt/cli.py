@@ -229,7 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     ren.add_argument("--visibility", choices=["compute", "raster"], help="visibility-stage path")
     ren.add_argument("--out", type=Path, required=True, help="frame file, .png (colour) or .exr (all buffers)")
     ren.add_argument("--stats", type=Path, help="write per-stage GPU ms and statistics as JSON")
-    add_config_args(ren, RenderConfig, skip=("method", "width", "height", "leveling"))
+    add_config_args(ren, RenderConfig, skip=("method", "width", "height"))
     ren.set_defaults(func=cmd_render)
 
     path = sub.add_parser("path", help="a walkthrough camera path through a bundle's photo cameras")

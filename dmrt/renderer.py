@@ -14,8 +14,14 @@ Per frame, each stage its own shader and GPU timer section:
    full-resolution cache (:mod:`dmrt.texturing`);
 5. ``texturing`` - colour from the label's photo at the projection of the raytraced point.
 
-Screen-space leveling (paper 5.2.3, last step) is not implemented: ``RenderConfig.leveling``
-must stay False.
+6. ``leveling`` (``RenderConfig.leveling``) - screen-space leveling (paper 5.2.3, last step): the
+   colour offsets between photos measured along the frame's seams, one gain per photo solved on
+   the CPU, applied to every pixel (:mod:`dmrt.leveling`).
+
+Ablations and statistics: ``RenderConfig.raytrace=False`` takes the first splat layer as the
+surface (the paper's coarse splats, Fig. 8a), ``labeling=False`` keeps each layer's splat label
+(Fig. 8b), ``statistics=True`` records the iterative-search step lengths per layer and step index
+(Figs. 9, 10) in ``frame["step_stats"]``.
 
 Usage::
 
@@ -47,7 +53,8 @@ from dmrt.visibility import EMPTY_BITS, EMPTY_LABEL, ProxySplats, VisibilityStag
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 HIT_DTYPE = np.dtype([("depth", "<f4"), ("label", "<i4"), ("layer", "<i4"), ("iters", "<i4"),
                       ("normal", "<f4", 3), ("final_label", "<i4")])  # shaders/dmrt_frame.glsl
-STAGES = ("visibility", "raytracing", "labeling", "image_management", "texturing")
+STAGES = ("visibility", "raytracing", "labeling", "image_management", "texturing", "leveling")
+STEP_BINS = 32  # shaders/dmrt_raytrace.glsl
 
 
 @dataclass
@@ -94,8 +101,17 @@ class RenderConfig:
     # that no pixel is textured from a photo in which it is occluded.
     label_check: bool = True
     label_check_tolerance: float = 0.05
-    # Screen-space leveling (paper 5.2.3): not implemented, must be False.
+    # Screen-space leveling (paper 5.2.3): per-photo colour gains solved each frame from the seams
+    # on screen (dmrt.leveling); off by default so that colours are the photos' own.
     leveling: bool = False
+    # Leveling: seam samples a photo pair needs to count, and the bound on a gain (and its inverse).
+    leveling_min_samples: int = 16
+    leveling_max_gain: float = 2.0
+    # The raytracing pass; False = the first splat layer is the surface (ablation: coarse splats).
+    raytrace: bool = True
+    # Record the iterative search's step lengths per layer and step (frame["step_stats"]); costs
+    # atomics in the raytracing pass, so off for timing runs.
+    statistics: bool = False
     # Frame size; None = the camera's own (render() arguments override these).
     width: int | None = None
     height: int | None = None
@@ -114,8 +130,8 @@ class RenderConfig:
             raise ValueError(f"RenderConfig.search must be 'adaptive' or 'secant', not {self.search!r}")
         if self.method not in ("compute", "raster"):
             raise ValueError(f"RenderConfig.method must be 'compute' or 'raster', not {self.method!r}")
-        if self.leveling:
-            raise NotImplementedError("screen-space leveling is not implemented (RenderConfig.leveling)")
+        if self.leveling_max_gain < 1.0:
+            raise ValueError("RenderConfig.leveling_max_gain must be >= 1")
 
 
 def photo_params(cameras: list[Camera], origin, depth_sizes, low_sizes) -> np.ndarray:
@@ -198,15 +214,25 @@ class Renderer:
         self.visibility = VisibilityStage(self.ctx, self.splats, self.config.method, self.int64)
         self._raytrace = load_program(self.ctx, "dmrt_raytrace",
                                       {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
-                                       "SECANT": int(self.config.search == "secant")})
+                                       "SECANT": int(self.config.search == "secant"),
+                                       "RAYTRACE": int(self.config.raytrace),
+                                       "STATISTICS": int(self.config.statistics)})
         self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
         self._histogram = load_program(self.ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
         self._texturing = load_program(self.ctx, "dmrt_texturing")
         self.counts = self.ctx.buffer(reserve=4 * n)
+        self.step_stats = self.ctx.buffer(reserve=16 * self.config.layers * STEP_BINS) if self.config.statistics else None
+        if self.config.leveling:
+            self._seams = load_program(self.ctx, "dmrt_leveling_seams")
+            self._apply_gains = load_program(self.ctx, "dmrt_leveling_apply")
+            self.seam_pairs = self.ctx.buffer(reserve=16 * n * n)
+            self.gains = self.ctx.buffer(reserve=16 * n)
         self._size: tuple[int, int] | None = None
         self._buffers: dict = {}
         self.gpu_bytes = {"depthmaps": self._depth_dims[0] * self._depth_dims[1] * n * 4, **self.images.nbytes,
                           "proxies": self.splats.nbytes, "photos": self.photos.size}
+        if self.config.leveling:
+            self.gpu_bytes["leveling"] = self.seam_pairs.size + self.gains.size
 
     @property
     def config(self) -> RenderConfig:
@@ -239,9 +265,12 @@ class Renderer:
             the layer whose depth map was hit, before the labeling pass), ``layer_used`` (h, w)
             int32 (0-based layer, -1 = none), ``iterations`` (h, w) int32 (iterative-search steps
             over all layers tried), ``timings`` {stage: GPU ms} (meaningless on llvmpipe, see
-            :class:`dmrt.gl.GpuTimer`) and ``cpu_ms`` {``label_readback``: wall ms waiting for
-            the label histogram (the GPU finishing the frame so far), ``image_management``: wall
-            ms choosing, decoding (synchronous streaming) and uploading photos}.
+            :class:`dmrt.gl.GpuTimer`; ``leveling`` 0 when off) and ``cpu_ms``
+            {``label_readback``: wall ms waiting for the label histogram (the GPU finishing the
+            frame so far), ``image_management``: wall ms choosing, decoding (synchronous
+            streaming) and uploading photos, ``leveling``: reading the seam sums back and solving
+            the gains}. With ``config.leveling`` also ``leveling_gains`` (n_photos, 3) float32;
+            with ``config.statistics`` also ``step_stats`` (see :meth:`_read_step_stats`).
         """
         cfg = self.config
         cam = camera.resized(width or cfg.width, height or cfg.height)
@@ -261,6 +290,10 @@ class Renderer:
             self.visibility.run(cam_uniforms, (w, h), cfg.layers, b["layer_depth"], b["layer_label"])
 
         with timer.section("raytracing"):
+            if self.step_stats is not None:
+                self.visibility.fill(self.step_stats, 0, 4 * cfg.layers * STEP_BINS)
+                ctx.memory_barrier(_BARRIER)
+                self.step_stats.bind_to_storage_buffer(8)
             b["layer_depth"].bind_to_storage_buffer(1)
             b["layer_label"].bind_to_storage_buffer(2)
             b["hits"].bind_to_storage_buffer(4)
@@ -320,7 +353,10 @@ class Renderer:
             set_uniforms(self._texturing, u_low=1, u_high=2, u_low_dims=self.images.low_dims,
                          u_high_dims=(self.images.high.width, self.images.high.height), **cam_uniforms)
             self._texturing.run(*grid)
-            ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
+            ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT | _BARRIER)
+        cpu_ms = {"label_readback": (t1 - t0) * 1e3, "image_management": (t2 - t1) * 1e3}
+        if cfg.leveling:
+            cpu_ms["leveling"] = self._level(cam_uniforms, grid, npix, counts)
 
         hits = np.frombuffer(b["hits"].read(), HIT_DTYPE).reshape(h, w)
         colors = np.frombuffer(b["colors"].read(), np.uint8).reshape(h, w, 4)
@@ -334,8 +370,60 @@ class Renderer:
         frame["iterations"] = hits["iters"].copy()
         ms = self.timer.ms
         frame["timings"] = {stage: ms.get(stage, 0.0) for stage in STAGES}
-        frame["cpu_ms"] = {"label_readback": (t1 - t0) * 1e3, "image_management": (t2 - t1) * 1e3}
+        frame["cpu_ms"] = cpu_ms
+        if cfg.leveling:
+            frame["leveling_gains"] = self.last_gains.copy()
+        if self.step_stats is not None:
+            frame["step_stats"] = self._read_step_stats()
         return frame
+
+    def _level(self, cam_uniforms: dict, grid, npix: int, counts: np.ndarray) -> float:
+        """The leveling stage (module doc); returns the CPU ms of the readback and the solve."""
+        from dmrt.leveling import solve_gains
+
+        cfg, ctx, n, b = self.config, self.ctx, len(self.cameras), self._buffers
+        with self.timer.section("leveling"):
+            self.visibility.fill(self.seam_pairs, 0, 4 * n * n)
+            ctx.memory_barrier(_BARRIER)
+            b["hits"].bind_to_storage_buffer(4)
+            self.photos.bind_to_storage_buffer(5)
+            self.images.slots.bind_to_storage_buffer(6)
+            self.seam_pairs.bind_to_storage_buffer(9)
+            self.depthmaps.use(0)
+            self.images.low.use(1)
+            self.images.high.use(2)
+            # colours below 2/255 or above 250/255 are clipped or noise, not exposure
+            set_uniforms(self._seams, u_photos=n, u_threshold=float(cfg.discontinuity_threshold),
+                         u_visibility_tol=float(cfg.label_check_tolerance), u_min_value=2 / 255,
+                         u_max_value=250 / 255, u_depthmaps=0, u_low=1, u_high=2,
+                         u_low_dims=self.images.low_dims,
+                         u_high_dims=(self.images.high.width, self.images.high.height), **cam_uniforms)
+            self._seams.run(*grid)
+            ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
+        t0 = time.perf_counter()
+        pairs = np.frombuffer(self.seam_pairs.read(), np.int32).reshape(n, n, 4)
+        self.last_gains = solve_gains(pairs, counts, min_samples=cfg.leveling_min_samples,
+                                      max_gain=cfg.leveling_max_gain)
+        self.gains.write(np.concatenate([self.last_gains, np.ones((n, 1), np.float32)], axis=1).tobytes())
+        cpu = (time.perf_counter() - t0) * 1e3
+        with self.timer.section("leveling"):
+            b["hits"].bind_to_storage_buffer(4)
+            b["colors"].bind_to_storage_buffer(7)
+            self.gains.bind_to_storage_buffer(10)
+            set_uniforms(self._apply_gains, u_count=npix)
+            self._apply_gains.run(groups(npix, 64))
+            ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
+        return cpu
+
+    def _read_step_stats(self) -> dict:
+        """``mean_step_m`` (k, STEP_BINS) float64 mean step length along the ray (metres) of the
+        i-th iterative-search step in layer l (0 where none; the last bin pools later steps) and
+        ``count`` (k, STEP_BINS) int64 number of such steps."""
+        raw = np.frombuffer(self.step_stats.read(), np.uint32).reshape(self.config.layers, STEP_BINS, 4)
+        count = raw[..., 0].astype(np.int64)
+        total = (raw[..., 1].astype(np.float64) + raw[..., 2].astype(np.float64) * 2.0 ** 32) * 1e-5
+        return {"mean_step_m": np.divide(total, count, out=np.zeros_like(total), where=count > 0),
+                "count": count}
 
     def flush_photos(self) -> int:
         """Wait for the photos being streamed and upload all that the last frame wanted; the next
@@ -366,8 +454,10 @@ class Renderer:
         self.visibility.release()
         self.splats.release()
         self.images.release()
-        for obj in (self.depthmaps, self.photos, self.counts):
-            obj.release()
+        for obj in (self.depthmaps, self.photos, self.counts, self.step_stats,
+                    getattr(self, "seam_pairs", None), getattr(self, "gains", None)):
+            if obj is not None:
+                obj.release()
 
     # -- internals ----------------------------------------------------------------------------
     def _allocate(self, w: int, h: int) -> None:

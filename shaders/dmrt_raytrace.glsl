@@ -26,6 +26,11 @@
 //     triangle next to a depth edge counts (halves the band lost along each discontinuity).
 // An invalid hit sends the search to the next layer. The pixel's normal is the average of the
 // unit normals of the triangles that pass the test (the paper: of both triangles).
+//
+// RAYTRACE 0 (ablation, the paper's Fig. 8a "coarse splats"): no search; the first layer's splat is
+// the surface (its depth and label; the normal faces the camera).
+// STATISTICS 1: every iterative step's length along the ray (metres) is accumulated per layer and
+// step index into the StepStats buffer (the paper's Figs. 9 and 10).
 #include "splat_depth_common.glsl"
 #include "dmrt_frame.glsl"
 #include "dmrt_photos.glsl"
@@ -50,6 +55,29 @@ uniform float u_threshold;  // metres
 #define QUAD_TEST 1
 #endif
 
+#ifndef RAYTRACE
+#define RAYTRACE 1
+#endif
+
+#ifndef STATISTICS
+#define STATISTICS 0
+#endif
+
+#if STATISTICS
+#define STEP_BINS 32
+// per (layer, step index) four words: count, sum of lengths in 10 um units (low word, high word), 0;
+// step indices >= STEP_BINS - 1 share the last bin
+layout(std430, binding = 8) buffer StepStats { uint step_stats[]; };
+
+void record_step(int layer, int i, float metres) {
+    uint base = 4u * uint(layer * STEP_BINS + min(i, STEP_BINS - 1));
+    atomicAdd(step_stats[base], 1u);
+    uint v = uint(clamp(metres, 0.0, 40000.0) * 1e5);
+    uint old = atomicAdd(step_stats[base + 1u], v);
+    if (old + v < old) atomicAdd(step_stats[base + 2u], 1u);  // carry into the high word
+}
+#endif
+
 const uint EMPTY_BITS = 0xFFFFFFFFu;
 const float CONVERGED = 1e-5;  // |h| / camera z below which the search has landed on the surface
 
@@ -65,7 +93,8 @@ float signed_distance(int l, vec3 q, out bool ok) {
 
 // Search D_l along the ray C + s * dir (s = camera z) from s0. True with s_hit and the unit world
 // normal n on a valid intersection.
-bool trace(int l, vec3 C, vec3 dir, float dlen, float s0, inout int iters, out float s_hit, out vec3 n) {
+bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int iters, out float s_hit,
+           out vec3 n) {
     s_hit = 0.0;
     n = vec3(0.0);
     bool ok;
@@ -98,6 +127,9 @@ bool trace(int l, vec3 C, vec3 dir, float dlen, float s0, inout int iters, out f
             sn = s + step;
             fn = signed_distance(l, C + sn * dir, ok);
         }
+#endif
+#if STATISTICS
+        record_step(layer, i, abs(sn - s) * dlen);
 #endif
         if (!ok) return false;
         if ((fn > 0.0) != (f > 0.0)) {  // enclosed
@@ -169,13 +201,22 @@ void main() {
 
     Hit hit = Hit(0.0, -1, -1, 0, 0.0, 0.0, 0.0, -1);
     int iters = 0;
+#if !RAYTRACE
+    uint bits0 = layer_depth[pix];
+    if (bits0 != EMPTY_BITS) {
+        vec3 n = -dir / dlen;
+        hit = Hit(uintBitsToFloat(bits0), layer_label[pix], 0, 0, n.x, n.y, n.z, -1);
+    }
+    hits[pix] = hit;
+    return;
+#endif
     for (int layer = 0; layer < u_layers; ++layer) {
         uint bits = layer_depth[uint(layer) * npix + pix];
         if (bits == EMPTY_BITS) break;  // peeling: every later layer is empty too
         int l = layer_label[uint(layer) * npix + pix];
         float s_hit;
         vec3 n;
-        if (trace(l, C, dir, dlen, uintBitsToFloat(bits), iters, s_hit, n)) {
+        if (trace(layer, l, C, dir, dlen, uintBitsToFloat(bits), iters, s_hit, n)) {
             hit.depth = s_hit;
             hit.label = l;
             hit.layer = layer;

@@ -8,6 +8,7 @@ import pytest
 from dmrt.bundle import camera_to_json, read_bundle
 from dmrt.cli import main
 from dmrt.frames import read_frame
+from dmrt.renderer import STAGES
 from dmrt.scene import load_scene
 from reference.metrics import compare
 from reference.render import EmbreeReference
@@ -31,7 +32,7 @@ def test_render_photo_camera_matches_reference(tiny_bundle, tiny_scene, tmp_path
     assert m["hole_rate"] < 0.08, m["hole_rate"]
     assert m["depth_median_m"] < 0.005  # well below a texel footprint (~2 cm at 3 m)
     s = json.loads(stats.read_text())
-    assert set(s["timings_ms"]) == {"visibility", "raytracing", "labeling", "image_management", "texturing"}
+    assert set(s["timings_ms"]) == set(STAGES)
     assert s["config"]["layers"] == 3 and s["mean_iterations"] > 0 and s["gpu_bytes"]["depthmaps"] > 0
 
 
