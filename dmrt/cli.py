@@ -133,6 +133,10 @@ def cmd_render(args) -> None:
     renderer.flush_photos()
     frame = renderer.render(camera, args.width, args.height)
     write_frame(args.out, frame)
+    if args.dump_stages:
+        from dmrt.frames import write_stage_images
+
+        write_stage_images(args.dump_stages, frame, renderer.layers()["label"][0])
     if args.stats:
         hit = frame["depth"] > 0
         stats = {"timings_ms": frame["timings"], "width": int(frame["depth"].shape[1]),
@@ -229,6 +233,9 @@ def build_parser() -> argparse.ArgumentParser:
     ren.add_argument("--visibility", choices=["compute", "raster"], help="visibility-stage path")
     ren.add_argument("--out", type=Path, required=True, help="frame file, .png (colour) or .exr (all buffers)")
     ren.add_argument("--stats", type=Path, help="write per-stage GPU ms and statistics as JSON")
+    ren.add_argument("--dump-stages", type=Path, metavar="DIR",
+                     help="also write each stage's buffer as a PNG (Fig. 3 a-d: splat labels, raytraced "
+                          "depth, per-pixel labels, textured; iteration heat map; holes)")
     add_config_args(ren, RenderConfig, skip=("method", "width", "height"))
     ren.set_defaults(func=cmd_render)
 

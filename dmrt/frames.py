@@ -104,3 +104,86 @@ def read_frame(path) -> dict:
         "color": np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8),
         "normal": np.stack([channels[c] for c in ("N.X", "N.Y", "N.Z")], axis=-1).astype(np.float32),
     }
+
+
+# ----------------------------------------------------------------------------------------------
+# Pictures of a frame's buffers (the paper's Fig. 3 a-d and the statistics)
+# ----------------------------------------------------------------------------------------------
+def label_colors(labels: np.ndarray) -> np.ndarray:
+    """(..., 3) uint8 colour per label: a fixed pseudo-random hue per photo index, black for -1."""
+    lab = np.asarray(labels, np.int64)
+    h = (lab * 2654435761) & 0xFFFFFFFF  # Knuth's multiplicative hash: neighbours differ
+    rgb = np.stack([(h >> 8) & 255, (h >> 16) & 255, (h >> 24) & 255], axis=-1)
+    rgb = 64 + (rgb * 191) // 255  # no near-black label colour
+    return np.where(lab[..., None] >= 0, rgb, 0).astype(np.uint8)
+
+
+def heat_colors(values: np.ndarray, vmax: float | None = None) -> np.ndarray:
+    """(..., 3) uint8 black -> red -> yellow -> white ramp of ``values`` in ``[0, vmax]``
+    (default: the 99th percentile of the positive values)."""
+    v = np.asarray(values, np.float64)
+    if vmax is None:
+        pos = v[v > 0]
+        vmax = float(np.percentile(pos, 99)) if len(pos) else 1.0
+    t = np.clip(v / max(vmax, 1e-12), 0.0, 1.0)[..., None] * 3.0
+    rgb = np.clip(np.concatenate([t, t - 1.0, t - 2.0], axis=-1), 0.0, 1.0)
+    return (rgb * 255).astype(np.uint8)
+
+
+def stage_images(frame: dict, splat_labels: np.ndarray | None = None) -> dict:
+    """The buffers of a rendered frame as pictures, (h, w, 3) uint8 each.
+
+    Parameters
+    ----------
+    frame : dict, a renderer's frame (``depth``, ``label``, ``color``; optionally ``iterations``
+        and ``layer_used``)
+    splat_labels : (h, w) int32, optional, the first label layer (``Renderer.layers()["label"][0]``)
+
+    Returns
+    -------
+    dict: ``a_splat_labels`` (with ``splat_labels``), ``b_raytraced_depth`` (near bright, far dark,
+    background black), ``c_pixel_labels``, ``d_textured`` (the paper's Fig. 3 a-d), and with the
+    statistics ``iterations`` (heat map of the iterative-search steps) and ``holes`` (red where
+    a splat covers the pixel but no layer gave a surface).
+    """
+    depth = frame["depth"]
+    hit = depth > 0
+    out = {}
+    if splat_labels is not None:
+        out["a_splat_labels"] = label_colors(splat_labels)
+    shade = np.zeros(depth.shape)
+    if hit.any():
+        lo, hi = np.percentile(depth[hit], [1, 99])
+        shade[hit] = 1.0 - 0.8 * np.clip((depth[hit] - lo) / max(hi - lo, 1e-9), 0, 1)
+    out["b_raytraced_depth"] = (np.repeat(shade[..., None], 3, axis=-1) * 255).astype(np.uint8)
+    out["c_pixel_labels"] = label_colors(frame["label"])
+    out["d_textured"] = frame["color"]
+    if "iterations" in frame:
+        out["iterations"] = heat_colors(frame["iterations"])
+    if "layer_used" in frame:
+        holes = (frame["layer_used"] < 0) & (~hit)
+        if splat_labels is not None:
+            holes &= splat_labels >= 0  # background is not a hole
+        img = frame["color"] // 3
+        img[holes] = (255, 0, 0)
+        out["holes"] = img
+    return out
+
+
+def write_stage_images(folder, frame: dict, splat_labels: np.ndarray | None = None) -> list[Path]:
+    """Write :func:`stage_images` as ``folder/<name>.png``; returns the paths."""
+    from PIL import Image
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, img in stage_images(frame, splat_labels).items():
+        path = folder / f"{name}.png"
+        tmp = _atomic_target(path)
+        try:
+            Image.fromarray(np.ascontiguousarray(img)).save(tmp)
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+        paths.append(path)
+    return paths

@@ -17,8 +17,18 @@ from reference.render import EmbreeReference
 def test_render_photo_camera_matches_reference(tiny_bundle, tiny_scene, tmp_path):
     out, stats = tmp_path / "f.exr", tmp_path / "s.json"
     assert main(["render", str(tiny_bundle), "--camera", "photo_0002.png", "--width", "256",
-                 "--layers", "3", "--out", str(out), "--stats", str(stats)]) == 0
+                 "--layers", "3", "--out", str(out), "--stats", str(stats), "--dump-stages",
+                 str(tmp_path / "stages")]) == 0
     frame = read_frame(out)
+    # the Fig. 3 pictures: the per-pixel labels picture shows the frame's labels
+    from PIL import Image
+
+    from dmrt.frames import label_colors
+
+    names = sorted(p.stem for p in (tmp_path / "stages").glob("*.png"))
+    assert names == ["a_splat_labels", "b_raytraced_depth", "c_pixel_labels", "d_textured", "holes", "iterations"]
+    np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "stages" / "c_pixel_labels.png")),
+                                  label_colors(frame["label"]))
     scene = load_scene(tiny_scene)
     ref = EmbreeReference.from_scene(scene).render(scene.cameras[2], 256)
     # At a photo's own camera and resolution, what DMRT can show is what that photo's depth map

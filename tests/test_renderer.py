@@ -838,6 +838,25 @@ def test_leveling_balances_photo_exposures(ctx, renderers, bundle, tiny_scene):
         leveler.release()
 
 
+def test_stage_images(renderers, bundle):
+    """The Fig. 3 pictures of a frame: one distinct colour per label (and black for none), holes
+    red exactly where a splat covers the pixel and no layer gave a surface."""
+    from dmrt.frames import stage_images
+
+    r = renderers[1]
+    frame = r.render(novel_camera(bundle.cameras[6], bundle.cameras[7]).resized(W))
+    splats = r.layers()["label"][0]
+    images = stage_images(frame, splats)
+    labels = np.unique(frame["label"])
+    colours = {tuple(images["c_pixel_labels"][frame["label"] == j][0]) for j in labels}
+    assert len(colours) == len(labels) and ((0, 0, 0) in colours) == (-1 in labels)
+    red = np.all(images["holes"] == (255, 0, 0), axis=-1)
+    holes = (frame["layer_used"] < 0) & (splats >= 0)
+    assert holes.any()  # one layer leaves holes at this view
+    np.testing.assert_array_equal(red, holes)
+    assert images["b_raytraced_depth"][frame["depth"] == 0].max() == 0
+
+
 def test_config_is_fixed_at_construction(renderers):
     """Programs and buffers are built from the configuration: changing it afterwards would be
     silently ignored, so it is refused."""
