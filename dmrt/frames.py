@@ -110,17 +110,34 @@ def read_frame(path) -> dict:
 # Pictures of a frame's buffers (the paper's Fig. 3 a-d and the statistics)
 # ----------------------------------------------------------------------------------------------
 def label_colors(labels: np.ndarray) -> np.ndarray:
-    """(..., 3) uint8 colour per label: a fixed pseudo-random hue per photo index, black for -1."""
-    lab = np.asarray(labels, np.int64)
-    h = (lab * 2654435761) & 0xFFFFFFFF  # Knuth's multiplicative hash: neighbours differ
-    rgb = np.stack([(h >> 8) & 255, (h >> 16) & 255, (h >> 24) & 255], axis=-1)
-    rgb = 64 + (rgb * 191) // 255  # no near-black label colour
-    return np.where(lab[..., None] >= 0, rgb, 0).astype(np.uint8)
+    """The display colour of each label (mirrored by ``label_color`` in
+    ``shaders/viewer_display.glsl``).
+
+    Parameters
+    ----------
+    labels : (...) int
+        Photo indices, -1 = none.
+
+    Returns
+    -------
+    (..., 3) uint8
+        Black for -1; otherwise a hue along the golden-ratio sequence (neighbouring photo indices
+        get far-apart hues, any few labels distinct ones), value from a second low-discrepancy
+        sequence, never below 0.7.
+    """
+    lab = np.asarray(labels)
+    x = lab.astype(np.float64)
+    h = np.mod(0.5 + x * 0.6180339887, 1.0)
+    v = 0.7 + 0.3 * np.mod(x * 0.7548776662, 1.0)
+    rgb = np.clip(np.abs(np.mod(h[..., None] * 6.0 + np.array([0.0, 4.0, 2.0]), 6.0) - 3.0) - 1.0, 0.0, 1.0)
+    out = v[..., None] * (0.25 + 0.75 * rgb)
+    out[lab < 0] = 0.0
+    return np.clip(np.rint(out * 255.0), 0, 255).astype(np.uint8)
 
 
 def heat_colors(values: np.ndarray, vmax: float | None = None) -> np.ndarray:
     """(..., 3) uint8 black -> red -> yellow -> white ramp of ``values`` in ``[0, vmax]``
-    (default: the 99th percentile of the positive values)."""
+    (default: the 99th percentile of the positive values); ``heat`` of viewer_display.glsl."""
     v = np.asarray(values, np.float64)
     if vmax is None:
         pos = v[v > 0]

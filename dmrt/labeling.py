@@ -630,7 +630,7 @@ def icm(labels0, data, edges, colors, config: LabelingConfig | None = None, swee
 # --------------------------------------------------------------------------------------------
 # alpha-expansion
 # --------------------------------------------------------------------------------------------
-def _morton_order(positions) -> np.ndarray:
+def morton_order(positions) -> np.ndarray:
     """Permutation sorting points along a 3D Z-order curve (10 bits per axis)."""
     p = np.asarray(positions, np.float64)
     lo, hi = p.min(0), p.max(0)
@@ -995,7 +995,7 @@ def label_points(positions, normals, candidates, cameras, colors=None,
     centers = np.array([c.center for c in cameras], np.float64).reshape(-1, 3)
     focal = np.array([np.sqrt(c.fx * c.fy) for c in cameras], np.float64)
 
-    order = _morton_order(positions) if (cfg.spatial_sort and n > 1) else None
+    order = morton_order(positions) if (cfg.spatial_sort and n > 1) else None
     if order is not None:
         positions, normals, cands = positions[order], normals[order], cands.take(order)
     costs = candidate_data_costs(positions, normals, centers, focal, cands, cfg)

@@ -57,25 +57,57 @@ vec2 plane_crossing_bounds(float a, float z, float r, float f, float c) {
     return a > 0.0 ? vec2(c + edge, UNBOUNDED) : vec2(-UNBOUNDED, c - edge);
 }
 
+// Projected extent along one image axis of the disc (centre (a, z), normal (na, nz) in that axis'
+// plane, the remaining normal component nb, radius r): the image coordinates X = a'/z' of the two
+// planes through the camera centre tangent to the disc. A plane with normal m meets the disc iff
+// (m.c)^2 <= r^2 (|m|^2 - (m.n)^2); with m = (1, -X) that is the quadratic
+//     (z^2 - r^2 (1 - nz^2)) X^2 - 2 (a z + r^2 na nz) X + (a^2 - r^2 (1 - na^2)) <= 0,
+// whose discriminant, expanded so that float32 does not cancel it, is
+//     r^2 (a^2 + z^2 - (z na - a nz)^2 - r^2 nb^2).
+// Exact for the disc (a sphere bound is as wide as the disc's diameter even where the disc is
+// seen edge-on: floors and walls at grazing angles, the most common discs in a building).
+// Needs z > r sqrt(1 - nz^2): the whole disc in front of the camera.
+vec2 disc_bounds(float a, float z, float na, float nz, float nb, float r, float f, float c) {
+    float r2 = r * r;
+    float A = z * z - r2 * (1.0 - nz * nz);
+    float B = a * z + r2 * na * nz;
+    float zn = z * na - a * nz;
+    float h = r * sqrt(max(a * a + z * z - zn * zn - r2 * nb * nb, 0.0));
+    return vec2((B - h) / A, (B + h) / A) * f + c;
+}
+
 // Inclusive pixel box (col0, row0, col1, row1) holding every pixel centre whose ray can meet the
-// disc; empty (col0 > col1) if none. It bounds the disc's bounding sphere, widened by 0.01 px plus
-// 0.1 % of its size, far above the float32 error of the bounds, so that rounding never loses a
-// pixel the per-pixel test would accept (a whole pixel of margin would quadruple the pixels tested
-// for a 1-px disc). A sphere reaching the camera plane (z <= r) has no bounded projection; its box
-// is bounded only on the sides of the image that plane_crossing_bounds can rule out.
+// disc; empty (col0 > col1) if none. It bounds the disc's projection (disc_bounds), widened by
+// 0.01 px plus 0.1 % of its size, far above the float32 error of the bounds, so that rounding never
+// loses a pixel the per-pixel test would accept (a whole pixel of margin would quadruple the pixels
+// tested for a 1-px disc). Two cases take the disc's bounding sphere instead:
+// * a disc that may take the grazing-ray rule of splat_depth_at: that rule accepts rays nearly
+//   parallel to the disc's plane that pass within r of its centre, which need not be inside the
+//   disc's projection. Rays through the sphere's box make an angle of at most asin(r / |c|) with
+//   the centre's direction, so only discs within that angle (+ GRAZING_COS) of edge-on can;
+// * a disc reaching the camera plane has no bounded projection: its bounding sphere's box is
+//   bounded only on the sides of the image that plane_crossing_bounds can rule out.
 ivec4 splat_pixel_box(Splat s) {
     if (s.pc.z + s.r <= 0.0 || s.r <= 0.0) return ivec4(1, 1, 0, 0);  // behind the camera / no disc
     vec2 bu, bv, margin;
-    if (s.pc.z <= s.r * 1.0001) {
+    float dist = length(s.pc);
+    bool grazing = abs(dot(s.nc, s.pc)) <= dist * (asin(min(s.r / dist, 1.0)) + 2.0 * GRAZING_COS);
+    float depth_extent = s.r * sqrt(max(1.0 - s.nc.z * s.nc.z, 0.0));  // the disc's half-extent in z
+    if (s.pc.z <= (grazing ? s.r : depth_extent) * 1.0001 + 1e-6) {
         bu = plane_crossing_bounds(s.pc.x, s.pc.z, s.r, u_K.x, u_K.z);
         bv = plane_crossing_bounds(s.pc.y, s.pc.z, s.r, u_K.y, u_K.w);
         margin = vec2(0.0);  // already widened
     } else {
-        bu = sphere_bounds(s.pc.x, s.pc.z, s.r, u_K.x, u_K.z);
-        bv = sphere_bounds(s.pc.y, s.pc.z, s.r, u_K.y, u_K.w);
+        if (grazing) {
+            bu = sphere_bounds(s.pc.x, s.pc.z, s.r, u_K.x, u_K.z);
+            bv = sphere_bounds(s.pc.y, s.pc.z, s.r, u_K.y, u_K.w);
+        } else {
+            bu = disc_bounds(s.pc.x, s.pc.z, s.nc.x, s.nc.z, s.nc.y, s.r, u_K.x, u_K.z);
+            bv = disc_bounds(s.pc.y, s.pc.z, s.nc.y, s.nc.z, s.nc.x, s.r, u_K.y, u_K.w);
+        }
         margin = 0.01 + 1e-3 * vec2(bu.y - bu.x, bv.y - bv.x);
     }
-    // clamp in float first: an almost-grazing sphere can project to beyond the int range
+    // clamp in float first: an almost-grazing disc can project to beyond the int range
     vec4 lim = vec4(-2.0, -2.0, vec2(u_size) + 2.0);
     vec4 b = vec4(bu.x, bv.x, bu.y, bv.y) + vec4(-margin, margin);
     b = clamp(b, lim.xyxy, lim.zwzw);

@@ -1,0 +1,76 @@
+"""Benchmark: where the visibility stage's time goes (compute path), to tune the splatting.
+
+    python -m bench.bench_visibility --bundle BUNDLE --out RESULTS_DIR
+    python -m bench.bench_visibility --preset small --work /tmp/vis --out RESULTS_DIR
+
+For each ``max_thread_pixels`` (discs with a larger pixel box are splatted by a workgroup each)
+(the proxies are uploaded in Morton order, dmrt.visibility.pack_proxies), renders a walkthrough at 1280x720 with 1 and ``--layers`` label layers
+and records the median GPU ms of the visibility stage (the difference is the cost of the peeled
+layers) and of the labeling pass (one more splat pass). One JSON ``visibility-<name>.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def main(argv=None) -> None:
+    from dmrt.bundle import read_bundle
+    from dmrt.gl import get_context, renderer_info
+    from dmrt.renderer import RenderConfig, Renderer
+    from dmrt.walkthrough import camera_path
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--bundle", type=Path)
+    src.add_argument("--preset")
+    p.add_argument("--work", type=Path, default=Path("/tmp/dmrt-vis"))
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--width", type=int, default=1280)
+    p.add_argument("--height", type=int, default=720)
+    p.add_argument("--layers", type=int, default=5)
+    p.add_argument("--max-thread-pixels", type=int, nargs="+", default=[16, 64, 256, 1024])
+    p.add_argument("--frames", type=int, default=24)
+    p.add_argument("--write-normals", action="store_true")
+    args = p.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.preset:
+        from bench.scenes.synthetic import PRESETS, generate_scene
+        from dmrt.preprocess import preprocess
+
+        shutil.rmtree(args.work, ignore_errors=True)
+        cfg = dataclasses.replace(PRESETS[args.preset], write_normals=args.write_normals)
+        args.bundle = preprocess(generate_scene(cfg, args.work / "scene"), args.work / "bundle")
+    bundle = read_bundle(args.bundle)
+    keys = bundle.cameras[:: max(1, len(bundle.cameras) // 12)]
+    path = camera_path(keys, args.frames, args.width, args.height)
+    runs = []
+    for mtp in args.max_thread_pixels:
+        row = {"max_thread_pixels": mtp}
+        for k in (1, args.layers):
+            r = Renderer(bundle, RenderConfig(layers=k, max_thread_pixels=mtp, cache_mb=0))
+            for cam in path[:3]:
+                r.render(cam)
+            t = [r.render(cam)["timings"] for cam in path]
+            row[f"visibility_{k}_ms"] = float(np.median([x["visibility"] for x in t]))
+            row["labeling_ms"] = float(np.median([x["labeling"] for x in t]))
+            row["n_large"] = int(np.frombuffer(r.splats.large.read(16), np.uint32)[3])
+            r.release()
+        runs.append(row)
+        print("  ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()), flush=True)
+    out = args.out / f"visibility-{args.preset or bundle.root.name}.json"
+    out.write_text(json.dumps({"benchmark": "visibility", "version": 1, "machine": {"gl": renderer_info(get_context())},
+                               "frame_size": [args.width, args.height], "layers": args.layers,
+                               "counts": bundle.meta.get("counts"), "runs": runs}, indent=1))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
