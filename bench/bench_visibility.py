@@ -1,12 +1,14 @@
-"""Benchmark: where the visibility stage's time goes (compute path), to tune the splatting.
+"""Benchmark: the visibility stage's paths and settings (where its time goes).
 
     python -m bench.bench_visibility --bundle BUNDLE --out RESULTS_DIR
     python -m bench.bench_visibility --preset small --work /tmp/vis --out RESULTS_DIR
 
-For each ``max_thread_pixels`` (discs with a larger pixel box are splatted by a workgroup each)
-(the proxies are uploaded in Morton order, dmrt.visibility.pack_proxies), renders a walkthrough at 1280x720 with 1 and ``--layers`` label layers
-and records the median GPU ms of the visibility stage (the difference is the cost of the peeled
-layers) and of the labeling pass (one more splat pass). One JSON ``visibility-<name>.json``.
+Renders a walkthrough at 1280x720 with 1 and ``--layers`` label layers for depth peeling by compute
+passes (``compute``, per ``--max-thread-pixels``: discs with a larger pixel box are splatted by a
+workgroup each) and for the single-pass k-buffer (``kbuffer``, per ``--slots``), and records the
+median GPU ms of the visibility stage and of the labeling pass (one more splat pass). For the
+k-buffer also the agreement of its layers with the peeled ones (share of pixels with equal label,
+per layer) and the pixels whose list overflowed. One JSON ``visibility-<name>.json``.
 """
 
 from __future__ import annotations
@@ -36,7 +38,8 @@ def main(argv=None) -> None:
     p.add_argument("--width", type=int, default=1280)
     p.add_argument("--height", type=int, default=720)
     p.add_argument("--layers", type=int, default=5)
-    p.add_argument("--max-thread-pixels", type=int, nargs="+", default=[16, 64, 256, 1024])
+    p.add_argument("--max-thread-pixels", type=int, nargs="+", default=[32, 256])
+    p.add_argument("--slots", type=int, nargs="+", default=[12, 22, 32], help="k-buffer sizes")
     p.add_argument("--frames", type=int, default=24)
     p.add_argument("--write-normals", action="store_true")
     args = p.parse_args(argv)
@@ -51,20 +54,36 @@ def main(argv=None) -> None:
     bundle = read_bundle(args.bundle)
     keys = bundle.cameras[:: max(1, len(bundle.cameras) // 12)]
     path = camera_path(keys, args.frames, args.width, args.height)
+    configs = [("compute", mtp, 0) for mtp in args.max_thread_pixels]
+    configs += [("kbuffer", args.max_thread_pixels[-1], slots) for slots in args.slots]
+    reference = None
     runs = []
-    for mtp in args.max_thread_pixels:
-        row = {"max_thread_pixels": mtp}
+    for method, mtp, slots in configs:
+        row = {"method": method, "max_thread_pixels": mtp, "slots": slots}
         for k in (1, args.layers):
-            r = Renderer(bundle, RenderConfig(layers=k, max_thread_pixels=mtp, cache_mb=0))
+            r = Renderer(bundle, RenderConfig(layers=k, method=method, max_thread_pixels=mtp, kbuffer_slots=slots,
+                                              cache_mb=0))
             for cam in path[:3]:
                 r.render(cam)
-            t = [r.render(cam)["timings"] for cam in path]
+            t, labels, overflow = [], [], 0
+            for cam in path:
+                t.append(r.render(cam)["timings"])
+                if k == args.layers:
+                    labels.append(r.layers()["label"])
+                    overflow += r.visibility.read_overflow()
             row[f"visibility_{k}_ms"] = float(np.median([x["visibility"] for x in t]))
             row["labeling_ms"] = float(np.median([x["labeling"] for x in t]))
             row["n_large"] = int(np.frombuffer(r.splats.large.read(16), np.uint32)[3])
             r.release()
+        if reference is None:
+            reference = labels  # the first configuration: compute peeling
+        row["label_agreement_per_layer"] = np.mean([[np.mean(a[i] == b[i]) for i in range(args.layers)]
+                                                    for a, b in zip(reference, labels)], axis=0).tolist()
+        row["overflow_pixels_per_frame"] = overflow / len(path)
         runs.append(row)
-        print("  ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()), flush=True)
+        print("  ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()
+                        if k != "label_agreement_per_layer")
+              + f"  agreement min {min(row['label_agreement_per_layer']):.4f}", flush=True)
     out = args.out / f"visibility-{args.preset or bundle.root.name}.json"
     out.write_text(json.dumps({"benchmark": "visibility", "version": 1, "machine": {"gl": renderer_info(get_context())},
                                "frame_size": [args.width, args.height], "layers": args.layers,

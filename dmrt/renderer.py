@@ -76,9 +76,15 @@ class RenderConfig:
     # Iterative search: "adaptive" (paper: every step is h, the signed distance along the line to
     # the photo's centre) or "secant" (h first, then secant steps along the pixel ray).
     search: str = "secant"
-    # Visibility stage: "compute" (atomicMin splatting, fast on Hopper) or "raster" (the paper's
-    # GL_POINTS with depth peeling); both give the same layers.
-    method: str = "compute"
+    # Visibility stage: "kbuffer" (all layers from one splat pass: a per-pixel list of the nearest
+    # fragments; 4x faster than peeling for 5 layers on an H200), "compute" (depth peeling by
+    # atomicMin splatting, one pass per layer) or "raster" (the paper's GL_POINTS with depth
+    # peeling); the same layers (dmrt.visibility).
+    method: str = "kbuffer"
+    # k-buffer: fragments kept per pixel (0 = 6 per layer + 2: >= 99.9 % of the peeled layers'
+    # pixels on the small preset, 4 per layer + 2: 99.5 %). Fewer cost less memory and time; a
+    # pixel with more fragments in front of its k-th layer loses its deepest layers.
+    kbuffer_slots: int = 0
     # Compute splatting (visibility and labeling passes): "int64" = one pass with 64-bit atomicMin
     # on (depth bits, label) (NVIDIA GL_NV_shader_atomic_int64), "portable" = an atomicMin pass on
     # the depth then a label-resolve pass (any GL 4.3, e.g. Mesa llvmpipe); "auto" = int64 where
@@ -128,8 +134,10 @@ class RenderConfig:
             raise ValueError(f"RenderConfig.atomics must be 'auto', 'int64' or 'portable', not {self.atomics!r}")
         if self.search not in ("adaptive", "secant"):
             raise ValueError(f"RenderConfig.search must be 'adaptive' or 'secant', not {self.search!r}")
-        if self.method not in ("compute", "raster"):
-            raise ValueError(f"RenderConfig.method must be 'compute' or 'raster', not {self.method!r}")
+        if self.method not in ("compute", "kbuffer", "raster"):
+            raise ValueError(f"RenderConfig.method must be 'compute', 'kbuffer' or 'raster', not {self.method!r}")
+        if self.kbuffer_slots < 0:
+            raise ValueError("RenderConfig.kbuffer_slots must be >= 0")
         if self.leveling_max_gain < 1.0:
             raise ValueError("RenderConfig.leveling_max_gain must be >= 1")
 
@@ -211,7 +219,8 @@ class Renderer:
             raise InputError(bundle.root / "proxy.npz", f"array 'labels' holds photo index {labels.max()} "
                                                         f"but the bundle has {n} photos")
         self.splats = ProxySplats(self.ctx, bundle.proxy, self.config.max_thread_pixels)
-        self.visibility = VisibilityStage(self.ctx, self.splats, self.config.method, self.int64)
+        self.visibility = VisibilityStage(self.ctx, self.splats, self.config.method, self.int64,
+                                          self.config.kbuffer_slots or 6 * self.config.layers + 2, n)
         self._raytrace = load_program(self.ctx, "dmrt_raytrace",
                                       {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
                                        "SECANT": int(self.config.search == "secant"),
@@ -475,6 +484,8 @@ class Renderer:
         }
         self._size = (w, h)
         self.gpu_bytes["layers"] = 8 * k * npix
+        if self.config.method == "kbuffer":
+            self.gpu_bytes["kbuffer"] = 4 * npix * (self.config.kbuffer_slots or 6 * k + 2)
         self.gpu_bytes["frame"] = (HIT_DTYPE.itemsize + 12) * npix
 
     def _release_frame(self) -> None:

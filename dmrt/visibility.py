@@ -14,6 +14,15 @@ Two GPU paths write the same layer buffers (``RenderConfig.method``):
     discs whose z equals the stored one ``atomicMin`` their label. Portable (no 64-bit atomics,
     which Mesa llvmpipe lacks); discs larger than ``max_thread_pixels`` pixels are splatted by a
     whole workgroup each (dispatch-indirect), as in :mod:`dmrt.depthmaps`.
+``"kbuffer"``
+    One splat pass for all k layers (the paper's future work): every disc hit is inserted into a
+    per-pixel sorted list of its ``slots`` nearest fragments (32-bit keys: depth bits with the low
+    bits holding the label, lock-free atomicMin cascade), then a resolve pass reads the layers off
+    the list as peeling would (the first fragment of each run of equal labels, in depth order). It
+    equals the peeled layers except (a) depths are truncated to 23 - label_bits mantissa bits
+    (relative 2^-(23 - label_bits): 2e-6 for 12 photos, 3e-5 for 192) and ties within that break
+    by label, (b) where more than ``slots`` fragments lie in front of the k-th layer
+    (:attr:`VisibilityStage.overflow` counts those pixels; their deeper layers stay empty).
 ``"raster"``
     The paper's way: GL_POINTS sprites (geometry-shader quads for discs larger than the largest
     sprite) with the per-fragment ray-disc test and the peeling test in the fragment shader,
@@ -134,14 +143,25 @@ class VisibilityStage:
         Compute path: one pass per layer with 64-bit atomics (see module doc).
     """
 
-    def __init__(self, ctx: moderngl.Context, splats: ProxySplats, method: str = "compute", int64: bool = False):
-        if method not in ("compute", "raster"):
-            raise ValueError(f"RenderConfig.method must be 'compute' or 'raster', not {method!r}")
+    def __init__(self, ctx: moderngl.Context, splats: ProxySplats, method: str = "compute", int64: bool = False,
+                 slots: int = 16, n_labels: int = 256):
+        if method not in ("compute", "raster", "kbuffer"):
+            raise ValueError(f"RenderConfig.method must be 'compute', 'kbuffer' or 'raster', not {method!r}")
         self.ctx, self.splats, self.method = ctx, splats, method
         self.int64 = bool(int64) and method == "compute"
         self._fill = load_program(ctx, "fill_u32")
         self._size = None
         self._packed = None
+        self.overflow = 0
+        if method == "kbuffer":
+            label_bits = max(1, int(n_labels - 1).bit_length())
+            if label_bits > 16:
+                raise ValueError(f"the k-buffer packs labels into 16 bits at most, not {n_labels} photos")
+            self.slots = int(slots)
+            self._kdefines = {"SLOTS": self.slots, "LABEL_BITS": label_bits}
+            self._resolve = load_program(ctx, "dmrt_kbuffer_resolve", self._kdefines)
+            self._kbuf = None
+            self._overflow = ctx.buffer(reserve=4)
         if self.int64:
             self._unpack = load_program(ctx, "dmrt_layer_unpack")
         if method == "raster":
@@ -165,6 +185,9 @@ class VisibilityStage:
         self.fill(layer_depth, EMPTY_BITS, layers * w * h)
         self.fill(layer_label, EMPTY_LABEL, layers * w * h)
         self.ctx.memory_barrier(_BARRIER)
+        if self.method == "kbuffer":
+            self._kbuffer(uniforms, size, layers, layer_depth, layer_label)
+            return
         if self.int64:
             if self._packed is None or self._packed.size < 8 * w * h:
                 if self._packed is not None:
@@ -187,6 +210,34 @@ class VisibilityStage:
                                     {1: layer_depth, 2: layer_label})
             else:
                 self._raster_layer(uniforms, size, layer, layer_depth, layer_label)
+
+    # -- k-buffer path ----------------------------------------------------------------------
+    def _kbuffer(self, uniforms, size, layers, layer_depth, layer_label) -> None:
+        w, h = size
+        n = w * h * self.slots
+        if self._kbuf is None or self._kbuf.size < 4 * n:
+            if self._kbuf is not None:
+                self._kbuf.release()
+            self._kbuf = self.ctx.buffer(reserve=4 * n)
+        self.fill(self._kbuf, EMPTY_BITS, n)
+        self.fill(self._overflow, 0, 1)
+        self.ctx.memory_barrier(_BARRIER)
+        self.splats.run("dmrt_visibility_kbuffer", self._kdefines, uniforms, {1: self._kbuf})
+        for binding, buf in ((1, self._kbuf), (2, layer_depth), (3, layer_label), (4, self._overflow)):
+            buf.bind_to_storage_buffer(binding)
+        set_uniforms(self._resolve, u_size=size, u_layers=layers)
+        self._resolve.run(groups(w, 8), groups(h, 8))
+        self.ctx.memory_barrier(_BARRIER)
+
+    def read_overflow(self) -> int:
+        """Pixels of the last k-buffer frame whose list ran out before the k-th layer."""
+        return int(np.frombuffer(self._overflow.read(), np.uint32)[0]) if self.method == "kbuffer" else 0
+
+    @property
+    def nbytes(self) -> int:
+        """GPU bytes of the stage's own buffers (the k-buffer list)."""
+        kbuf = getattr(self, "_kbuf", None)
+        return kbuf.size if kbuf is not None else 0
 
     # -- raster path ------------------------------------------------------------------------
     def _targets(self, size):
@@ -233,7 +284,7 @@ class VisibilityStage:
 
     def release(self) -> None:
         self._release_targets()
-        for name in ("_vao_points", "_vao_quads", "_packed"):
+        for name in ("_vao_points", "_vao_quads", "_packed", "_kbuf", "_overflow"):
             obj = self.__dict__.pop(name, None)
             if obj is not None:
                 obj.release()

@@ -480,24 +480,28 @@ def test_frame_contract(renderers, bundle):
         np.testing.assert_array_equal(again[key], frame[key], err_msg=key)
 
 
-@pytest.mark.parametrize("variant", ["compute-large", "raster", "raster-quads"])
-def test_visibility_paths_agree(ctx, bundle, renderers, variant):
-    """The compute path against itself with every disc through the workgroup-per-disc pass, and
-    against the paper's raster path (point sprites; geometry-shader quads). Both evaluate the same
-    ray-disc test in float32 on the same inputs, so layers must agree almost everywhere: at least
-    99.5 % of the pixels have the same label in every layer, and depths agree to 1e-4 relative."""
+@pytest.mark.parametrize("variant", ["compute-large", "raster", "raster-quads", "kbuffer", "kbuffer-large"])
+def test_visibility_paths_agree(ctx, bundle, variant):
+    """Depth peeling by compute passes against itself with every disc through the workgroup-per-disc pass, against
+    the paper's raster path (point sprites; geometry-shader quads) and against the single-pass
+    k-buffer (default slots). All evaluate the same ray-disc test in float32 on the same inputs, so
+    layers must agree almost everywhere: at least 99.5 % of the pixels have the same label in every
+    layer, and depths agree to 1e-4 relative (the k-buffer truncates depths to 2e-6 here)."""
     from dmrt.renderer import RenderConfig, Renderer
 
-    cfg = {"compute-large": RenderConfig(layers=3, max_thread_pixels=4),
+    cfg = {"compute-large": RenderConfig(layers=3, method="compute", max_thread_pixels=4),
            "raster": RenderConfig(layers=3, method="raster"),
-           "raster-quads": RenderConfig(layers=3, method="raster")}[variant]
+           "raster-quads": RenderConfig(layers=3, method="raster"),
+           "kbuffer": RenderConfig(layers=3, method="kbuffer"),
+           "kbuffer-large": RenderConfig(layers=3, method="kbuffer", max_thread_pixels=4)}[variant]
     other = Renderer(bundle, cfg, ctx)
+    peeling = Renderer(bundle, RenderConfig(layers=3, method="compute"), ctx)
     if variant == "raster-quads":
         other.visibility.max_point_size = 8.0  # every disc wider than 6 px becomes a quad
     try:
         for cam in (bundle.cameras[0], novel_camera(bundle.cameras[1], bundle.cameras[2])):
-            a = renderers[3].render(cam, W)
-            la = renderers[3].layers()
+            a = peeling.render(cam, W)
+            la = peeling.layers()
             b = other.render(cam, W)
             lb = other.layers()
             assert (la["depth"][0] > 0).mean() > 0.5
@@ -509,6 +513,39 @@ def test_visibility_paths_agree(ctx, bundle, renderers, variant):
             assert np.mean(a["label"] == b["label"]) >= 0.995
     finally:
         other.release()
+        peeling.release()
+
+
+def test_kbuffer_slots(ctx, bundle, renderers):
+    """The k-buffer's one approximation: a pixel with more fragments in front of its k-th layer
+    than the list holds loses its deepest layers, and only those. With 5 layers and 6 slots many
+    pixels overflow (counted), their first layer stays (but for ties within the depth truncation), and every layer the k-buffer does
+    give equals a peeled one; with the default 6 k + 2 slots >= 99.5 % of every layer agrees."""
+    from dmrt.renderer import RenderConfig, Renderer
+
+    cam = novel_camera(bundle.cameras[1], bundle.cameras[2]).resized(W)
+    peel = Renderer(bundle, RenderConfig(layers=5, method="compute"), ctx)
+    few = Renderer(bundle, RenderConfig(layers=5, method="kbuffer", kbuffer_slots=6), ctx)
+    default = Renderer(bundle, RenderConfig(layers=5, method="kbuffer"), ctx)
+    try:
+        peel.render(cam)
+        lp = peel.layers()
+        few.render(cam)
+        lf = few.layers()
+        assert few.visibility.read_overflow() > 0.01 * W * cam.height
+        # layer 0 never overflows; only depths equal to 2e-6 (the truncation) may break differently
+        assert np.mean(lf["label"][0] == lp["label"][0]) >= 0.999
+        given = lf["label"] >= 0
+        assert np.mean(lf["label"][given] == lp["label"][given]) >= 0.995
+        assert (lf["label"] >= 0).sum() < (lp["label"] >= 0).sum()
+        default.render(cam)
+        ld = default.layers()
+        for i in range(5):
+            assert np.mean(ld["label"][i] == lp["label"][i]) >= 0.995, f"layer {i}"
+        assert default.gpu_bytes["kbuffer"] == 4 * W * cam.height * 32
+    finally:
+        for r in (peel, few, default):
+            r.release()
 
 
 def test_layers_match_numpy_peeling(renderers, bundle):
@@ -557,8 +594,8 @@ def test_step_statistics_match_numpy(ctx, bundle, depthmaps):
     point, far below that)."""
     from dmrt.renderer import STEP_BINS, RenderConfig, Renderer
 
-    r = Renderer(bundle, RenderConfig(layers=3, search="adaptive", statistics=True, async_photos=False,
-                                      max_uploads_per_frame=0), ctx)
+    r = Renderer(bundle, RenderConfig(layers=3, search="adaptive", statistics=True, method="compute",
+                                      async_photos=False, max_uploads_per_frame=0), ctx)
     cam = novel_camera(bundle.cameras[6], bundle.cameras[7]).resized(W)
     frame = r.render(cam)
     layers = r.layers()
