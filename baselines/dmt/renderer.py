@@ -1,0 +1,395 @@
+"""The DMT runtime (Arikan et al. 2014, the baseline of the DMRT paper's Section 6.5): every depth
+map triangulated and rasterized, overlapping maps stitched by an ε threshold.
+
+Per frame, each stage timed on the GPU (:class:`dmrt.gl.GpuTimer`):
+
+1. ``culling`` - one compute thread per depth map tests its bounding box against the view frustum
+   and writes its draw command (``shaders/dmt_cull.glsl``); culled maps draw nothing;
+2. ``rasterization`` - pass 1: every depth map as a grid mesh (two triangles per quad of texels,
+   generated from ``gl_VertexID``; triangles touching an empty texel or spanning a depth jump larger
+   than the discontinuity threshold are dropped, ``shaders/dmt_mesh.glsl``), z-buffered: the camera z
+   of the nearest surface per pixel;
+3. ``stitching`` - pass 2: the meshes again; fragments more than ε behind pass 1's surface are
+   discarded (another surface), the rest are the same surface seen by several depth maps and the
+   best-resolved one wins (smallest texel footprint ``z_j / (f_j |cos θ_j|)`` of its depth map at
+   that point, by the depth test); then the pixel's label is that map's label at its texel nearest
+   to the fragment (``shaders/dmt_resolve.glsl`` packs the results);
+4. ``image_management`` and 5. ``texturing`` - DMRT's own passes and photo cache
+   (:mod:`dmrt.texturing`) on the DMT labels.
+
+The stitching rule. The DMRT paper (Fig. 11) describes DMT's behaviour: with a small ε two depth
+maps of one surface that disagree by more than ε count as different surfaces and the nearer one
+wins, even if it is the low-resolution one; and a surface less than ε behind another is taken for
+the same surface, so a better-resolved hidden feature "shines through". Within ε the
+better-resolved map is chosen - here by its texel footprint at the point, which with every map at the
+same texel count means the closest and most frontal view (the labeling data term's preference).
+Depth, normal and the map come from the winning fragment: DMT shows the winner's geometry, there
+is no blending.
+
+Screen-space leveling (paper 5.2.3) is not implemented, as in :mod:`dmrt.renderer`.
+
+Usage::
+
+    renderer = DMTRenderer(read_bundle("scene.bundle"), DMTConfig(width=512))
+    frame = renderer.render(camera, 1280, 720)
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import moderngl
+import numpy as np
+
+from baselines.dmt.geometry import bounding_box, box_corners, dmt_size, load_depth_map, texel_points
+from baselines.dmt.labeling import DMTLabelingConfig, dmt_labels
+from dmrt.bundle import Bundle
+from dmrt.camera import Camera
+from dmrt.frames import empty_frame
+from dmrt.gl.context import get_context
+from dmrt.gl.shaders import load_program, set_uniforms
+from dmrt.gl.timer import GpuTimer
+from dmrt.renderer import HIT_DTYPE, photo_params
+from dmrt.texturing import ImageCache
+
+STAGES = ("culling", "rasterization", "stitching", "image_management", "texturing")
+_BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
+_MAX_VERTEX_ID = 2 ** 31 - 1
+
+
+def _groups(n: int, size: int) -> int:
+    return max(1, -(-n // size))
+
+
+@dataclass
+class DMTConfig:
+    """Parameters of the DMT runtime (lengths in metres)."""
+
+    # Depth-map width in texels (paper: 256, 512, 1024; heights follow each photo's aspect). None =
+    # the bundle's stored depth maps' width; at most that (coarser maps are resampled from them).
+    width: int | None = None
+    # Stitching threshold ε: fragments within ε behind the nearest surface are the same surface
+    # (best-resolved map wins). Two maps of one surface disagree by their triangulation error
+    # (under a texel footprint: 8 mm at 5 m for a 1024-wide map of an 80-degree photo, 3.3 cm at 256)
+    # plus scan noise and splat bias (a few mm); real features (door jambs, steps, furniture) stand
+    # out by more than 5 cm. Smaller ε shows low-resolution surfaces, larger hides thin features
+    # (paper Fig. 11); 5 cm also stays well under the 20 cm discontinuity threshold.
+    epsilon: float = 0.05
+    # Triangles whose texels' depths span more than this are dropped (paper: 20 cm).
+    discontinuity_threshold: float = 0.20
+    # "graphcut" (DMT's labeling, cached in the bundle) or "wta" (winner-take-all; frame-rate runs).
+    labeler: str = "graphcut"
+    # Near clipping plane of the rasterization; the far plane follows the depth maps' boxes.
+    near: float = 0.05
+    # Clamp of |cos θ| in the quality key (a grazing view's footprint is at most 20x its frontal one).
+    min_cos: float = 0.05
+    # Photo cache and streaming, as RenderConfig (dmrt.renderer): GPU MiB for full-resolution photos
+    # (paper: 1 GB), background decoding, uploads per frame (0 = no bound), CPU MiB of decoded photos.
+    cache_mb: float = 1024.0
+    async_photos: bool = True
+    max_uploads_per_frame: int = 4
+    cpu_cache_mb: float = 1024.0
+    # Progress bar when the labels must be computed.
+    progress: bool = True
+
+    def __post_init__(self):
+        if self.epsilon < 0 or self.discontinuity_threshold <= 0 or self.near <= 0:
+            raise ValueError("DMTConfig: epsilon >= 0, discontinuity_threshold > 0 and near > 0 required")
+        if self.width is not None and self.width < 2:
+            raise ValueError(f"DMTConfig.width must be at least 2 texels, not {self.width}")
+        DMTLabelingConfig(labeler=self.labeler)  # validates the name
+
+
+class DMTRenderer:
+    """DMT rendering of a scene bundle on one GL context.
+
+    Parameters
+    ----------
+    bundle : Bundle
+    config : DMTConfig, optional
+    ctx : moderngl.Context, optional (default: the process-wide context)
+    labels : list of (h_i, w_i) int32, optional
+        Per-texel labels of every depth map at the DMT resolution; default
+        :func:`baselines.dmt.labeling.dmt_labels` (cached in the bundle, computed on first use).
+
+    Attributes
+    ----------
+    width : int, the DMT depth-map width.
+    sizes : list of (w, h) per depth map.
+    boxes : (n, 2, 3) float64 origin-relative bounding boxes of the maps (NaN for empty maps).
+    labeling_meta : dict, the labeling cache's metadata (None when labels were given).
+    gpu_bytes : dict, GPU memory per resource (``depthmaps``, ``labels``, ``images_low``,
+        ``image_cache``, ``photos``, ``draw`` and after a frame ``frame``), bytes.
+    """
+
+    name = "dmt"
+
+    def __init__(self, bundle: Bundle, config: DMTConfig | None = None, ctx: moderngl.Context | None = None,
+                 labels: list | None = None):
+        self.bundle = bundle
+        self._config = cfg = config or DMTConfig()
+        self.ctx = ctx or get_context()
+        self.origin = np.asarray(bundle.origin, np.float64)
+        self.cameras = bundle.cameras
+        n = len(self.cameras)
+        if n == 0:
+            raise ValueError(f"{bundle.root}: the bundle has no photos")
+        stored = [bundle.depth_map(i) for i in range(n)]
+        self.width = int(cfg.width or stored[0].shape[1])
+        depths = [load_depth_map(bundle, i, self.width, stored[i]) for i in range(n)]
+        del stored
+        self.labeling_meta = None
+        if labels is None:
+            labels, self.labeling_meta = dmt_labels(
+                bundle, self.width, DMTLabelingConfig(labeler=cfg.labeler,
+                                                      discontinuity_threshold=cfg.discontinuity_threshold),
+                progress=cfg.progress)
+        self.sizes = [dmt_size(c, self.width) for c in self.cameras]
+        for i, (lab, (w, h)) in enumerate(zip(labels, self.sizes)):
+            if np.shape(lab) != (h, w):
+                raise ValueError(f"labels of depth map {i}: shape {np.shape(lab)}, expected ({h}, {w})")
+        dims = (max(s[0] for s in self.sizes), max(s[1] for s in self.sizes))
+        self.timer = GpuTimer(self.ctx)
+        ctx = self.ctx
+
+        # depth maps (R32F) and labels (R16I when photo indices fit, else R32I), one layer per map
+        ldtype = "i2" if n < 2 ** 15 else "i4"
+        self.depthmaps = ctx.texture_array((*dims, n), 1, dtype="f4")
+        self.labels = ctx.texture_array((*dims, n), 1, dtype=ldtype)
+        for tex in (self.depthmaps, self.labels):
+            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        boxes = np.full((n, 2, 3), np.nan)
+        for i, (d, lab) in enumerate(zip(depths, labels)):
+            h, w = d.shape
+            self.depthmaps.write(np.ascontiguousarray(d, np.float32).tobytes(), viewport=(0, 0, i, w, h, 1))
+            self.labels.write(np.ascontiguousarray(lab, ldtype).tobytes(), viewport=(0, 0, i, w, h, 1))
+            cam = self.cameras[i].relative_to(self.origin).scaled(w, h)
+            boxes[i] = bounding_box(texel_points(d, cam))
+        self.boxes = boxes
+        self.images = ImageCache(ctx, bundle, cfg.cache_mb, cfg.max_uploads_per_frame, cfg.async_photos,
+                                 cfg.cpu_cache_mb)
+        self.photos = ctx.buffer(photo_params(self.cameras, self.origin, self.sizes, self.images.low_sizes).tobytes())
+        gpu_boxes = np.zeros((n, 2, 4), np.float32)
+        ok = np.isfinite(boxes).all(axis=(1, 2))
+        gpu_boxes[ok, :, :3] = boxes[ok]
+        gpu_boxes[ok, 0, 3] = 1.0
+        self._boxes_buf = ctx.buffer(gpu_boxes.tobytes())
+        self._commands = ctx.buffer(reserve=20 * n)
+        self._stats = ctx.buffer(reserve=8)
+        self.counts = ctx.buffer(reserve=4 * n)
+        # gl_VertexID is an int: maps are drawn in groups whose vertex ranges stay below 2^31
+        self.verts_per_map = 6 * (dims[0] - 1) * (dims[1] - 1)
+        self.maps_per_draw = max(1, _MAX_VERTEX_ID // max(self.verts_per_map, 1))
+        self._cull = load_program(ctx, "dmt_cull")
+        self._pass = {k: load_program(ctx, "dmt_mesh", {"PASS": k}) for k in (1, 2)}
+        self._vao = {k: ctx.vertex_array(p, []) for k, p in self._pass.items()}
+        self._resolve = load_program(ctx, "dmt_resolve")
+        self._fill = load_program(ctx, "fill_u32")
+        self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
+        self._texturing = load_program(ctx, "dmrt_texturing")
+        self._size: tuple[int, int] | None = None
+        self._fb: dict = {}
+        self.gpu_bytes = {"depthmaps": dims[0] * dims[1] * n * 4,
+                          "labels": dims[0] * dims[1] * n * (2 if ldtype == "i2" else 4),
+                          **self.images.nbytes, "photos": self.photos.size,
+                          "draw": self._boxes_buf.size + self._commands.size + self._stats.size}
+
+    @property
+    def config(self) -> DMTConfig:
+        """The configuration; fixed at construction (textures and programs are built from it)."""
+        return self._config
+
+    @config.setter
+    def config(self, value) -> None:
+        raise AttributeError("DMTRenderer.config is fixed at construction: make a new DMTRenderer")
+
+    # -- public -------------------------------------------------------------------------------
+    def render(self, camera: Camera, width: int | None = None, height: int | None = None,
+               maps=None) -> dict:
+        """Render one frame.
+
+        Parameters
+        ----------
+        camera : Camera, world coordinates; any resolution.
+        width, height : int, optional frame size (default the camera's; a missing side follows the
+            camera's aspect ratio).
+        maps : sequence of int, optional
+            Draw only these depth maps (the others count as culled); default all.
+
+        Returns
+        -------
+        dict
+            The frame contract of :mod:`dmrt.frames` - ``depth`` (h, w) float32 camera z (0 =
+            background), ``label`` (h, w) int32 (-1 = none), ``color`` (h, w, 3) uint8, ``normal``
+            (h, w, 3) float32 unit world normal facing the camera - plus ``depth_map`` (h, w) int32
+            (the depth map that won the pixel, -1 = none), ``timings`` {stage: GPU ms} for
+            :data:`STAGES` (meaningless on llvmpipe), ``cpu_ms`` {``label_readback``,
+            ``image_management``} as DMRT's, and ``stats`` {``maps``, ``maps_culled``,
+            ``maps_drawn``, ``triangles_drawn`` (upper bound: triangles of the drawn maps, before
+            the discontinuity drop)}.
+        """
+        cfg, ctx, timer = self.config, self.ctx, self.timer
+        cam = camera.resized(width, height)
+        w, h = cam.width, cam.height
+        self._allocate(w, h)
+        fb = self._fb
+        n = len(self.cameras)
+        vp = cam.gl_view_projection(cfg.near, self.far_plane(cam), self.origin)
+        local = cam.relative_to(self.origin)
+        cam_uniforms = {"u_R": local.R.T.ravel(), "u_t": local.t, "u_K": (local.fx, local.fy, local.cx, local.cy),
+                        "u_size": (w, h)}
+        vp_bytes = np.ascontiguousarray(vp.T, np.float32)  # GLSL reads column-major
+        timer.reset()
+
+        with timer.section("culling"):
+            self._run_fill(self._stats, 0, 2)
+            self._boxes_buf.bind_to_storage_buffer(0)
+            self._commands.bind_to_storage_buffer(1)
+            self._stats.bind_to_storage_buffer(2)
+            self.photos.bind_to_storage_buffer(5)
+            set_uniforms(self._cull, u_vp=vp_bytes, u_count=n, u_maps_per_draw=self.maps_per_draw,
+                         u_verts_per_map=self.verts_per_map)
+            self._cull.run(_groups(n, 64))
+            ctx.memory_barrier(_BARRIER)
+            if maps is not None:  # restrict on the CPU: zero the other maps' vertex counts
+                keep = np.zeros(n, bool)
+                keep[np.asarray(list(maps), np.int64)] = True
+                cmds = np.frombuffer(self._commands.read(), np.uint32).reshape(n, 5).copy()
+                stats = np.frombuffer(self._stats.read(), np.uint32).copy()
+                stats[0] += int(((cmds[:, 0] > 0) & ~keep).sum())
+                stats[1] -= int(cmds[~keep, 0].sum() // 3)
+                cmds[~keep, 0] = 0
+                self._commands.write(cmds.tobytes())
+                self._stats.write(stats.tobytes())
+
+        mesh_uniforms = {"u_vp": vp_bytes, "u_eye": local.center.astype(np.float32),
+                         "u_verts_per_map": self.verts_per_map, "u_threshold": float(cfg.discontinuity_threshold),
+                         "u_min_cos": float(cfg.min_cos), "u_depthmaps": 0, "u_front": 1, "u_labels": 2,
+                         "u_epsilon": float(cfg.epsilon)}
+        self.depthmaps.use(0)
+        self.labels.use(2)
+        ctx.depth_func = "<"
+        with timer.section("rasterization"):
+            with fb["scope1"]:
+                fb["fbo1"].clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+                self._draw(1, mesh_uniforms)
+        with timer.section("stitching"):
+            fb["front"].use(1)
+            with fb["scope2"]:
+                fb["fbo2"].clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+                self._draw(2, mesh_uniforms)
+            fb["surface"].use(3)
+            fb["ids"].use(4)
+            fb["hits"].bind_to_storage_buffer(4)
+            set_uniforms(self._resolve, u_surface=3, u_ids=4, **cam_uniforms)
+            self._resolve.run(_groups(w, 8), _groups(h, 8))
+            ctx.memory_barrier(_BARRIER)
+
+        # image management and texturing: DMRT's passes on the DMT hits (dmrt.renderer)
+        with timer.section("image_management"):
+            self._run_fill(self.counts, 0, n)
+            fb["hits"].bind_to_storage_buffer(4)
+            self.counts.bind_to_storage_buffer(6)
+            set_uniforms(self._histogram, u_count=w * h)
+            self._histogram.run(_groups(w * h, 64 * 64))
+            ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
+        t0 = time.perf_counter()
+        counts = np.frombuffer(self.counts.read(), np.uint32)
+        t1 = time.perf_counter()
+        with timer.section("image_management"):
+            self.images.update(counts)
+        t2 = time.perf_counter()
+        self.label_counts = counts.copy()
+
+        with timer.section("texturing"):
+            fb["hits"].bind_to_storage_buffer(4)
+            self.photos.bind_to_storage_buffer(5)
+            self.images.slots.bind_to_storage_buffer(6)
+            fb["colors"].bind_to_storage_buffer(7)
+            self.images.low.use(1)
+            self.images.high.use(2)
+            set_uniforms(self._texturing, u_low=1, u_high=2, u_low_dims=self.images.low_dims,
+                         u_high_dims=(self.images.high.width, self.images.high.height), **cam_uniforms)
+            self._texturing.run(_groups(w, 8), _groups(h, 8))
+            ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
+
+        hits = np.frombuffer(fb["hits"].read(), HIT_DTYPE).reshape(h, w)
+        colors = np.frombuffer(fb["colors"].read(), np.uint8).reshape(h, w, 4)
+        stats = np.frombuffer(self._stats.read(), np.uint32)
+        frame = empty_frame(h, w)
+        frame["depth"] = hits["depth"].copy()
+        frame["label"] = hits["final_label"].copy()
+        frame["color"] = colors[..., :3].copy()
+        frame["normal"] = hits["normal"].copy()
+        frame["depth_map"] = hits["label"].copy()
+        ms = timer.ms
+        frame["timings"] = {stage: ms.get(stage, 0.0) for stage in STAGES}
+        frame["cpu_ms"] = {"label_readback": (t1 - t0) * 1e3, "image_management": (t2 - t1) * 1e3}
+        frame["stats"] = {"maps": n, "maps_culled": int(stats[0]), "maps_drawn": n - int(stats[0]),
+                          "triangles_drawn": int(stats[1])}
+        return frame
+
+    def flush_photos(self) -> int:
+        """Wait for streamed photos and upload all the last frame wanted (as DMRT's Renderer)."""
+        return self.images.flush()
+
+    def release(self) -> None:
+        """Free this renderer's GPU resources (cached programs stay with the context)."""
+        self._release_frame()
+        for vao in self._vao.values():
+            vao.release()
+        self.images.release()
+        for obj in (self.depthmaps, self.labels, self.photos, self._boxes_buf, self._commands, self._stats,
+                    self.counts):
+            obj.release()
+
+    def far_plane(self, cam: Camera) -> float:
+        """The far clipping plane of a frame of ``cam``: beyond the farthest corner of any depth
+        map's box (camera z), metres. (The near plane is ``config.near``.)"""
+        ok = np.isfinite(self.boxes).all(axis=(1, 2))
+        if not ok.any():
+            return 2 * self.config.near + 1.0
+        z = cam.relative_to(self.origin).world_to_camera(box_corners(self.boxes[ok]).reshape(-1, 3))[:, 2]
+        return float(max(z.max() * 1.01, 2 * self.config.near) + 1.0)
+
+    # -- internals ----------------------------------------------------------------------------
+    def _draw(self, k: int, uniforms: dict) -> None:
+        prog, vao, n = self._pass[k], self._vao[k], len(self.cameras)
+        self.photos.bind_to_storage_buffer(5)
+        for base in range(0, n, self.maps_per_draw):
+            set_uniforms(prog, u_map_base=base, **uniforms)
+            vao.render_indirect(self._commands, moderngl.TRIANGLES, count=min(self.maps_per_draw, n - base),
+                                first=base)
+
+    def _run_fill(self, buf, value: int, count: int) -> None:
+        buf.bind_to_storage_buffer(0)
+        set_uniforms(self._fill, u_value=value, u_count=count)
+        self._fill.run(_groups(count, 256))
+        self.ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
+
+    def _allocate(self, w: int, h: int) -> None:
+        if self._size == (w, h):
+            return
+        self._release_frame()
+        ctx = self.ctx
+        fb = {"front": ctx.texture((w, h), 1, dtype="f4"), "zbuf1": ctx.depth_texture((w, h)),
+              "surface": ctx.texture((w, h), 4, dtype="f4"), "ids": ctx.texture((w, h), 4, dtype="f4"),
+              "zbuf2": ctx.depth_texture((w, h)),
+              "hits": ctx.buffer(reserve=HIT_DTYPE.itemsize * w * h), "colors": ctx.buffer(reserve=4 * w * h)}
+        for key in ("front", "surface", "ids"):
+            fb[key].filter = (moderngl.NEAREST, moderngl.NEAREST)
+        fb["fbo1"] = ctx.framebuffer([fb["front"]], fb["zbuf1"])
+        fb["fbo2"] = ctx.framebuffer([fb["surface"], fb["ids"]], fb["zbuf2"])
+        # one scope per target, reused (moderngl frees scopes only on release())
+        fb["scope1"] = ctx.scope(fb["fbo1"], enable_only=moderngl.DEPTH_TEST)
+        fb["scope2"] = ctx.scope(fb["fbo2"], enable_only=moderngl.DEPTH_TEST)
+        self._fb = fb
+        self._size = (w, h)
+        self.gpu_bytes["frame"] = (4 + 4 + 16 + 16 + 4 + HIT_DTYPE.itemsize + 4) * w * h
+
+    def _release_frame(self) -> None:
+        for obj in self._fb.values():
+            obj.release()
+        self._fb = {}
+        self._size = None
