@@ -94,3 +94,98 @@ def solve_gains(pairs: np.ndarray, pixel_counts: np.ndarray, regularization: flo
         x -= (px[:, None] * x).sum(axis=0) / px.sum()
     gains[used] = np.clip(np.exp(x), 1.0 / max_gain, max_gain)
     return gains
+
+
+class ScreenLeveler:
+    """The leveling stage on the GPU, shared by the DMRT and DMT renderers (they write the same
+    per-pixel ``Hit`` records and colours, see ``shaders/dmrt_frame.glsl``).
+
+    Parameters
+    ----------
+    ctx : moderngl.Context
+    n_photos : int
+    min_samples, max_gain : see :func:`solve_gains`
+    threshold : float, metres: neighbouring pixels further apart in depth are not a seam
+    visibility_tol : float, metres: a photo must see the seam point this closely (its depth map)
+    """
+
+    def __init__(self, ctx, n_photos: int, min_samples: int = 16, max_gain: float = 2.0,
+                 threshold: float = 0.20, visibility_tol: float = 0.05):
+        from dmrt.gl.shaders import load_program
+
+        self.ctx, self.n = ctx, int(n_photos)
+        self.min_samples, self.max_gain = min_samples, max_gain
+        self.threshold, self.visibility_tol = float(threshold), float(visibility_tol)
+        self._fill = load_program(ctx, "fill_u32")
+        self._seams = load_program(ctx, "dmrt_leveling_seams")
+        self._apply = load_program(ctx, "dmrt_leveling_apply")
+        self.pairs = ctx.buffer(reserve=16 * self.n * self.n)
+        self.gains_buffer = ctx.buffer(reserve=16 * self.n)
+        self.gains = np.ones((self.n, 3), np.float32)
+
+    @property
+    def nbytes(self) -> int:
+        return self.pairs.size + self.gains_buffer.size
+
+    def run(self, timer, hits, colors, photos, images, depthmaps, cam_uniforms: dict, counts) -> float:
+        """Level the frame's colours in place.
+
+        Parameters
+        ----------
+        timer : dmrt.gl.GpuTimer, the passes are timed as ``leveling``
+        hits, colors : moderngl.Buffer, the frame's ``Hit`` records and packed RGBA8 colours
+        photos : moderngl.Buffer, the ``Photo`` records (``dmrt.renderer.photo_params``)
+        images : dmrt.texturing.ImageCache
+        depthmaps : moderngl.TextureArray, the photos' depth maps (as ``photos`` describes them)
+        cam_uniforms : dict, ``u_R, u_t, u_K, u_size`` of the frame
+        counts : (n_photos,) int, pixels per label in the frame
+
+        Returns
+        -------
+        float, CPU ms of reading the seam sums back and solving (:attr:`gains` holds the result).
+        """
+        import time
+
+        import moderngl
+
+        from dmrt.gl.shaders import set_uniforms
+
+        barrier = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
+        w, h = cam_uniforms["u_size"]
+        n, ctx = self.n, self.ctx
+        with timer.section("leveling"):
+            self.pairs.bind_to_storage_buffer(0)
+            set_uniforms(self._fill, u_value=0, u_count=4 * n * n)
+            self._fill.run(max(1, min(-(-4 * n * n // 256), 65535)))
+            ctx.memory_barrier(barrier)
+            hits.bind_to_storage_buffer(4)
+            photos.bind_to_storage_buffer(5)
+            images.slots.bind_to_storage_buffer(6)
+            self.pairs.bind_to_storage_buffer(9)
+            depthmaps.use(0)
+            images.low.use(1)
+            images.high.use(2)
+            # colours below 2/255 or above 250/255 are clipped or noise, not exposure
+            set_uniforms(self._seams, u_photos=n, u_threshold=self.threshold, u_visibility_tol=self.visibility_tol,
+                         u_min_value=2 / 255, u_max_value=250 / 255, u_depthmaps=0, u_low=1, u_high=2,
+                         u_low_dims=images.low_dims, u_high_dims=(images.high.width, images.high.height),
+                         **cam_uniforms)
+            self._seams.run(-(-w // 8), -(-h // 8))
+            ctx.memory_barrier(barrier | moderngl.BUFFER_UPDATE_BARRIER_BIT)
+        t0 = time.perf_counter()
+        pairs = np.frombuffer(self.pairs.read(), np.int32).reshape(n, n, 4)
+        self.gains = solve_gains(pairs, counts, min_samples=self.min_samples, max_gain=self.max_gain)
+        self.gains_buffer.write(np.concatenate([self.gains, np.ones((n, 1), np.float32)], axis=1).tobytes())
+        cpu_ms = (time.perf_counter() - t0) * 1e3
+        with timer.section("leveling"):
+            hits.bind_to_storage_buffer(4)
+            colors.bind_to_storage_buffer(7)
+            self.gains_buffer.bind_to_storage_buffer(10)
+            set_uniforms(self._apply, u_count=w * h)
+            self._apply.run(max(1, min(-(-w * h // 64), 65535)))
+            ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
+        return cpu_ms
+
+    def release(self) -> None:
+        self.pairs.release()
+        self.gains_buffer.release()

@@ -47,6 +47,7 @@ from dmrt.frames import empty_frame
 from dmrt.gl.context import get_context
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
+from dmrt.leveling import ScreenLeveler
 from dmrt.texturing import ImageCache
 from dmrt.visibility import EMPTY_BITS, EMPTY_LABEL, ProxySplats, VisibilityStage, groups
 
@@ -231,17 +232,15 @@ class Renderer:
         self._texturing = load_program(self.ctx, "dmrt_texturing")
         self.counts = self.ctx.buffer(reserve=4 * n)
         self.step_stats = self.ctx.buffer(reserve=16 * self.config.layers * STEP_BINS) if self.config.statistics else None
-        if self.config.leveling:
-            self._seams = load_program(self.ctx, "dmrt_leveling_seams")
-            self._apply_gains = load_program(self.ctx, "dmrt_leveling_apply")
-            self.seam_pairs = self.ctx.buffer(reserve=16 * n * n)
-            self.gains = self.ctx.buffer(reserve=16 * n)
+        c = self.config
+        self.leveler = ScreenLeveler(self.ctx, n, c.leveling_min_samples, c.leveling_max_gain,
+                                     c.discontinuity_threshold, c.label_check_tolerance) if c.leveling else None
         self._size: tuple[int, int] | None = None
         self._buffers: dict = {}
         self.gpu_bytes = {"depthmaps": self._depth_dims[0] * self._depth_dims[1] * n * 4, **self.images.nbytes,
                           "proxies": self.splats.nbytes, "photos": self.photos.size}
-        if self.config.leveling:
-            self.gpu_bytes["leveling"] = self.seam_pairs.size + self.gains.size
+        if self.leveler is not None:
+            self.gpu_bytes["leveling"] = self.leveler.nbytes
 
     @property
     def config(self) -> RenderConfig:
@@ -364,8 +363,9 @@ class Renderer:
             self._texturing.run(*grid)
             ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT | _BARRIER)
         cpu_ms = {"label_readback": (t1 - t0) * 1e3, "image_management": (t2 - t1) * 1e3}
-        if cfg.leveling:
-            cpu_ms["leveling"] = self._level(cam_uniforms, grid, npix, counts)
+        if self.leveler is not None:
+            cpu_ms["leveling"] = self.leveler.run(timer, b["hits"], b["colors"], self.photos, self.images,
+                                                  self.depthmaps, cam_uniforms, counts)
 
         hits = np.frombuffer(b["hits"].read(), HIT_DTYPE).reshape(h, w)
         colors = np.frombuffer(b["colors"].read(), np.uint8).reshape(h, w, 4)
@@ -380,49 +380,11 @@ class Renderer:
         ms = self.timer.ms
         frame["timings"] = {stage: ms.get(stage, 0.0) for stage in STAGES}
         frame["cpu_ms"] = cpu_ms
-        if cfg.leveling:
-            frame["leveling_gains"] = self.last_gains.copy()
+        if self.leveler is not None:
+            frame["leveling_gains"] = self.leveler.gains.copy()
         if self.step_stats is not None:
             frame["step_stats"] = self._read_step_stats()
         return frame
-
-    def _level(self, cam_uniforms: dict, grid, npix: int, counts: np.ndarray) -> float:
-        """The leveling stage (module doc); returns the CPU ms of the readback and the solve."""
-        from dmrt.leveling import solve_gains
-
-        cfg, ctx, n, b = self.config, self.ctx, len(self.cameras), self._buffers
-        with self.timer.section("leveling"):
-            self.visibility.fill(self.seam_pairs, 0, 4 * n * n)
-            ctx.memory_barrier(_BARRIER)
-            b["hits"].bind_to_storage_buffer(4)
-            self.photos.bind_to_storage_buffer(5)
-            self.images.slots.bind_to_storage_buffer(6)
-            self.seam_pairs.bind_to_storage_buffer(9)
-            self.depthmaps.use(0)
-            self.images.low.use(1)
-            self.images.high.use(2)
-            # colours below 2/255 or above 250/255 are clipped or noise, not exposure
-            set_uniforms(self._seams, u_photos=n, u_threshold=float(cfg.discontinuity_threshold),
-                         u_visibility_tol=float(cfg.label_check_tolerance), u_min_value=2 / 255,
-                         u_max_value=250 / 255, u_depthmaps=0, u_low=1, u_high=2,
-                         u_low_dims=self.images.low_dims,
-                         u_high_dims=(self.images.high.width, self.images.high.height), **cam_uniforms)
-            self._seams.run(*grid)
-            ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        t0 = time.perf_counter()
-        pairs = np.frombuffer(self.seam_pairs.read(), np.int32).reshape(n, n, 4)
-        self.last_gains = solve_gains(pairs, counts, min_samples=cfg.leveling_min_samples,
-                                      max_gain=cfg.leveling_max_gain)
-        self.gains.write(np.concatenate([self.last_gains, np.ones((n, 1), np.float32)], axis=1).tobytes())
-        cpu = (time.perf_counter() - t0) * 1e3
-        with self.timer.section("leveling"):
-            b["hits"].bind_to_storage_buffer(4)
-            b["colors"].bind_to_storage_buffer(7)
-            self.gains.bind_to_storage_buffer(10)
-            set_uniforms(self._apply_gains, u_count=npix)
-            self._apply_gains.run(groups(npix, 64))
-            ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        return cpu
 
     def _read_step_stats(self) -> dict:
         """``mean_step_m`` (k, STEP_BINS) float64 mean step length along the ray (metres) of the
@@ -463,8 +425,7 @@ class Renderer:
         self.visibility.release()
         self.splats.release()
         self.images.release()
-        for obj in (self.depthmaps, self.photos, self.counts, self.step_stats,
-                    getattr(self, "seam_pairs", None), getattr(self, "gains", None)):
+        for obj in (self.depthmaps, self.photos, self.counts, self.step_stats, self.leveler):
             if obj is not None:
                 obj.release()
 

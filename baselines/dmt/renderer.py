@@ -26,7 +26,7 @@ same texel count means the closest and most frontal view (the labeling data term
 Depth, normal and the map come from the winning fragment: DMT shows the winner's geometry, there
 is no blending.
 
-Screen-space leveling (paper 5.2.3) is not implemented, as in :mod:`dmrt.renderer`.
+6. ``leveling`` (``DMTConfig.leveling``) - DMRT's screen-space leveling (:mod:`dmrt.leveling`).
 
 Usage::
 
@@ -50,10 +50,11 @@ from dmrt.frames import empty_frame
 from dmrt.gl.context import get_context
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
+from dmrt.leveling import ScreenLeveler
 from dmrt.renderer import HIT_DTYPE, photo_params
 from dmrt.texturing import ImageCache
 
-STAGES = ("culling", "rasterization", "stitching", "image_management", "texturing")
+STAGES = ("culling", "rasterization", "stitching", "image_management", "texturing", "leveling")
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 _MAX_VERTEX_ID = 2 ** 31 - 1
 
@@ -92,6 +93,11 @@ class DMTConfig:
     cpu_cache_mb: float = 1024.0
     # Progress bar when the labels must be computed.
     progress: bool = True
+
+    # Screen-space leveling, as RenderConfig's (dmrt.leveling).
+    leveling: bool = False
+    leveling_min_samples: int = 16
+    leveling_max_gain: float = 2.0
 
     def __post_init__(self):
         if self.epsilon < 0 or self.discontinuity_threshold <= 0 or self.near <= 0:
@@ -188,12 +194,17 @@ class DMTRenderer:
         self._fill = load_program(ctx, "fill_u32")
         self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
         self._texturing = load_program(ctx, "dmrt_texturing")
+        # seam visibility tolerance: within a few DMT texels (a coarse map's surface is further off)
+        self.leveler = ScreenLeveler(ctx, n, cfg.leveling_min_samples, cfg.leveling_max_gain,
+                                     cfg.discontinuity_threshold, cfg.epsilon) if cfg.leveling else None
         self._size: tuple[int, int] | None = None
         self._fb: dict = {}
         self.gpu_bytes = {"depthmaps": dims[0] * dims[1] * n * 4,
                           "labels": dims[0] * dims[1] * n * (2 if ldtype == "i2" else 4),
                           **self.images.nbytes, "photos": self.photos.size,
                           "draw": self._boxes_buf.size + self._commands.size + self._stats.size}
+        if self.leveler is not None:
+            self.gpu_bytes["leveling"] = self.leveler.nbytes
 
     @property
     def config(self) -> DMTConfig:
@@ -312,7 +323,11 @@ class DMTRenderer:
             set_uniforms(self._texturing, u_low=1, u_high=2, u_low_dims=self.images.low_dims,
                          u_high_dims=(self.images.high.width, self.images.high.height), **cam_uniforms)
             self._texturing.run(_groups(w, 8), _groups(h, 8))
-            ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
+            ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT | _BARRIER)
+        cpu_ms = {"label_readback": (t1 - t0) * 1e3, "image_management": (t2 - t1) * 1e3}
+        if self.leveler is not None:
+            cpu_ms["leveling"] = self.leveler.run(timer, fb["hits"], fb["colors"], self.photos, self.images,
+                                                  self.depthmaps, cam_uniforms, counts)
 
         hits = np.frombuffer(fb["hits"].read(), HIT_DTYPE).reshape(h, w)
         colors = np.frombuffer(fb["colors"].read(), np.uint8).reshape(h, w, 4)
@@ -325,7 +340,9 @@ class DMTRenderer:
         frame["depth_map"] = hits["label"].copy()
         ms = timer.ms
         frame["timings"] = {stage: ms.get(stage, 0.0) for stage in STAGES}
-        frame["cpu_ms"] = {"label_readback": (t1 - t0) * 1e3, "image_management": (t2 - t1) * 1e3}
+        frame["cpu_ms"] = cpu_ms
+        if self.leveler is not None:
+            frame["leveling_gains"] = self.leveler.gains.copy()
         frame["stats"] = {"maps": n, "maps_culled": int(stats[0]), "maps_drawn": n - int(stats[0]),
                           "triangles_drawn": int(stats[1])}
         return frame
@@ -341,8 +358,9 @@ class DMTRenderer:
             vao.release()
         self.images.release()
         for obj in (self.depthmaps, self.labels, self.photos, self._boxes_buf, self._commands, self._stats,
-                    self.counts):
-            obj.release()
+                    self.counts, self.leveler):
+            if obj is not None:
+                obj.release()
 
     def far_plane(self, cam: Camera) -> float:
         """The far clipping plane of a frame of ``cam``: beyond the farthest corner of any depth
