@@ -48,6 +48,11 @@ class PreprocessConfig:
     occlusion_tolerance: float = 3.0  # a proxy is visible in photo j if |z - D_j| <= this x its splat
     occlusion_texels: float = 2.0     # radius + this x the depth map's texel footprint at that depth
     candidate_min_cos: float = 0.1    # views more grazing than ~84 deg are no candidates
+    # A candidate photo must also see this share of the proxy's disc rim (6 points at 0.8 of its
+    # radius, same test): a photo that sees the centre but not the disc around it cannot show the
+    # pixels the disc covers at runtime (holes along depth edges). Points that would lose every
+    # candidate keep them. 0 = centre test only.
+    candidate_rim_fraction: float = 1.0
     lowres_width: int = 256           # low-resolution photo copies (paper: 256x171)
     chunk_points: int = 1_000_000     # points read per chunk
     resident_mb: float = 4096         # GPU memory for P_HD during depth-map rendering
@@ -71,7 +76,8 @@ def choose_proxy_levels(lod_counts: list[int], n_points: int, config: Preprocess
 
 
 def find_candidates(positions: np.ndarray, normals: np.ndarray, hd_radii: np.ndarray, cameras,
-                    depth_maps, photos, config: PreprocessConfig, progress: bool = True) -> Candidates:
+                    depth_maps, photos, config: PreprocessConfig, progress: bool = True,
+                    radii: np.ndarray | None = None) -> Candidates:
     """The photos that see each proxy point, and the proxy's colour in each.
 
     Parameters
@@ -81,6 +87,8 @@ def find_candidates(positions: np.ndarray, normals: np.ndarray, hd_radii: np.nda
     cameras : origin-relative cameras (photo resolution).
     depth_maps : callable ``j -> (h, w) float32`` depth map of photo ``j``.
     photos : callable ``j -> (H, W, 3) uint8`` photo ``j``.
+    radii : (n,) float32, optional, the proxies' own splat radii: with them a candidate must also
+        see ``config.candidate_rim_fraction`` of the disc's rim.
 
     Returns
     -------
@@ -89,7 +97,28 @@ def find_candidates(positions: np.ndarray, normals: np.ndarray, hd_radii: np.nda
     from reference.render import sample_bilinear
 
     p = positions.astype(np.float64)
-    pts, phs, cols = [], [], []
+    rims = None
+    if radii is not None and config.candidate_rim_fraction > 0:
+        n = np.asarray(normals, np.float64)
+        u = np.cross(n, np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+        u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
+        v = np.cross(n, u)
+        r = 0.8 * np.asarray(radii, np.float64)[:, None]
+        rims = [p + r * (np.cos(a) * u + np.sin(a) * v) for a in np.linspace(0, 2 * np.pi, 6, endpoint=False)]
+
+    def seen(cam, depth, q, idx):
+        """Which points ``q`` (m, 3) the depth map sees (its surface within the tolerance)."""
+        h, w = depth.shape
+        uv, z = cam.project(q)
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        uvi = np.where(inside[:, None], uv, 0).astype(np.int64)
+        d = np.where(inside, depth[uvi[:, 1], uvi[:, 0]], 0.0)
+        # within a few splat radii (the map was drawn with discs of that size) plus a texel
+        # footprint at this depth (sampling)
+        tol = config.occlusion_tolerance * hd_radii[idx] + config.occlusion_texels * z / cam.fx
+        return inside & (d > 0) & (np.abs(d - z) <= tol)
+
+    pts, phs, cols, rim_ok = [], [], [], []
     for j, cam in enumerate(tqdm(cameras, desc="candidates", unit="photo", disable=not progress)):
         depth = depth_maps(j)
         h, w = depth.shape
@@ -99,22 +128,26 @@ def find_candidates(positions: np.ndarray, normals: np.ndarray, hd_radii: np.nda
         idx = np.flatnonzero(inside)
         to_eye = cam.center - p[idx]
         cos = np.abs(np.einsum("ij,ij->i", to_eye, normals[idx])) / np.linalg.norm(to_eye, axis=1)
-        d = depth[uv[idx, 1].astype(np.int64), uv[idx, 0].astype(np.int64)]
-        # Visible when the depth map's surface is this point's: within a few splat radii (the map
-        # was drawn with discs of that size) plus a texel footprint at this depth (sampling).
-        tol = config.occlusion_tolerance * hd_radii[idx] + config.occlusion_texels * z[idx] / dm_cam.fx
-        ok = (d > 0) & (np.abs(d - z[idx]) <= tol) & (cos >= config.candidate_min_cos)
-        idx = idx[ok]
+        idx = idx[(cos >= config.candidate_min_cos) & seen(dm_cam, depth, p[idx], idx)]
         if len(idx) == 0:
             continue
         uv_photo, _ = cam.project(p[idx])
         pts.append(idx)
         phs.append(np.full(len(idx), j))
         cols.append(sample_bilinear(photos(j), uv_photo) / 255.0)
+        if rims is not None:
+            frac = np.mean([seen(dm_cam, depth, rim[idx], idx) for rim in rims], axis=0)
+            rim_ok.append(frac >= config.candidate_rim_fraction)
     if not pts:
         return Candidates(np.zeros(len(p) + 1, np.int64), np.zeros(0, np.int32), None, len(cameras))
-    return Candidates.from_pairs(np.concatenate(pts), np.concatenate(phs), np.concatenate(cols),
-                                 len(p), len(cameras))
+    pts, phs, cols = np.concatenate(pts), np.concatenate(phs), np.concatenate(cols)
+    if rims is not None:
+        ok = np.concatenate(rim_ok)
+        has_ok = np.zeros(len(p), bool)
+        has_ok[pts[ok]] = True
+        keep = ok | ~has_ok[pts]  # a point none of whose photos sees its rim keeps them all
+        pts, phs, cols = pts[keep], phs[keep], cols[keep]
+    return Candidates.from_pairs(pts, phs, cols, len(p), len(cameras))
 
 
 def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
@@ -216,7 +249,8 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
 
         from dmrt.depthmaps import read_depth_exr
         cands = find_candidates(positions, normals, hd_radii, cams_local,
-                                lambda j: read_depth_exr(bw.tmp / depth_files[j]), photo, config, progress)
+                                lambda j: read_depth_exr(bw.tmp / depth_files[j]), photo, config, progress,
+                                radii=radii)
         tic("candidates_s", t0)
 
         # 6. labeling

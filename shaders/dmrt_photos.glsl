@@ -28,20 +28,64 @@ vec2 photo_uv(Photo ph, vec3 pc) {
     return ph.k.xy * pc.xy / pc.z + ph.k.zw;
 }
 
-// The four texels nearest to depth-map position uv: i0 = the top-left one's (column, row), f = the
-// bilinear weights, d = depths of (i0, i0 + (1,0), i0 + (0,1), i0 + (1,1)). False when the quad is
-// not wholly inside the map.
-bool depth_quad(int l, Photo ph, vec2 uv, out ivec2 i0, out vec2 f, out vec4 d) {
-    vec2 x = clamp(uv, vec2(-4.0), ph.size.xy + 4.0) - 0.5;  // clamp: keep int conversion defined
-    vec2 fl = floor(x);
-    i0 = ivec2(fl);
-    f = x - fl;
+// The depths of texels (i0, i0 + (1,0), i0 + (0,1), i0 + (1,1)) of map l; false when the quad is not
+// wholly inside the map.
+bool fetch_quad(int l, Photo ph, ivec2 i0, out vec4 d) {
     d = vec4(0.0);
     if (any(lessThan(i0, ivec2(0))) || any(greaterThanEqual(i0 + 1, ivec2(ph.size.xy)))) return false;
     d = vec4(texelFetch(u_depthmaps, ivec3(i0, l), 0).r,
              texelFetch(u_depthmaps, ivec3(i0 + ivec2(1, 0), l), 0).r,
              texelFetch(u_depthmaps, ivec3(i0 + ivec2(0, 1), l), 0).r,
              texelFetch(u_depthmaps, ivec3(i0 + ivec2(1, 1), l), 0).r);
+    return true;
+}
+
+// Positions within this many texels of a row or column of texel centres may take the quad on its
+// other side (see depth_quad).
+const float SNAP = 0.01;
+
+// Depth span of a quad: inf when a texel is empty.
+float quad_span(vec4 d) {
+    if (any(lessThanEqual(d, vec4(0.0)))) return 1e30;
+    return max(max(d.x, d.y), max(d.z, d.w)) - min(min(d.x, d.y), min(d.z, d.w));
+}
+
+// The four texels nearest to depth-map position uv: i0 = the top-left one's (column, row), f = the
+// bilinear weights, d = depths of (i0, i0 + (1,0), i0 + (0,1), i0 + (1,1)). False when the quad is
+// not wholly inside the map. A position on a row or column of texel centres (within SNAP) lies in
+// two (or four) quads, all giving it the same surface depth: the one floor() picks is kept when
+// its texels are present and span at most max_span metres, else the first other one that does
+// (else the first other complete one). At a photo's own camera every pixel ray passes through a
+// texel centre, and float32 rounding would otherwise pick, along every depth edge of the map, the
+// quad on the empty or discontinuous side half of the time.
+bool depth_quad(int l, Photo ph, vec2 uv, float max_span, out ivec2 i0, out vec2 f, out vec4 d) {
+    vec2 x = clamp(uv, vec2(-4.0), ph.size.xy + 4.0) - 0.5;  // clamp: keep int conversion defined
+    vec2 fl = floor(x);
+    i0 = ivec2(fl);
+    f = x - fl;
+    bool inside = fetch_quad(l, ph, i0, d);
+    float span = inside ? quad_span(d) : 1e30;
+    if (span <= max_span) return true;
+    ivec2 s = ivec2(f.x < SNAP ? -1 : (f.x > 1.0 - SNAP ? 1 : 0), f.y < SNAP ? -1 : (f.y > 1.0 - SNAP ? 1 : 0));
+    if (s == ivec2(0)) return inside;
+    ivec2 tries[3] = ivec2[3](ivec2(s.x, 0), ivec2(0, s.y), s);
+    int best = -1;
+    vec4 best_d = d;
+    for (int k = 0; k < 3; ++k) {
+        vec4 d2;
+        if (tries[k] == ivec2(0) || !fetch_quad(l, ph, i0 + tries[k], d2)) continue;
+        float span2 = quad_span(d2);
+        if (span2 < span && (span2 <= max_span || span >= 1e30)) {
+            best = k;
+            best_d = d2;
+            span = span2;
+            if (span2 <= max_span) break;
+        }
+    }
+    if (best < 0) return inside;
+    i0 += tries[best];
+    f = clamp(f - vec2(tries[best]), 0.0, 1.0);
+    d = best_d;
     return true;
 }
 
@@ -61,7 +105,7 @@ float surface_depth(int l, Photo ph, vec2 uv, out bool ok) {
     vec2 f;
     vec4 d;
     ok = false;
-    if (!depth_quad(l, ph, uv, i0, f, d)) return 0.0;
+    if (!depth_quad(l, ph, uv, 1e29, i0, f, d)) return 0.0;
     float inv;
     if (f.x + f.y <= 1.0) {  // T0
         if (d.x == 0.0 || d.y == 0.0 || d.z == 0.0) return 0.0;

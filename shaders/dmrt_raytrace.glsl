@@ -91,8 +91,62 @@ float signed_distance(int l, vec3 q, out bool ok) {
     return ok ? (depth - pc.z) * length(pc) / pc.z : 0.0;
 }
 
+// The hit at s_hit on D_l passes the discontinuity test on the four texels around it: true, with
+// the unit world normal n facing the render camera.
+bool valid_hit(int l, vec3 C, vec3 dir, float dlen, float s_hit, out vec3 n) {
+    n = vec3(0.0);
+    Photo ph = photos[l];
+    vec3 pc = to_photo(ph, C + s_hit * dir);
+    if (pc.z <= 1e-6) return false;
+    ivec2 i0;
+    vec2 f2;
+    vec4 d;
+    if (!depth_quad(l, ph, photo_uv(ph, pc), u_threshold, i0, f2, d)) return false;
+    float t = u_threshold;
+    // each triangle: all three texels present and no two depths further apart than t
+    bool ok0 = d.x > 0.0 && d.y > 0.0 && d.z > 0.0 &&
+               abs(d.x - d.y) <= t && abs(d.x - d.z) <= t && abs(d.y - d.z) <= t;
+    bool ok1 = d.y > 0.0 && d.w > 0.0 && d.z > 0.0 &&
+               abs(d.y - d.w) <= t && abs(d.w - d.z) <= t && abs(d.y - d.z) <= t;
+#if QUAD_TEST
+    if (!(ok0 && ok1)) return false;
+#else
+    if (!(f2.x + f2.y <= 1.0 ? ok0 : ok1)) return false;
+#endif
+    vec3 p00 = unproject_texel(ph, i0, d.x);
+    vec3 p10 = unproject_texel(ph, i0 + ivec2(1, 0), d.y);
+    vec3 p01 = unproject_texel(ph, i0 + ivec2(0, 1), d.z);
+    vec3 p11 = unproject_texel(ph, i0 + ivec2(1, 1), d.w);
+    vec3 n1 = cross(p10 - p00, p01 - p00);
+    vec3 n2 = cross(p11 - p10, p01 - p10);
+    vec3 nc = (ok0 ? n1 / max(length(n1), 1e-30) : vec3(0.0)) + (ok1 ? n2 / max(length(n2), 1e-30) : vec3(0.0));
+    n = photo_dir_to_world(ph, nc);
+    float len = length(n);
+    n = len > 0.0 ? n / len : -dir / dlen;
+    if (dot(n, dir) > 0.0) n = -n;
+    return true;
+}
+
+// Bisection of the enclosing interval [sa, sb] (f changes sign), then a secant step: true with the
+// intersection s_hit; false where a midpoint falls on empty texels.
+bool refine(int l, vec3 C, vec3 dir, float sa, float fa, float sb, float fb, out float s_hit) {
+    bool ok;
+    s_hit = sa;
+    if (sa == sb) return true;
+    for (int b = 0; b < u_binary_steps; ++b) {
+        float sm = 0.5 * (sa + sb);
+        float fm = signed_distance(l, C + sm * dir, ok);
+        if (!ok) return false;
+        if ((fm > 0.0) == (fa > 0.0)) { sa = sm; fa = fm; } else { sb = sm; fb = fm; }
+    }
+    s_hit = (fa == fb) ? 0.5 * (sa + sb) : sa + (sb - sa) * fa / (fa - fb);
+    return true;
+}
+
 // Search D_l along the ray C + s * dir (s = camera z) from s0. True with s_hit and the unit world
-// normal n on a valid intersection.
+// normal n on a valid intersection. The paper's search ends at the first enclosed interval; with
+// SECANT an interval that fails (a sign change across a depth edge of D_l, not a surface, or a
+// hit that fails the discontinuity test) resumes the search beyond it, within the same step budget.
 bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int iters, out float s_hit,
            out vec3 n) {
     s_hit = 0.0;
@@ -101,22 +155,33 @@ bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int i
     float s = s0;
     float f = signed_distance(l, C + s * dir, ok);
     if (!ok) return false;
-    float sa = s, fa = f, sb = s, fb = f, sp = s, fp = f;
-    bool found = false;
+    float sp = s, fp = f;
+    bool restart = true;  // the next step is the paper's (no previous sample for a secant)
     for (int i = 0; i < u_max_steps; ++i) {
         iters++;
         if (abs(f) <= CONVERGED * s) {  // on the surface: no interval to refine
-            sa = sb = s;
-            found = true;
-            break;
+            s_hit = s;
+            if (valid_hit(l, C, dir, dlen, s_hit, n)) return true;
+#if SECANT
+            // nudge past the edge point: a texel beyond it along the ray
+            float sn = s * (1.0 + 1e-3);
+            f = signed_distance(l, C + sn * dir, ok);
+            if (!ok) return false;
+            s = sn;
+            restart = true;
+            continue;
+#else
+            return false;
+#endif
         }
         float step = f / dlen;  // the paper's step: h metres along the unit ray
 #if SECANT
         // after the first step, the secant through the last two samples: h is measured along the
         // line to the photo's centre, which converges slowly (or jumps off the surface) when that
         // line and the pixel ray differ by a large angle
-        if (i > 0 && fp != f) step = -f * (s - sp) / (f - fp);
+        if (!restart && fp != f) step = -f * (s - sp) / (f - fp);
 #endif
+        restart = false;
         float sn = s + step;
         if (sn <= 0.0) return false;
         float fn = signed_distance(l, C + sn * dir, ok);
@@ -133,59 +198,18 @@ bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int i
 #endif
         if (!ok) return false;
         if ((fn > 0.0) != (f > 0.0)) {  // enclosed
-            sa = s; fa = f; sb = sn; fb = fn;
-            found = true;
-            break;
+            if (refine(l, C, dir, s, f, sn, fn, s_hit) && valid_hit(l, C, dir, dlen, s_hit, n)) return true;
+#if SECANT
+            restart = true;  // resume beyond the interval
+#else
+            return false;
+#endif
         }
         sp = s; fp = f;
         s = sn;
         f = fn;
     }
-    if (!found) return false;
-    if (sa != sb) {
-        for (int b = 0; b < u_binary_steps; ++b) {
-            float sm = 0.5 * (sa + sb);
-            float fm = signed_distance(l, C + sm * dir, ok);
-            if (!ok) return false;
-            if ((fm > 0.0) == (fa > 0.0)) { sa = sm; fa = fm; } else { sb = sm; fb = fm; }
-        }
-        s_hit = (fa == fb) ? 0.5 * (sa + sb) : sa + (sb - sa) * fa / (fa - fb);
-    } else {
-        s_hit = sa;
-    }
-
-    // discontinuity test on the four texels around the hit
-    Photo ph = photos[l];
-    vec3 pc = to_photo(ph, C + s_hit * dir);
-    if (pc.z <= 1e-6) return false;
-    ivec2 i0;
-    vec2 f2;
-    vec4 d;
-    if (!depth_quad(l, ph, photo_uv(ph, pc), i0, f2, d)) return false;
-    float t = u_threshold;
-    // each triangle: all three texels present and no two depths further apart than t
-    bool ok0 = d.x > 0.0 && d.y > 0.0 && d.z > 0.0 &&
-               abs(d.x - d.y) <= t && abs(d.x - d.z) <= t && abs(d.y - d.z) <= t;
-    bool ok1 = d.y > 0.0 && d.w > 0.0 && d.z > 0.0 &&
-               abs(d.y - d.w) <= t && abs(d.w - d.z) <= t && abs(d.y - d.z) <= t;
-#if QUAD_TEST
-    if (!(ok0 && ok1)) return false;
-#else
-    if (!(f2.x + f2.y <= 1.0 ? ok0 : ok1)) return false;
-#endif
-
-    vec3 p00 = unproject_texel(ph, i0, d.x);
-    vec3 p10 = unproject_texel(ph, i0 + ivec2(1, 0), d.y);
-    vec3 p01 = unproject_texel(ph, i0 + ivec2(0, 1), d.z);
-    vec3 p11 = unproject_texel(ph, i0 + ivec2(1, 1), d.w);
-    vec3 n1 = cross(p10 - p00, p01 - p00);
-    vec3 n2 = cross(p11 - p10, p01 - p10);
-    vec3 nc = (ok0 ? n1 / max(length(n1), 1e-30) : vec3(0.0)) + (ok1 ? n2 / max(length(n2), 1e-30) : vec3(0.0));
-    n = photo_dir_to_world(ph, nc);
-    float len = length(n);
-    n = len > 0.0 ? n / len : -dir / dlen;
-    if (dot(n, dir) > 0.0) n = -n;
-    return true;
+    return false;
 }
 
 void main() {

@@ -85,7 +85,8 @@ def test_proxy_level_choice():
 def _candidates(b, scene):
     cams = [c.relative_to(b.origin) for c in b.cameras]
     return find_candidates(b.proxy["positions"], b.proxy["normals"], b.proxy["hd_radii"], cams,
-                           b.depth_map, scene.read_image, PreprocessConfig(), progress=False), cams
+                           b.depth_map, scene.read_image, PreprocessConfig(), progress=False,
+                           radii=b.proxy["radii"]), cams
 
 
 def test_labels_are_candidates_and_graph_cut_beats_wta_and_icm(tiny_bundle, tiny_scene):
@@ -112,6 +113,53 @@ def test_labels_are_candidates_and_graph_cut_beats_wta_and_icm(tiny_bundle, tiny
     assert e_cut < e_icm <= e_wta, (e_cut, e_icm, e_wta)
     sweeps = b.meta["labeling"]["energy_per_sweep"]
     assert all(a >= b_ - 1e-9 for a, b_ in zip(sweeps, sweeps[1:]))
+
+
+def test_rim_test_restricts_candidates(tiny_bundle, tiny_scene):
+    """``candidate_rim_fraction``: a candidate must also see the disc's rim. Against the centre-only
+    test: a subset of its pairs; every point keeps at least one candidate; the dropped pairs are
+    those where a rim point falls on another surface of that photo's depth map (checked here
+    directly for the dropped pairs: >= one of the six rim points off the map's surface)."""
+    import dataclasses
+
+    b = read_bundle(tiny_bundle)
+    scene = load_scene(tiny_scene)
+    rim, cams = _candidates(b, scene)
+    centre = find_candidates(b.proxy["positions"], b.proxy["normals"], b.proxy["hd_radii"], cams, b.depth_map,
+                             scene.read_image, dataclasses.replace(PreprocessConfig(), candidate_rim_fraction=0),
+                             progress=False, radii=b.proxy["radii"])
+    pts_c = np.repeat(np.arange(centre.n_points), centre.counts())
+    pts_r = np.repeat(np.arange(rim.n_points), rim.counts())
+    _, found = centre.lookup(pts_r, rim.photos)
+    assert found.all()
+    np.testing.assert_array_equal(rim.counts() > 0, centre.counts() > 0)
+    _, kept = rim.lookup(pts_c, centre.photos)
+    assert 0.01 < 1 - kept.mean() < 0.5  # some pairs go, most stay
+    cfg = PreprocessConfig()
+    p = b.proxy["positions"].astype(np.float64)
+    n = b.proxy["normals"].astype(np.float64)
+    for j in np.unique(centre.photos[~kept])[:3]:
+        drop = pts_c[~kept & (centre.photos == j)]
+        drop = drop[rim.counts()[drop] > 0]  # points that kept some candidate
+        if len(drop) == 0:
+            continue
+        D = b.depth_map(j)
+        cam = cams[j].scaled(D.shape[1], D.shape[0])
+        u = np.cross(n[drop], [1.0, 0, 0])
+        u[np.abs(n[drop, 0]) >= 0.9] = np.cross(n[drop][np.abs(n[drop, 0]) >= 0.9], [0, 1.0, 0])
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        v = np.cross(n[drop], u)
+        r = 0.8 * b.proxy["radii"][drop, None]
+        missed = np.zeros(len(drop), bool)
+        for a in np.linspace(0, 2 * np.pi, 6, endpoint=False):
+            q = p[drop] + r * (np.cos(a) * u + np.sin(a) * v)
+            uv, z = cam.project(q)
+            ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < D.shape[1]) & (uv[:, 1] >= 0) & (uv[:, 1] < D.shape[0])
+            uvi = np.where(ok[:, None], uv, 0).astype(np.int64)
+            d = np.where(ok, D[uvi[:, 1], uvi[:, 0]], 0)
+            tol = cfg.occlusion_tolerance * b.proxy["hd_radii"][drop] + cfg.occlusion_texels * z / cam.fx
+            missed |= ~(ok & (d > 0) & (np.abs(d - z) <= tol))
+        assert missed.all()
 
 
 def test_existing_bundle_refused_without_force(tiny_bundle, tiny_scene, capsys):

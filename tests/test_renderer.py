@@ -305,8 +305,20 @@ def layers_numpy(camera: Camera, proxy: dict, k: int):
     return depth.reshape(shape), label.reshape(shape)
 
 
-def surface_depth_numpy(D: np.ndarray, uv: np.ndarray):
-    """Depth of the depth map's two-triangle surface at texel positions uv (as dmrt_photos.glsl).
+def _quad(D, i0):
+    h, w = D.shape
+    inside = (i0[:, 0] >= 0) & (i0[:, 1] >= 0) & (i0[:, 0] + 1 < w) & (i0[:, 1] + 1 < h)
+    i = np.where(inside[:, None], i0, 0)
+    q = np.stack([D[i[:, 1], i[:, 0]], D[i[:, 1], i[:, 0] + 1], D[i[:, 1] + 1, i[:, 0]],
+                  D[i[:, 1] + 1, i[:, 0] + 1]], axis=1).astype(np.float64)
+    return np.where(inside[:, None], q, 0.0), inside
+
+
+def surface_depth_numpy(D: np.ndarray, uv: np.ndarray, max_span: float = 1e29, snap: float = 0.01):
+    """Depth of the depth map's two-triangle surface at texel positions uv (as dmrt_photos.glsl,
+    including its choice of quad for positions within ``snap`` of a row or column of texel centres:
+    the floor() quad if complete and spanning <= ``max_span``, else the first of the other quads
+    (x, y, xy neighbour) that is, else the first complete one with a smaller span).
 
     Returns depth (n,) float64, ok (n,) bool, quad (n, 4) float64 (00, 10, 01, 11), f (n, 2).
     """
@@ -314,10 +326,23 @@ def surface_depth_numpy(D: np.ndarray, uv: np.ndarray):
     x = np.clip(np.nan_to_num(uv, nan=-10.0), -4.0, [w + 4.0, h + 4.0]) - 0.5
     i0 = np.floor(x).astype(np.int64)
     f = x - i0
-    inside = (i0[:, 0] >= 0) & (i0[:, 1] >= 0) & (i0[:, 0] + 1 < w) & (i0[:, 1] + 1 < h)
-    i0 = np.where(inside[:, None], i0, 0)
-    q = np.stack([D[i0[:, 1], i0[:, 0]], D[i0[:, 1], i0[:, 0] + 1], D[i0[:, 1] + 1, i0[:, 0]],
-                  D[i0[:, 1] + 1, i0[:, 0] + 1]], axis=1).astype(np.float64)
+    q, inside = _quad(D, i0)
+
+    def span(q, inside):
+        complete = inside & (q > 0).all(1)
+        return np.where(complete, q.max(1) - q.min(1), 1e30)
+
+    sp = span(q, inside)
+    s = np.stack([np.where(f[:, 0] < snap, -1, np.where(f[:, 0] > 1 - snap, 1, 0)),
+                  np.where(f[:, 1] < snap, -1, np.where(f[:, 1] > 1 - snap, 1, 0))], axis=1)
+    todo = (sp > max_span) & (s != 0).any(1)
+    done = np.zeros(len(x), bool)
+    for t in (s * [1, 0], s * [0, 1], s):
+        q2, in2 = _quad(D, i0 + t)
+        sp2 = span(q2, in2)
+        take = todo & ~done & (t != 0).any(1) & (sp2 < sp) & ((sp2 <= max_span) | (sp >= 1e30))
+        i0[take], f[take], q[take], inside[take], sp[take] = (i0 + t)[take], np.clip(f - t, 0, 1)[take], q2[take], True, sp2[take]
+        done |= take & (sp2 <= max_span)
     inv = 1.0 / np.where(q > 0, q, 1.0)
     t0 = f[:, 0] + f[:, 1] <= 1.0
     iz0 = inv[:, 0] + f[:, 0] * (inv[:, 1] - inv[:, 0]) + f[:, 1] * (inv[:, 2] - inv[:, 0])
@@ -408,7 +433,7 @@ def _trace_numpy(centre, d, s, photo, D, max_steps, binary_steps, threshold, ste
     with np.errstate(all="ignore"):
         pc = c.world_to_camera(centre + s_hit[:, None] * d)
         uv = np.stack([c.fx * pc[:, 0] / pc[:, 2] + c.cx, c.fy * pc[:, 1] / pc[:, 2] + c.cy], 1)
-    _, _, q, _ = surface_depth_numpy(D, uv)
+    _, _, q, _ = surface_depth_numpy(D, uv, max_span=threshold)
     inside = np.all(np.isfinite(uv), 1)
     pairs = [(0, 1), (0, 2), (1, 2), (1, 3), (3, 2)]
     ok &= inside & (pc[:, 2] > 1e-6) & (q > 0).all(1)
