@@ -5,7 +5,8 @@ set -euo pipefail
 cd "$(dirname "$0")"
 
 need=()
-for pkg in libegl1 libegl-mesa0 libgl1-mesa-dri; do
+# EGL + Mesa: headless OpenGL (llvmpipe without a GPU); xvfb + GLX: the viewer's window test
+for pkg in libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libglx-mesa0 xvfb; do
     dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
 done
 if [ ${#need[@]} -gt 0 ]; then

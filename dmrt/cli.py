@@ -101,6 +101,26 @@ def load_pose(path) -> "Camera":
         raise InputError(path, f"not a camera pose (JSON with name, width, height, fx, fy, cx, cy, R, t): {exc}") from exc
 
 
+def make_renderer(bundle, args):
+    """The renderer ``--method`` asks for (DMRT or the DMT baseline) and its configuration."""
+    if args.renderer == "dmt":
+        from baselines.dmt import DMTConfig, DMTRenderer
+
+        # RenderConfig's namesakes (cache_mb, async_photos, max_uploads_per_frame, cpu_cache_mb,
+        # discontinuity_threshold, leveling) apply to DMT too; DMTConfig.width is the depth-map
+        # width, not the frame's --width
+        given = {k: v for k, v in (("width", args.dmt_resolution), ("epsilon", args.dmt_epsilon),
+                                   ("labeler", args.dmt_labeler)) if v is not None}
+        config = dataclasses.replace(config_from_args(DMTConfig, args), **{"width": None, **given})
+        return DMTRenderer(bundle, config), config
+    from dmrt.renderer import RenderConfig, Renderer
+
+    config = config_from_args(RenderConfig, args)
+    if args.visibility:
+        config = dataclasses.replace(config, method=args.visibility)
+    return Renderer(bundle, config), config
+
+
 def cmd_render(args) -> None:
     import json
 
@@ -108,7 +128,6 @@ def cmd_render(args) -> None:
 
     from dmrt.bundle import read_bundle
     from dmrt.frames import write_frame
-    from dmrt.renderer import RenderConfig, Renderer
 
     bundle = read_bundle(args.bundle)
     if sum(x is not None for x in (args.camera, args.pose, args.path)) != 1:
@@ -123,10 +142,7 @@ def cmd_render(args) -> None:
         camera = bundle.cameras[names.index(args.camera)]
     else:
         camera = load_pose(args.pose)
-    config = config_from_args(RenderConfig, args)
-    if args.visibility:
-        config = dataclasses.replace(config, method=args.visibility)
-    renderer = Renderer(bundle, config)
+    renderer, config = make_renderer(bundle, args)
     # A still frame: the first render tells which photos the view needs, then they are made
     # resident at full resolution and the frame is rendered again with them.
     renderer.render(camera, args.width, args.height)
@@ -136,15 +152,19 @@ def cmd_render(args) -> None:
     if args.dump_stages:
         from dmrt.frames import write_stage_images
 
-        write_stage_images(args.dump_stages, frame, renderer.layers()["label"][0])
+        splats = renderer.layers()["label"][0] if hasattr(renderer, "layers") else None
+        write_stage_images(args.dump_stages, frame, splats)
     if args.stats:
         hit = frame["depth"] > 0
-        stats = {"timings_ms": frame["timings"], "width": int(frame["depth"].shape[1]),
+        stats = {"method": renderer.name, "timings_ms": frame["timings"], "width": int(frame["depth"].shape[1]),
                  "height": int(frame["depth"].shape[0]), "surface_fraction": float(hit.mean()),
-                 "mean_iterations": float(frame["iterations"][hit].mean()) if hit.any() else 0.0,
-                 "layer_used_histogram": np.bincount(frame["layer_used"][hit].ravel(),
-                                                     minlength=config.layers).tolist(),
                  "gpu_bytes": renderer.gpu_bytes, "config": dataclasses.asdict(config)}
+        if "iterations" in frame:  # DMRT's search statistics
+            stats["mean_iterations"] = float(frame["iterations"][hit].mean()) if hit.any() else 0.0
+            stats["layer_used_histogram"] = np.bincount(frame["layer_used"][hit].ravel(),
+                                                        minlength=config.layers).tolist()
+        if "stats" in frame:  # DMT's culling counts
+            stats["dmt"] = frame["stats"]
         Path(args.stats).write_text(json.dumps(stats, indent=1))
     t = frame["timings"]
     print(f"wrote {args.out}: " + ", ".join(f"{k} {v:.2f} ms" for k, v in t.items()))
@@ -154,14 +174,10 @@ def render_walkthrough(bundle, args) -> None:
     """Render a camera path into ``--out`` (a folder): one PNG per frame and ``timings.json``."""
     import json
 
-    from dmrt.renderer import RenderConfig, Renderer
     from dmrt.walkthrough import load_path
 
     cameras = load_path(args.path)
-    config = config_from_args(RenderConfig, args)
-    if args.visibility:
-        config = dataclasses.replace(config, method=args.visibility)
-    renderer = Renderer(bundle, config)
+    renderer, config = make_renderer(bundle, args)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     from tqdm import tqdm
@@ -187,6 +203,53 @@ def cmd_path(args) -> None:
     keys = bundle.cameras[:: max(1, args.every)]
     save_path(args.out, camera_path(keys, args.frames, args.width, args.height, args.fov))
     print(f"wrote {args.out}: {args.frames} cameras through {len(keys)} photo cameras")
+
+
+def cmd_view(args) -> None:
+    from dmrt.bundle import read_bundle
+    from dmrt.renderer import RenderConfig
+    from dmrt.viewer import ViewerConfig, available_methods
+    from dmrt.viewer_window import run_viewer
+
+    bundle = read_bundle(args.bundle)
+    try:
+        config = config_from_args(ViewerConfig, args)
+    except ValueError as exc:
+        raise InputError(None, str(exc)) from exc
+    if config.method not in available_methods():
+        raise InputError(None, f"--method {config.method}: not available here (have: {', '.join(available_methods())})")
+    # RenderConfig options that ViewerConfig does not own (its namesakes are the viewer's)
+    skip = {f.name for f in dataclasses.fields(ViewerConfig)}
+    render = dataclasses.replace(RenderConfig(), **{
+        f.name: getattr(args, f.name) for f in dataclasses.fields(RenderConfig)
+        if f.name not in skip and getattr(args, f.name, None) is not None})
+    frames = args.frames if args.frames is not None or args.window != "headless" else 1
+    run_viewer(bundle, config, render, window=args.window, frames=frames, screenshot=args.screenshot)
+
+
+def cmd_bench(args) -> None:
+    from bench.harness import run_bench
+
+    try:
+        status = run_bench(args.preset, args.out, work=args.work, only=args.only, scene=args.scene,
+                           progress=not args.quiet, machine_name=args.machine)
+    except ValueError as exc:
+        raise InputError(None, str(exc)) from exc
+    if status["failed"]:
+        raise SystemExit(f"dmrt bench: {len(status['failed'])} experiment(s) failed: "
+                         f"{', '.join(status['failed'])} (see *.failed.json in {status['dir']})")
+
+
+def cmd_report(args) -> None:
+    from bench.report import build_report
+
+    r = build_report(args.results, args.out, preset=args.preset, machine=args.machine)
+    print(f"wrote {r.out}/index.html and {r.out}/REPORT.md from {r.result_set.dir}")
+    if r.missing or r.failed:
+        print(f"report INCOMPLETE: not run: {', '.join(r.missing) or '-'}; failed: {', '.join(r.failed) or '-'}",
+              file=sys.stderr)
+        if args.check:
+            raise SystemExit(1)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -223,14 +286,22 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_args(pre, LabelingConfig)
     pre.set_defaults(func=cmd_preprocess)
 
-    ren = sub.add_parser("render", help="render a frame of a bundle with DMRT")
+    ren = sub.add_parser("render", help="render a frame (or a walkthrough) of a bundle with DMRT or DMT")
     ren.add_argument("bundle", type=Path)
     ren.add_argument("--camera", help="image name of the photo whose camera to use")
     ren.add_argument("--pose", type=Path, help="JSON camera (bundle.json's camera format)")
     ren.add_argument("--path", type=Path, help="camera path JSON (dmrt path): --out is then a folder")
     ren.add_argument("--width", type=int, help="frame width (default: the camera's)")
     ren.add_argument("--height", type=int, help="frame height (default: keeps the camera's aspect)")
-    ren.add_argument("--visibility", choices=["compute", "raster"], help="visibility-stage path")
+    ren.add_argument("--visibility", choices=["compute", "kbuffer", "raster"], help="visibility-stage path")
+    ren.add_argument("--method", dest="renderer", choices=["dmrt", "dmt"], default="dmrt",
+                     help="renderer: DMRT, or the DMT baseline (depth-map triangulation + stitching)")
+    ren.add_argument("--dmt-resolution", type=int, metavar="W",
+                     help="DMT depth-map width (default: the bundle's); labels computed and cached on first use")
+    ren.add_argument("--dmt-epsilon", type=float, help="DMT stitching threshold, metres (default 0.05)")
+    ren.add_argument("--dmt-labeler", choices=["graphcut", "wta"],
+                     help="DMT labels: graph cut per depth map (default; cached in BUNDLE/dmt/<W>/) or "
+                          "winner-take-all")
     ren.add_argument("--out", type=Path, required=True, help="frame file, .png (colour) or .exr (all buffers)")
     ren.add_argument("--stats", type=Path, help="write per-stage GPU ms and statistics as JSON")
     ren.add_argument("--dump-stages", type=Path, metavar="DIR",
@@ -256,6 +327,41 @@ def build_parser() -> argparse.ArgumentParser:
     ref.add_argument("--height", type=int, help="frame height (default: keeps the photo's aspect)")
     ref.add_argument("--out", type=Path, required=True, help="frame file, .exr (all channels) or .png")
     ref.set_defaults(func=cmd_reference)
+
+    from dmrt.viewer import ViewerConfig
+
+    view = sub.add_parser("view", help="interactive viewer: fly through a bundle (DMRT, coarse splats, DMT)")
+    view.add_argument("bundle", type=Path)
+    view.add_argument("--window", default="pyglet", help="moderngl-window backend: pyglet (default), glfw, "
+                      "sdl2, ... or headless (no display: renders --frames frames)")
+    view.add_argument("--frames", type=int, help="close after this many frames (headless: default 1)")
+    view.add_argument("--screenshot", type=Path, help="save a still PNG of the last view on closing")
+    add_config_args(view, ViewerConfig)
+    add_config_args(view, RenderConfig, skip=[f.name for f in dataclasses.fields(ViewerConfig)] + ["method", "raytrace"])
+    view.set_defaults(func=cmd_view)
+
+    from bench.harness import PRESETS as BENCH_PRESETS
+
+    bench = sub.add_parser("bench", help="run the paper's experiments on a preset: one JSON per experiment")
+    bench.add_argument("--preset", choices=list(BENCH_PRESETS), default="ci",
+                       help="ci: CPU, minutes; small; paper: the paper's setting, for a GPU")
+    bench.add_argument("--out", type=Path, required=True, help="results folder (RESULTS_DIR/<machine>/<commit>-<preset>/)")
+    bench.add_argument("--work", type=Path, help="scene, bundles, reference frames; reused by later runs "
+                       "(default: $TMPDIR/dmrt-bench/<preset>)")
+    bench.add_argument("--only", nargs="+", metavar="EXPERIMENT", help="run only these experiments "
+                       "(table1 table2 table3_fig12 fig7 fig8 fig9_10 fig13 memory)")
+    bench.add_argument("--scene", type=Path, help="benchmark this scene instead of the preset's synthetic one")
+    bench.add_argument("--machine", help="machine name of the results folder (default: from the GL renderer)")
+    bench.add_argument("--quiet", action="store_true", help="no progress bars")
+    bench.set_defaults(func=cmd_bench)
+
+    rep = sub.add_parser("report", help="HTML + Markdown report (tables, figures, CSVs) from bench results")
+    rep.add_argument("results", type=Path, help="results folder of dmrt bench")
+    rep.add_argument("--out", type=Path, required=True, help="report folder, e.g. reports/<name>")
+    rep.add_argument("--preset", help="report this preset's newest result set (default: the newest of all)")
+    rep.add_argument("--machine", help="report this machine's newest result set")
+    rep.add_argument("--check", action="store_true", help="exit 1 when an experiment is missing or failed")
+    rep.set_defaults(func=cmd_report)
     return p
 
 

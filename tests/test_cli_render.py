@@ -36,10 +36,11 @@ def test_render_photo_camera_matches_reference(tiny_bundle, tiny_scene, tmp_path
     dm = read_bundle(tiny_bundle).depth_map(2)
     ref["depth"] = np.where(dm > 0, ref["depth"], 0)
     m = compare(frame, ref)
-    # Measured 4.2 % here (0.4-6 % over the tiny scene's photos and scans): silhouette pixels and
-    # points where the search in the label's depth map fails (a known gap, see the closing note of
-    # this change). 8 % catches a broken pipeline, not that gap.
-    assert m["hole_rate"] < 0.08, m["hole_rate"]
+    # Measured 2.5 % here (0.0-4.8 % over the tiny scene's photo cameras with 3 layers, mean 1.1 %;
+    # 0.6 % with 5 layers): pixels whose covering proxies all carry a photo that does not see the
+    # pixel's own point (discs reaching past an occluding edge of their photo's view), and the
+    # scanner shadow's rim on the floor. 4 % catches a regression of the raytracing pass.
+    assert m["hole_rate"] < 0.04, m["hole_rate"]
     assert m["depth_median_m"] < 0.005  # well below a texel footprint (~2 cm at 3 m)
     s = json.loads(stats.read_text())
     assert set(s["timings_ms"]) == set(STAGES)
@@ -76,3 +77,24 @@ def test_walkthrough_path_renders_frames_and_timings(tiny_bundle, tmp_path):
     assert len(t["frames"]) == 3 and t["config"]["layers"] == 2
     # the path starts at the first key camera: the first frame shows the scene, not background
     assert np.mean(read_frame(frames[0])["color"].sum(-1) > 0) > 0.5
+
+
+def test_render_with_dmt(tiny_bundle, tmp_path, capsys):
+    """``dmrt render --method dmt``: the DMT baseline through the same command and outputs; DMT
+    labels are computed and cached in a copy of the bundle; a resolution above the stored depth
+    maps' is refused naming the depth-map file."""
+    import shutil
+
+    bundle = tmp_path / "b"
+    shutil.copytree(tiny_bundle, bundle)
+    out, stats = tmp_path / "dmt.exr", tmp_path / "dmt.json"
+    args = ["render", str(bundle), "--camera", "photo_0002.png", "--width", "128", "--method", "dmt",
+            "--dmt-resolution", "64", "--dmt-labeler", "wta"]
+    assert main(args + ["--out", str(out), "--stats", str(stats)]) == 0
+    frame = read_frame(out)
+    assert (frame["depth"] > 0).mean() > 0.5 and (frame["label"][frame["depth"] > 0] >= 0).mean() > 0.99
+    s = json.loads(stats.read_text())
+    assert s["method"] == "dmt" and s["config"]["width"] == 64 and s["dmt"]["maps_drawn"] > 0
+    assert (bundle / "dmt" / "64-wta" / "labels.npz").is_file()
+    assert main(args[:-4] + ["--dmt-resolution", "4096", "--out", str(out)]) == 2
+    assert ".exr" in capsys.readouterr().err

@@ -1,0 +1,603 @@
+"""The experiments of the paper's Section 6, one function and one parameters dataclass each.
+
+An experiment is ``run(ws, params, out_dir) -> measurements``: ``ws`` the
+:class:`bench.harness.Workspace` (scene, bundles, walkthrough, Embree reference frames), ``params``
+its dataclass (made from a :class:`bench.harness.BenchPreset` by its ``params`` function),
+``out_dir`` the result set's folder for side files (image maps as ``.npz``). The harness wraps
+the measurements with machine, commit, preset and parameters into ``<experiment>.json``;
+:mod:`bench.report` reads only those files.
+
+GPU milliseconds come from GL timer queries (``frame["timings"]``); on Mesa llvmpipe they are
+meaningless but present, so the report is complete on a CPU too. Quality is measured against the
+Embree ray casts of the scene's reference mesh (:mod:`reference`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from bench.harness import BenchPreset, Workspace
+
+
+# ----------------------------------------------------------------------------------------------
+# Shared measurements
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class Walk:
+    """A walkthrough: frames measured along the path through key photo cameras, after warm-up."""
+
+    frame_size: tuple[int, int]
+    frames: int
+    keys: int
+    # frames rendered first and not measured; -1 = the whole path once (steady-state photo cache)
+    warmup_frames: int
+
+
+def walk_of(preset: BenchPreset) -> Walk:
+    return Walk(preset.frame_size, preset.walkthrough_frames, preset.walkthrough_keys, preset.warmup_frames)
+
+
+def walkthrough_cameras(ws: Workspace, walk: Walk) -> list:
+    from dmrt.walkthrough import camera_path
+
+    cams = ws.bundle().cameras
+    keys = cams[:: max(1, len(cams) // walk.keys)]
+    return camera_path(keys, walk.frames, *walk.frame_size)
+
+
+def fps_summary(totals_ms) -> dict:
+    """``fps_min_avg_max`` (from the slowest, mean and fastest frame, as the paper) and ``fps_median``."""
+    t = np.maximum(np.asarray(totals_ms, np.float64), 1e-9)
+    return {"fps_min_avg_max": [1e3 / t.max(), 1e3 / t.mean(), 1e3 / t.min()], "fps_median": 1e3 / float(np.median(t))}
+
+
+def measure_walkthrough(bundle, config, cameras, warmup: int, desc: str = "walkthrough",
+                        on_frame: Callable[[dict], None] | None = None, progress: bool = True) -> dict:
+    """Render ``cameras`` with a fresh renderer after ``warmup`` frames and summarise the timings.
+
+    Parameters
+    ----------
+    bundle : dmrt.bundle.Bundle.  config : dmrt.renderer.RenderConfig.
+    cameras : list of Camera (the frame size is each camera's).
+    warmup : frames of the path rendered first, not measured (-1 = the whole path).
+    on_frame : called with every measured frame (e.g. to collect statistics).
+
+    Returns
+    -------
+    dict
+        ``median_ms`` {stage: median GPU ms}, ``median_total_ms``, ``mean_total_ms`` (the paper's
+        Table 2 averages), ``fps_min_avg_max``, ``fps_median``,
+        per frame ``total_ms_per_frame``, ``stage_ms_per_frame`` {stage: list}, ``wall_ms_per_frame``
+        (``render()`` wall clock, including the read-back of every buffer), ``median_cpu_ms``,
+        ``mean_iterations`` (over the pixels with a surface), ``surface_fraction``,
+        ``photo_uploads`` and ``gpu_bytes``.
+    """
+    from tqdm import tqdm
+
+    from dmrt.renderer import Renderer
+
+    renderer = Renderer(bundle, config)
+    try:
+        for cam in tqdm(cameras if warmup < 0 else cameras[:warmup], desc=f"{desc} (warm-up)", unit="frame",
+                        leave=False, disable=not progress):
+            renderer.render(cam)
+        uploads0 = renderer.images.uploads
+        timings, cpu, wall, iters, surface = [], [], [], [], []
+        for cam in tqdm(cameras, desc=desc, unit="frame", leave=False, disable=not progress):
+            t0 = time.perf_counter()
+            f = renderer.render(cam)
+            wall.append((time.perf_counter() - t0) * 1e3)
+            timings.append(f["timings"])
+            cpu.append(f.get("cpu_ms", {}))
+            hit = f["depth"] > 0
+            surface.append(float(hit.mean()))
+            iters.append(float(f["iterations"][hit].mean()) if hit.any() else 0.0)
+            if on_frame is not None:
+                on_frame(f)
+        stages = list(timings[0])
+        totals = [float(sum(t.values())) for t in timings]
+        return {"median_ms": {s: float(np.median([t[s] for t in timings])) for s in stages},
+                "median_total_ms": float(np.median(totals)), "mean_total_ms": float(np.mean(totals)),
+                **fps_summary(totals),
+                "total_ms_per_frame": totals, "stage_ms_per_frame": {s: [t[s] for t in timings] for s in stages},
+                "wall_ms_per_frame": wall, "median_wall_ms": float(np.median(wall)),
+                "median_cpu_ms": {k: float(np.median([c.get(k, 0.0) for c in cpu])) for k in cpu[0]},
+                "mean_iterations": float(np.mean(iters)), "surface_fraction": float(np.mean(surface)),
+                "photo_uploads": int(renderer.images.uploads - uploads0), "gpu_bytes": dict(renderer.gpu_bytes)}
+    finally:
+        renderer.release()
+
+
+def quality_config(**kw):
+    """RenderConfig for quality measurements: every frame's photo cache exactly its most frequent
+    labels (no streaming delay) and no leveling, so colours are the photos' own, as the reference's."""
+    from dmrt.renderer import RenderConfig
+
+    return RenderConfig(**{"async_photos": False, "max_uploads_per_frame": 0, "leveling": False, **kw})
+
+
+def scaled_radii(bundle, scale: float):
+    """The bundle with its proxy splat radii multiplied by ``scale`` (in memory; Fig. 10's worst case)."""
+    if scale == 1.0:
+        return bundle
+    return dataclasses.replace(bundle, _proxy={**bundle.proxy, "radii": bundle.proxy["radii"] * np.float32(scale)})
+
+
+def hole_counts(layer_used: np.ndarray, mask: np.ndarray, max_layers: int) -> np.ndarray:
+    """Pixels of ``mask`` left empty with ``k = 1 .. max_layers`` layers, from one frame.
+
+    The raytracer tries the layers in order and the first valid hit wins, and the first ``k`` layers
+    of a frame with more layers are the ``k`` layers of a ``k``-layer frame (exactly with depth
+    peeling; with the k-buffer, which keeps more fragments for more layers, within its >= 99.9 %),
+    so a pixel is surface with ``k`` layers when its hit layer is below ``k``. The ci test checks
+    this against Fig. 13's direct 1/2/3-layer renders.
+
+    Returns
+    -------
+    (max_layers,) int64: holes with 1, 2, ... layers.
+    """
+    return np.array([int((mask & ~((layer_used >= 0) & (layer_used < k))).sum()) for k in range(1, max_layers + 1)])
+
+
+class HoleTally:
+    """Holes per layer count summed over views, among all reference surface pixels (``all``) and
+    among those some depth map can show (``representable``, :func:`bench.harness.representable_mask`)."""
+
+    KINDS = ("all", "representable")
+
+    def __init__(self, max_layers: int):
+        self.max_layers = max_layers
+        self.holes = {k: np.zeros(max_layers, np.int64) for k in self.KINDS}
+        self.pixels = {k: 0 for k in self.KINDS}
+
+    def add(self, layer_used: np.ndarray, ref: dict) -> None:
+        for kind, mask in zip(self.KINDS, (ref["depth"] > 0, ref["representable"] & (ref["depth"] > 0))):
+            self.holes[kind] += hole_counts(layer_used, mask, self.max_layers)
+            self.pixels[kind] += int(mask.sum())
+
+    def rates(self) -> dict:
+        """{kind: [hole rate with 1, 2, ... layers]}."""
+        return {k: (self.holes[k] / max(self.pixels[k], 1)).tolist() for k in self.KINDS}
+
+
+def hole_rate(frame: dict, ref: dict, mask: np.ndarray) -> float:
+    """Share of ``mask``'s reference surface pixels that are background in ``frame``."""
+    m = mask & (ref["depth"] > 0)
+    return float((m & (frame["depth"] <= 0)).sum() / max(int(m.sum()), 1))
+
+
+def pick_camera(ws: Workspace, index: int, width: int):
+    """Photo camera ``index`` of the bundle (-1: the middle photo), ``width`` pixels wide (its aspect)."""
+    cams = ws.bundle().cameras
+    return cams[len(cams) // 2 if index < 0 else index].resized(width, None)
+
+
+def footprint_map(camera, ref: dict, labels: np.ndarray, cameras, depthmap_width: int) -> np.ndarray:
+    """(h, w) metres per depth-map texel at the reference surface, in the depth map of ``labels``."""
+    from reference.metrics import texel_footprint
+
+    dirs, center = camera.pixel_rays()
+    pts = center + dirs * ref["depth"].reshape(-1, 1).astype(np.float64)
+    return texel_footprint(pts, labels.ravel(), cameras, depthmap_width).reshape(ref["depth"].shape)
+
+
+def bundle_summary(bundle) -> dict:
+    c = bundle.meta["counts"]
+    return {"path": str(bundle.root), "points": c["points"], "photos": c["photos"], "proxies": c["proxies"],
+            "proxy_levels": c["proxy_levels"], "subsampling_factor": c["points"] / max(c["proxies"], 1)}
+
+
+# ----------------------------------------------------------------------------------------------
+# Table 1: scene characteristics
+# ----------------------------------------------------------------------------------------------
+PHASES = ("octree_s", "normals_radii_s", "depthmaps_s", "proxies_s", "candidates_s", "labeling_s", "photos_s")
+
+
+@dataclass
+class Table1Params:
+    """Table 1 reads the main bundle's ``bundle.json``; nothing to choose."""
+
+    phases: tuple[str, ...] = PHASES
+
+
+def run_table1(ws: Workspace, p: Table1Params, out: Path) -> dict:
+    b = ws.bundle()
+    meta = b.meta
+    c, t = meta["counts"], meta["timings"]
+    sizes = meta.get("depthmap_sizes") or [[0, 0]]
+    return {"bundle": bundle_summary(b), "counts": c,
+            "photo_size": [b.cameras[0].width, b.cameras[0].height], "depthmap_size": sizes[0],
+            "phases_s": {ph: t.get(ph) for ph in p.phases},
+            "preprocess_total_s": float(sum(t.get(ph) or 0.0 for ph in p.phases)),
+            "depthmaps_gpu_ms": t.get("depthmaps_gpu_ms"), "peak_rss_mb": meta.get("peak_rss_mb_after"),
+            "derived_from_base": meta.get("derived_from") is not None,
+            "scene_generation_s": ws.setup_s.get("scene_generation"), "labeling": meta.get("labeling")}
+
+
+# ----------------------------------------------------------------------------------------------
+# Table 2: per-stage GPU ms per layer count and visibility path
+# ----------------------------------------------------------------------------------------------
+# visibility-stage ratios reported: the paper's peeling by rasterization vs by compute splatting,
+# and both vs the one-pass k-buffer
+VISIBILITY_PAIRS = (("raster", "compute"), ("compute", "kbuffer"), ("raster", "kbuffer"))
+
+
+@dataclass
+class Table2Params:
+    # layer counts (paper: 1, 3, 5, 7, 9, 11)
+    layers: tuple[int, ...]
+    # visibility paths (RenderConfig.method), the default first
+    methods: tuple[str, ...]
+    walk: Walk
+    # The paper's texturing pass includes screen-space leveling: on, reported as its own stage.
+    leveling: bool = True
+
+
+def run_table2(ws: Workspace, p: Table2Params, out: Path) -> dict:
+    from dmrt.renderer import RenderConfig
+
+    b = ws.bundle()
+    cams = walkthrough_cameras(ws, p.walk)
+    runs = []
+    for method in p.methods:
+        for k in p.layers:
+            r = measure_walkthrough(b, RenderConfig(layers=k, method=method, leveling=p.leveling), cams,
+                                    p.walk.warmup_frames, f"{method} k={k}", progress=ws.progress)
+            runs.append({"method": method, "layers": k, **r})
+            print(f"  {method:8s} k={k:2d} " + " ".join(f"{s} {v:.3f}" for s, v in r["median_ms"].items())
+                  + f" | total {r['median_total_ms']:.3f} ms, {r['mean_iterations']:.2f} steps", flush=True)
+    ratios = {}
+    for a, b_ in VISIBILITY_PAIRS:
+        for k in p.layers:
+            by = {r["method"]: r["median_ms"]["visibility"] for r in runs if r["layers"] == k}
+            if a in by and b_ in by:
+                ratios.setdefault(f"{a}/{b_}", {})[str(k)] = by[a] / max(by[b_], 1e-9)
+    return {"bundle": bundle_summary(b), "runs": runs, "visibility_ratios": ratios}
+
+
+# ----------------------------------------------------------------------------------------------
+# Table 3 and Fig. 12: DMT vs DMRT
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class Table3Params:
+    # DMT depth-map widths (heights: the photos' aspect; paper: 256, 512, 1024)
+    resolutions: tuple[int, ...]
+    # the walkthrough both methods render
+    walk: Walk
+    # DMRT's side as in the paper: 5 layers on the main proxy set
+    layers: int = 5
+    # DMT's per-texel labeling: "graphcut" (as the paper's DMT) or "wta"
+    labeler: str = "graphcut"
+
+
+def run_table3_fig12(ws: Workspace, p: Table3Params, out: Path) -> dict:
+    """:func:`bench.bench_dmt.run` (DMT labeling per depth-map width, DMT and DMRT walkthroughs) on
+    the main bundle and the walkthrough of the other experiments; its result is stored unchanged
+    under ``dmt`` (:func:`bench.report.table3_rows` reads it)."""
+    from bench.bench_dmt import run as dmt_run
+    from dmrt.walkthrough import save_path
+
+    cams = walkthrough_cameras(ws, p.walk)
+    path = ws.work / "walkthrough.json"
+    save_path(path, cams)
+    w, h = p.walk.frame_size
+    warmup = len(cams) if p.walk.warmup_frames < 0 else p.walk.warmup_frames
+    result = dmt_run(ws.bundle_path(), resolutions=tuple(p.resolutions), frames=len(cams), width=w, height=h,
+                     labeler=p.labeler, layers=p.layers, warmup=warmup, path=path, progress=ws.progress)
+    return {"bundle": bundle_summary(ws.bundle()), "dmt": result}
+
+
+# ----------------------------------------------------------------------------------------------
+# Fig. 7: proxy-count sweep
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class Fig7Params:
+    # proxy sets: numbers of coarsest octree levels (LOD k)
+    proxy_levels: tuple[int, ...]
+    # hole rates vs Embree at these many photo cameras, frame width there
+    photo_cameras: int
+    quality_width: int
+    # layer counts tried (1 .. max_layers)
+    max_layers: int
+    # "layers needed": the fewest with hole rate <= target; "layers to converge": the fewest within
+    # converge_tolerance of the rate with max_layers (holes more layers do not fill); both over the
+    # representable reference pixels (the others are holes by design: unscanned, occluded in all photos)
+    hole_rate_target: float
+    converge_tolerance: float
+    # fps over the walkthrough at these layer counts (and at the layers needed) per proxy set
+    fps_layers: tuple[int, ...]
+    walk: Walk
+
+
+def run_fig7(ws: Workspace, p: Fig7Params, out: Path) -> dict:
+    from dmrt.renderer import RenderConfig, Renderer
+
+    cams = [c.resized(p.quality_width, None) for c in ws.photo_cameras(p.photo_cameras)]
+    path = walkthrough_cameras(ws, p.walk)
+    sets = []
+    for levels in p.proxy_levels:
+        b = ws.bundle(levels)
+        t = b.meta["timings"]
+        renderer = Renderer(b, quality_config(layers=p.max_layers))
+        tally = HoleTally(p.max_layers)
+        try:
+            for cam in cams:
+                tally.add(renderer.render(cam)["layer_used"], ws.reference(cam))
+        finally:
+            renderer.release()
+        rates = tally.rates()
+        rate = rates["representable"]
+        needed = next((k for k in range(1, p.max_layers + 1) if rate[k - 1] <= p.hole_rate_target), None)
+        converged = next(k for k in range(1, p.max_layers + 1) if rate[k - 1] <= rate[-1] + p.converge_tolerance)
+        fps = {}
+        for k in sorted(set(p.fps_layers) | {needed or converged}):
+            r = measure_walkthrough(b, RenderConfig(layers=k), path, p.walk.warmup_frames, f"LOD {levels} k={k}",
+                                    progress=ws.progress)
+            fps[str(k)] = {key: r[key] for key in ("median_total_ms", "fps_min_avg_max", "fps_median",
+                                                   "median_ms", "total_ms_per_frame", "median_wall_ms")}
+        sets.append({**bundle_summary(b), "candidates_s": t.get("candidates_s"), "labeling_s": t.get("labeling_s"),
+                     "labeling_total_s": (t.get("candidates_s") or 0.0) + (t.get("labeling_s") or 0.0),
+                     "hole_rate_per_layers": rates["all"], "hole_rate_representable_per_layers": rate,
+                     "layers_needed": needed, "layers_to_converge": converged,
+                     "fps": fps})
+        print(f"  LOD {levels}: {sets[-1]['proxies']} proxies, labeling {sets[-1]['labeling_total_s']:.2f} s, "
+              f"holes (representable) {', '.join(f'{x:.2%}' for x in rate)}", flush=True)
+    return {"cameras": [c.name for c in cams], "frame_sizes": [[c.width, c.height] for c in cams],
+            "reference_pixels": tally.pixels, "sets": sets}
+
+
+# ----------------------------------------------------------------------------------------------
+# Fig. 8: depth and colour error heat maps at a photo camera
+# ----------------------------------------------------------------------------------------------
+FIG8_STAGES = {
+    "coarse_splats": {"raytrace": False},      # Fig. 8b: the first splat layer is the surface
+    "raytraced": {"labeling": False},          # Fig. 8c: raytraced, each layer's splat label
+    "raytraced_labels": {},                    # Fig. 8d: raytraced + per-pixel labeling pass
+}
+
+
+@dataclass
+class Fig8Params:
+    # bundle photo index of the view (-1: the middle photo); frame width there
+    camera_index: int
+    quality_width: int
+    # the paper's Section 6.3 setting
+    layers: int = 4
+
+
+def run_fig8(ws: Workspace, p: Fig8Params, out: Path) -> dict:
+    from dmrt.renderer import Renderer
+    from reference.metrics import compare
+
+    b = ws.bundle()
+    cam = pick_camera(ws, p.camera_index, p.quality_width)
+    ref = ws.reference(cam)
+    dm_width = (b.meta.get("depthmap_sizes") or [[b.cameras[0].width]])[0][0]
+    maps = {"reference_color": ref["color"], "reference_depth": ref["depth"], "representable": ref["representable"]}
+    stages = {}
+    for stage, options in FIG8_STAGES.items():
+        renderer = Renderer(b, quality_config(layers=p.layers, **options))
+        try:
+            frame = renderer.render(cam)
+        finally:
+            renderer.release()
+        fp = footprint_map(cam, ref, frame["label_raw"], b.cameras, dm_width)
+        m = compare(frame, ref, fp)
+        m["hole_rate_representable"] = hole_rate(frame, ref, ref["representable"])
+        for name, a in m.pop("maps").items():
+            maps[f"{stage}_{name}"] = a
+        maps[f"{stage}_color"] = frame["color"]
+        stages[stage] = dict(m)
+        print(f"  {stage}: depth median {m['depth_median_m'] * 1e3:.1f} mm, holes {m['hole_rate']:.2%}, "
+              f"PSNR {m['psnr_db']:.1f} dB", flush=True)
+    np.savez_compressed(out / "fig8.npz", **maps)
+    return {"camera": cam.name, "frame_size": [cam.width, cam.height], "depthmap_width": dm_width,
+            "stages": stages, "maps_file": "fig8.npz", "maps": sorted(maps)}
+
+
+# ----------------------------------------------------------------------------------------------
+# Figs. 9 and 10: iterative-search step sizes, iterations, the radii x2.5 worst case
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class Fig9Params:
+    # (name, splat radius scale, layers): the paper's 4 layers, then radii x2.5 with 4 and 11 layers
+    cases: tuple[tuple[str, float, int], ...]
+    # timings, iterations and step statistics over this walkthrough
+    walk: Walk
+    # hole rates of each case at these photo cameras
+    photo_cameras: int
+    quality_width: int
+    # the paper's 100 iterative and 20 binary-search steps
+    max_steps: int = 100
+    binary_steps: int = 20
+    # iterations histogram: counts of 0 .. max_iterations_bin - 1, the last bin pools the rest
+    max_iterations_bin: int = 64
+
+
+def run_fig9_10(ws: Workspace, p: Fig9Params, out: Path) -> dict:
+    from dmrt.renderer import Renderer
+
+    path = walkthrough_cameras(ws, p.walk)
+    cams = [c.resized(p.quality_width, None) for c in ws.photo_cameras(p.photo_cameras)]
+    cases = []
+    for name, scale, layers in p.cases:
+        b = scaled_radii(ws.bundle(), scale)
+        cfg = dict(layers=layers, max_steps=p.max_steps, binary_steps=p.binary_steps)
+        hist = np.zeros(p.max_iterations_bin, np.int64)
+        searched = []
+
+        def collect(f):
+            it = f["iterations"][f["iterations"] > 0]  # pixels whose search ran (a splat in layer 1)
+            hist[:] += np.bincount(np.minimum(it, p.max_iterations_bin - 1), minlength=p.max_iterations_bin)
+            searched.append(float(it.mean()) if it.size else 0.0)
+
+        from dmrt.renderer import RenderConfig
+
+        timing = measure_walkthrough(b, RenderConfig(**cfg), path, p.walk.warmup_frames, f"{name} k={layers}",
+                                     on_frame=collect, progress=ws.progress)
+        # step statistics in a second pass: recording them costs atomics, so not in the timed one
+        steps_sum, counts = None, None
+        renderer = Renderer(b, RenderConfig(**cfg, statistics=True))
+        try:
+            for cam in path:
+                s = renderer.render(cam)["step_stats"]
+                c = np.asarray(s["count"], np.int64)
+                t = np.asarray(s["mean_step_m"], np.float64) * c
+                steps_sum, counts = (t, c) if counts is None else (steps_sum + t, counts + c)
+        finally:
+            renderer.release()
+        mean_step = np.divide(steps_sum, counts, out=np.zeros_like(steps_sum), where=counts > 0)
+        renderer = Renderer(b, quality_config(**cfg))
+        tally = HoleTally(layers)
+        try:
+            for cam in cams:
+                tally.add(renderer.render(cam)["layer_used"], ws.reference(cam))
+        finally:
+            renderer.release()
+        rates = tally.rates()
+        cases.append({"case": name, "radius_scale": scale, "layers": layers,
+                      "raytracing_ms_median": timing["median_ms"]["raytracing"],
+                      "raytracing_ms_per_frame": timing["stage_ms_per_frame"]["raytracing"],
+                      "mean_iterations": timing["mean_iterations"],
+                      "mean_iterations_searched": float(np.mean(searched)),
+                      "iterations_histogram": hist.tolist(),
+                      "step_mean_m": mean_step.tolist(), "step_count": counts.tolist(),
+                      "hole_rate": rates["all"][-1], "hole_rate_representable": rates["representable"][-1]})
+        print(f"  {name} k={layers}: {timing['mean_iterations']:.2f} steps per surface pixel, "
+              f"holes {rates['all'][-1]:.2%} ({rates['representable'][-1]:.2%} of representable)", flush=True)
+    return {"cases": cases, "cameras": [c.name for c in cams]}
+
+
+# ----------------------------------------------------------------------------------------------
+# Fig. 13: 1, 2, 3 layers, hole maps
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class Fig13Params:
+    # layer counts compared (paper: 1, 2, 3)
+    layers: tuple[int, ...]
+    # hole rates at these many photo cameras, frame width there
+    photo_cameras: int
+    quality_width: int
+    # the view whose hole maps are kept (bundle photo index; -1: the middle photo)
+    camera_index: int = -1
+
+
+def run_fig13(ws: Workspace, p: Fig13Params, out: Path) -> dict:
+    from dmrt.renderer import Renderer
+    from reference.metrics import compare
+
+    b = ws.bundle()
+    cams = [c.resized(p.quality_width, None) for c in ws.photo_cameras(p.photo_cameras)]
+    shown = pick_camera(ws, p.camera_index, p.quality_width)
+    maps = {"reference_color": ws.reference(shown)["color"], "representable": ws.reference(shown)["representable"]}
+    rows = []
+    for k in p.layers:
+        renderer = Renderer(b, quality_config(layers=k))
+        tally = HoleTally(k)
+        try:
+            extra = []
+            for cam in cams:
+                ref, frame = ws.reference(cam), renderer.render(cam)
+                tally.add(frame["layer_used"], ref)
+                extra.append(compare(frame, ref)["extra_rate"])
+            ref, frame = ws.reference(shown), renderer.render(shown)
+            m = compare(frame, ref)
+            maps[f"holes_{k}"] = m["maps"]["holes"]
+            maps[f"color_{k}"] = frame["color"]
+            shown_rates = {"hole_rate": m["hole_rate"], "extra_rate": m["extra_rate"],
+                           "hole_rate_representable": hole_rate(frame, ref, ref["representable"])}
+        finally:
+            renderer.release()
+        rates = tally.rates()
+        rows.append({"layers": k, "hole_rate": rates["all"][-1], "hole_rate_representable": rates["representable"][-1],
+                     "extra_rate": float(np.mean(extra)), "shown_camera": shown_rates})
+        print(f"  k={k}: holes {rows[-1]['hole_rate']:.2%} ({rows[-1]['hole_rate_representable']:.2%} of "
+              f"representable) at {len(cams)} photo cameras", flush=True)
+    np.savez_compressed(out / "fig13.npz", **maps)
+    return {"cameras": [c.name for c in cams], "shown_camera": shown.name, "frame_size": [shown.width, shown.height],
+            "rows": rows, "maps_file": "fig13.npz", "maps": sorted(maps)}
+
+
+# ----------------------------------------------------------------------------------------------
+# Section 6.2: GPU memory
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class MemoryParams:
+    # one frame of this size with this many layers (paper: 1280x720, 5 layers)
+    frame_size: tuple[int, int]
+    layers: int = 5
+
+
+def run_memory(ws: Workspace, p: MemoryParams, out: Path) -> dict:
+    from bench import paper
+    from dmrt.renderer import RenderConfig, Renderer
+
+    b = ws.bundle()
+    cam = walkthrough_cameras(ws, Walk(p.frame_size, 2, 2, 0))[0]
+    renderer = Renderer(b, RenderConfig(layers=p.layers))
+    try:
+        renderer.render(cam)
+        measured = dict(renderer.gpu_bytes)
+        cache_mb = renderer.config.cache_mb
+    finally:
+        renderer.release()
+    w, h = p.frame_size
+    sizes = b.meta.get("depthmap_sizes") or [[c.width, c.height] for c in b.cameras]
+    lh, lw = b.image(0, low=True).shape[:2]
+    n = len(b.cameras)
+    formula = {"depthmaps": int(sum(sw * sh * 4 for sw, sh in sizes)),
+               "images_low": n * lw * lh * 3,
+               "proxies": b.meta["counts"]["proxies"] * paper.BYTES_PER_PROXY,
+               "layers": w * h * p.layers * paper.BYTES_PER_LAYER_PIXEL,
+               # the paper reserves a budget (1 GB); the cache holds at most every photo at full size, RGB8
+               "image_cache": int(min(cache_mb * 2 ** 20, sum(c.width * c.height * 3 for c in b.cameras)))}
+    return {"bundle": bundle_summary(b), "frame_size": [w, h], "layers": p.layers, "photos": n,
+            "lowres_size": [lw, lh], "gpu_bytes": measured, "formula_bytes": formula,
+            "total_measured_bytes": int(sum(measured.values()))}
+
+
+# ----------------------------------------------------------------------------------------------
+# Registry
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Experiment:
+    """One experiment: what the harness needs to run it and label its result file."""
+
+    title: str
+    # bump when the measurement changes meaning (asv's benchmark version)
+    version: int
+    run: Callable
+    params: Callable[[BenchPreset], object]
+
+
+def _q(preset: BenchPreset) -> dict:
+    return {"photo_cameras": preset.photo_cameras, "quality_width": preset.quality_width}
+
+
+EXPERIMENTS: dict[str, Experiment] = {
+    "table1": Experiment("Table 1: scene characteristics and preprocessing", 1, run_table1,
+                         lambda pr: Table1Params()),
+    "table2": Experiment("Table 2: GPU ms per stage and layer count, compute vs raster visibility", 1, run_table2,
+                         lambda pr: Table2Params(tuple(pr.layers), tuple(pr.methods), walk_of(pr))),
+    "table3_fig12": Experiment("Table 3 / Fig. 12: DMT vs DMRT labeling time and fps", 1, run_table3_fig12,
+                               lambda pr: Table3Params(tuple(pr.dmt_resolutions), walk_of(pr))),
+    "fig7": Experiment("Fig. 7: proxy count vs labeling time, layers needed, fps, holes", 1, run_fig7,
+                       lambda pr: Fig7Params(tuple(pr.proxy_levels), max_layers=pr.max_layers,
+                                             hole_rate_target=0.005, converge_tolerance=0.001,
+                                             fps_layers=tuple(pr.fig7_fps_layers), walk=walk_of(pr), **_q(pr))),
+    "fig8": Experiment("Fig. 8: depth and colour error vs Embree at a photo camera", 1, run_fig8,
+                       lambda pr: Fig8Params(camera_index=-1, quality_width=pr.quality_width)),
+    "fig9_10": Experiment("Figs. 9/10: step sizes, iterations, radii x2.5 worst case", 1, run_fig9_10,
+                          lambda pr: Fig9Params((("baseline", 1.0, 4), ("radii x2.5", 2.5, 4),
+                                                 ("radii x2.5", 2.5, 11)), walk_of(pr), **_q(pr))),
+    "fig13": Experiment("Fig. 13: 1, 2, 3 layers, hole maps", 1, run_fig13,
+                        lambda pr: Fig13Params((1, 2, 3), **_q(pr))),
+    "memory": Experiment("Section 6.2: GPU memory per resource", 1, run_memory,
+                         lambda pr: MemoryParams(tuple(pr.frame_size))),
+}

@@ -1,0 +1,795 @@
+"""The benchmark report: ``dmrt report RESULTS_DIR --out reports/<name>/``.
+
+Built only from the result files of :mod:`bench.harness` (``<machine>/<commit>-<preset>/*.json``
+and the ``.npz`` image maps beside them), asv-style. The newest result set gives the tables; all
+sets of the same machine and preset give the history plot. Output::
+
+    OUT/index.html   OUT/REPORT.md   the same tables (numbers formatted once, by fmt) and figures
+    OUT/figures/*.png                matplotlib figures
+    OUT/csv/*.csv                    every table, raw numbers
+    OUT/results/*.json               the result files the report was built from
+
+The report is assembled in ``OUT.partial`` and renamed: an interrupted build never leaves a
+report that looks whole. An experiment whose result file is missing shows as "not run", one that
+failed as "FAILED", and the report's first line then says INCOMPLETE; :func:`missing_experiments`
+is the completeness check (``dmrt report --check``).
+"""
+
+from __future__ import annotations
+
+import html
+import re
+import json
+import math
+import os
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only, never a window
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from bench import paper  # noqa: E402
+from dmrt.errors import InputError  # noqa: E402
+
+# The experiments a complete report needs (the CI and nightly completeness check).
+REQUIRED_EXPERIMENTS = ["table1", "table2", "table3_fig12", "fig7", "fig8", "fig9_10", "fig13", "memory"]
+
+# Every experiment the report has a section for, in the report's order.
+SECTIONS = ["table1", "table2", "table3_fig12", "fig7", "fig8", "fig9_10", "fig13", "memory"]
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading results
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class ResultSet:
+    """The result files of one machine, commit and preset (one folder)."""
+
+    dir: Path
+    machine: str
+    commit: str
+    preset: str
+    experiments: dict = field(default_factory=dict)  # name -> result payload
+    failed: dict = field(default_factory=dict)       # name -> error message
+
+    @property
+    def date(self) -> str:
+        """The newest result's date (ISO), '' when none."""
+        return max((p.get("date") or "" for p in self.experiments.values()), default="")
+
+    @property
+    def info(self) -> dict:
+        """Machine and commit of the newest result."""
+        newest = max(self.experiments.values(), key=lambda p: p.get("date") or "", default={})
+        return {"machine": newest.get("machine", {}), "commit": newest.get("commit", {})}
+
+
+def read_result(path: Path) -> dict:
+    """One result file, checked: a clear :class:`InputError` naming the file otherwise."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except OSError as exc:
+        raise InputError(path, f"cannot read result file ({exc})") from exc
+    except json.JSONDecodeError as exc:
+        raise InputError(path, f"not valid JSON ({exc}): truncated by an interrupted run? "
+                               f"Delete it or run the experiment again") from exc
+    if not isinstance(data, dict):
+        raise InputError(path, "not a result file (expected a JSON object)")
+    for key in ("experiment", "version", "measurements"):
+        if key not in data:
+            raise InputError(path, f"not a result file: field '{key}' missing")
+    return data
+
+
+def load_results(results_dir) -> list[ResultSet]:
+    """Every result set under ``results_dir`` (``<machine>/<commit>-<preset>/``), oldest first."""
+    root = Path(results_dir)
+    if not root.is_dir():
+        raise InputError(root, "results directory not found")
+    sets = []
+    for mdir in sorted(p for p in root.iterdir() if p.is_dir()):
+        for sdir in sorted(p for p in mdir.iterdir() if p.is_dir()):
+            files = sorted(sdir.glob("*.json"))
+            if not files:
+                continue
+            commit, _, preset = sdir.name.rpartition("-")
+            rs = ResultSet(sdir, mdir.name, commit, preset)
+            for f in files:
+                if f.name.endswith(".failed.json"):
+                    try:
+                        rs.failed[f.name[: -len(".failed.json")]] = json.loads(f.read_text()).get("error", "?")
+                    except (OSError, json.JSONDecodeError):
+                        rs.failed[f.name[: -len(".failed.json")]] = "(unreadable failure record)"
+                    continue
+                data = read_result(f)
+                rs.experiments[data["experiment"]] = data
+            if rs.experiments or rs.failed:
+                sets.append(rs)
+    if not sets:
+        raise InputError(root, "no result files (<machine>/<commit>-<preset>/<experiment>.json) found")
+    return sorted(sets, key=lambda s: s.date)
+
+
+def missing_experiments(rs: ResultSet, required=None) -> list[str]:
+    """Required experiments without a result in ``rs`` (empty = complete)."""
+    return [name for name in (REQUIRED_EXPERIMENTS if required is None else required) if name not in rs.experiments]
+
+
+# ----------------------------------------------------------------------------------------------
+# Document model: sections of text, tables and figures, rendered to Markdown and HTML
+# ----------------------------------------------------------------------------------------------
+def fmt(v) -> str:
+    """The one number format of the report (Markdown and HTML alike): 4 significant digits."""
+    if v is None:
+        return "—"
+    if isinstance(v, (bool, np.bool_)):
+        return "yes" if v else "no"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        if math.isnan(v):
+            return "—"
+        if math.isinf(v):
+            return "∞" if v > 0 else "-∞"
+        return f"{v:.4g}"
+    return str(v)
+
+
+@dataclass
+class Table:
+    name: str          # file stem of the CSV
+    caption: str
+    df: pd.DataFrame   # raw values; percentages as numbers with "%" in the column name
+
+
+@dataclass
+class Section:
+    key: str
+    title: str
+    blocks: list = field(default_factory=list)  # str (paragraph) | Table | ("figure", file, caption)
+
+    def text(self, s: str) -> None:
+        self.blocks.append(s)
+
+    def table(self, name: str, caption: str, rows) -> None:
+        self.blocks.append(Table(name, caption, pd.DataFrame(rows)))
+
+    def figure(self, file: str, caption: str) -> None:
+        self.blocks.append(("figure", file, caption))
+
+
+def _cells(df: pd.DataFrame) -> tuple[list[str], list[list[str]]]:
+    return [str(c) for c in df.columns], [[fmt(v) for v in row] for row in df.itertuples(index=False)]
+
+
+def render_markdown(title: str, header: list[str], sections: list[Section]) -> str:
+    out = [f"# {title}", ""]
+    for h in header:
+        out += [h, ""]
+    for s in sections:
+        out += [f"## {s.title}", ""]
+        for b in s.blocks:
+            if isinstance(b, str):
+                out += [b, ""]
+            elif isinstance(b, Table):
+                cols, rows = _cells(b.df)
+                out += [f"**{b.caption}** ([csv](csv/{b.name}.csv))", "",
+                        "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+                out += ["| " + " | ".join(r) + " |" for r in rows]
+                out.append("")
+            else:
+                out += [f"![{b[2]}](figures/{b[1]})", "", f"*{b[2]}*", ""]
+    return "\n".join(out)
+
+
+_CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
+table{border-collapse:collapse;margin:.5em 0 1.5em;font-size:90%}td,th{border:1px solid #ccc;padding:3px 8px;
+text-align:right}th{background:#f3f3f3}td:first-child{text-align:left}img{max-width:100%;border:1px solid #ddd}
+.bad{background:#fde2e2;padding:.5em 1em;border-left:4px solid #c00}.ok{background:#e6f4e6;padding:.5em 1em;
+border-left:4px solid #080}figure{margin:0 0 2em}figcaption{font-style:italic;color:#555}"""
+
+
+def render_html(title: str, header: list[str], sections: list[Section]) -> str:
+    def para(s: str) -> str:
+        cls = ' class="bad"' if s.startswith(("**INCOMPLETE", "**Not run", "**FAILED", "**Note")) else (
+            ' class="ok"' if s.startswith("**Complete") else "")
+        body = html.escape(s).replace("\n", "<br>")
+        # the Markdown emphasis used in paragraphs: **bold** and `code`
+        body = re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", body)
+        body = re.sub(r"`(.+?)`", r"<code>\1</code>", body)
+        return f"<p{cls}>{body}</p>"
+
+    out = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+           f"<style>{_CSS}</style></head><body>", f"<h1>{html.escape(title)}</h1>"]
+    out += [para(h) for h in header if h]
+    out.append("<ul>" + "".join(f"<li><a href='#{s.key}'>{html.escape(s.title)}</a></li>" for s in sections) + "</ul>")
+    for s in sections:
+        out.append(f"<h2 id='{s.key}'>{html.escape(s.title)}</h2>")
+        for b in s.blocks:
+            if isinstance(b, str):
+                out.append(para(b))
+            elif isinstance(b, Table):
+                cols, rows = _cells(b.df)
+                out.append(f"<p><b>{html.escape(b.caption)}</b> (<a href='csv/{b.name}.csv'>csv</a>)</p><table><tr>"
+                           + "".join(f"<th>{html.escape(c)}</th>" for c in cols) + "</tr>"
+                           + "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
+                           + "</table>")
+            else:
+                out.append(f"<figure><img src='figures/{b[1]}' alt='{html.escape(b[2])}'>"
+                           f"<figcaption>{html.escape(b[2])}</figcaption></figure>")
+    out.append("</body></html>")
+    return "\n".join(out)
+
+
+# ----------------------------------------------------------------------------------------------
+# Helpers
+# ----------------------------------------------------------------------------------------------
+def _ratio(a, b):
+    try:
+        return float(a) / float(b) if b not in (None, 0) and a is not None else None
+    except (TypeError, ValueError):
+        return None
+
+
+def _pct(x):
+    return None if x is None else 100.0 * float(x)
+
+
+def _save(fig, out: Path, name: str) -> str:
+    fig.tight_layout()
+    fig.savefig(out / "figures" / name, dpi=110)
+    plt.close(fig)
+    return name
+
+
+def _meas(rs: ResultSet, name: str) -> dict | None:
+    p = rs.experiments.get(name)
+    return None if p is None else p["measurements"]
+
+
+def _maps(rs: ResultSet, name: str) -> dict:
+    """The image maps of experiment ``name`` (its .npz beside the JSON)."""
+    path = rs.dir / _meas(rs, name)["maps_file"]
+    try:
+        with np.load(path) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError) as exc:
+        raise InputError(path, f"cannot read the maps of {name}.json ({exc})") from exc
+
+
+def _not_run(rs: ResultSet, s: Section, name: str) -> bool:
+    """Write the not-run / failed notice into ``s``; True when there is no result to show."""
+    if name in rs.experiments:
+        return False
+    if name in rs.failed:
+        s.text(f"**FAILED**: `{name}` raised {rs.failed[name]} (see {name}.failed.json in the results).")
+    else:
+        s.text(f"**Not run**: no `{name}.json` in {rs.dir.name}.")
+    return True
+
+
+# ----------------------------------------------------------------------------------------------
+# Sections
+# ----------------------------------------------------------------------------------------------
+def section_table1(rs: ResultSet, out: Path) -> Section:
+    s = Section("table1", "Table 1: scene characteristics and preprocessing")
+    if _not_run(rs, s, "table1"):
+        return s
+    m = _meas(rs, "table1")
+    c, p2 = m["counts"], paper.TABLE1["Scene 2"]
+    sub = c["points"] / max(c["proxies"], 1)
+    rows = [{"quantity": q, "ours": c[q], "paper (Scene 2)": p2[q], "ours / paper": _ratio(c[q], p2[q])}
+            for q in ("points", "photos", "proxies")]
+    rows += [
+        {"quantity": "sub-sampling factor", "ours": sub, "paper (Scene 2)": p2["subsampling_factor"],
+         "ours / paper": _ratio(sub, p2["subsampling_factor"])},
+        {"quantity": "proxy levels (LOD k)", "ours": c["proxy_levels"], "paper (Scene 2)": None, "ours / paper": None},
+        {"quantity": "depth-map size", "ours": "x".join(map(str, m["depthmap_size"])),
+         "paper (Scene 2)": "x".join(map(str, p2["depthmap_size"])), "ours / paper": None},
+        {"quantity": "photo size", "ours": "x".join(map(str, m["photo_size"])), "paper (Scene 2)": None,
+         "ours / paper": None},
+    ]
+    s.table("table1_scene", "Scene characteristics (paper Table 1)", rows)
+    phases = [{"phase": k.removesuffix("_s"), "seconds": v} for k, v in m["phases_s"].items()]
+    phases.append({"phase": "total (these phases)", "seconds": m["preprocess_total_s"]})
+    if m.get("scene_generation_s") is not None:
+        phases.append({"phase": "scene generation (not preprocessing)", "seconds": m["scene_generation_s"]})
+    s.table("table1_preprocessing", "Preprocessing wall-clock seconds per phase", phases)
+    if m.get("derived_from_base"):
+        s.text("The proxies, candidates and labeling phases were run for this proxy set on the depth maps of "
+               "the preset's one preprocessing (bench.harness.derive_proxy_bundle), exactly as `dmrt preprocess` "
+               "runs them; the other phases are that preprocessing's.")
+    return s
+
+
+def _table2_runs(m: dict) -> dict:
+    return {(r["method"], r["layers"]): r for r in m["runs"]}
+
+
+def section_table2(rs: ResultSet, out: Path) -> Section:
+    s = Section("table2", "Table 2: GPU milliseconds per stage (walkthrough medians)")
+    if _not_run(rs, s, "table2"):
+        return s
+    m = _meas(rs, "table2")
+    runs = _table2_runs(m)
+    layers = sorted({k for _, k in runs})
+    methods = list(dict.fromkeys(mm for mm, _ in runs))  # the run's order: its default path first
+    stages = list(next(iter(runs.values()))["median_ms"])
+    p = paper.TABLE2
+    for method in methods:
+        rows = []
+        for st in stages + ["total", "fps"]:
+            row = {"stage": st}
+            for k in layers:
+                r = runs.get((method, k))
+                if r is None:
+                    val = None
+                elif st == "total":
+                    val = r["median_total_ms"]
+                elif st == "fps":
+                    val = r["fps_median"]
+                else:
+                    val = r["median_ms"][st]
+                row[f"{k} ours"] = val
+                pk = paper.TABLE2_LAYERS.index(k) if k in paper.TABLE2_LAYERS else None
+                row[f"{k} paper"] = p[st][pk] if (pk is not None and st in p) else None
+            rows.append(row)
+        s.table(f"table2_{method}", f"{method} visibility: GPU ms per stage (fps = 1000 / median total), "
+                                    f"columns by layer count, paper's GTX TITAN numbers beside ours", rows)
+    ratio_rows = []
+    main = methods[0]
+    for k in layers:
+        d = runs.get((main, k))
+        pk = paper.TABLE2_LAYERS.index(k) if k in paper.TABLE2_LAYERS else None
+        pt = p["total"][pk] if pk is not None else None
+        ratio_rows.append({
+            "layers": k, **{f"total {mm} (ms)": runs[(mm, k)]["median_total_ms"] if (mm, k) in runs else None
+                            for mm in methods},
+            "total paper (ms)": pt, f"{main} / paper total": _ratio(d and d["median_total_ms"], pt),
+            **{f"visibility {pair}": v.get(str(k)) for pair, v in m["visibility_ratios"].items()},
+            f"fps {main} (min/avg/max)": "/".join(fmt(x) for x in d["fps_min_avg_max"]) if d else None,
+            "fps paper": p["fps"][pk] if pk is not None else None,
+            "mean search steps": d and d["mean_iterations"],
+            "median wall ms (incl. read-back)": d and d["median_wall_ms"]})
+    s.table("table2_ratios", f"Ratios: ours ({main} visibility, the default) vs paper; visibility stage of the "
+                             f"paper's peeling by rasterization (raster) vs peeling by compute splatting (compute) "
+                             f"vs the one-pass k-buffer (kbuffer)", ratio_rows)
+
+    # stacked bars: one bar per (layer count, source)
+    fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(layers) * (len(methods) + 1)), 4.2))
+    colors = plt.cm.tab10.colors
+    x, labels = 0, []
+    for k in layers:
+        bars = [(f"{mm}", runs.get((mm, k)) and runs[(mm, k)]["median_ms"]) for mm in methods]
+        if k in paper.TABLE2_LAYERS:
+            pk = paper.TABLE2_LAYERS.index(k)
+            bars.append(("paper", {st: p[st][pk] for st in ("visibility", "raytracing", "labeling",
+                                                            "image_management", "texturing")}))
+        for name, ms in bars:
+            bottom = 0.0
+            for i, st in enumerate(stages):
+                v = (ms or {}).get(st, 0.0)
+                ax.bar(x, v, bottom=bottom, color=colors[i % 10], label=st if x == 0 else None)
+                bottom += v
+            labels.append((x, f"{name}\nk={k}"))
+            x += 1
+        x += 0.6
+    ax.set_xticks([a for a, _ in labels], [b for _, b in labels], fontsize=7)
+    ax.set_ylabel("GPU ms per frame (median)")
+    ax.legend(fontsize=7, ncol=3)
+    ax.set_title("Table 2: per-stage GPU time, ours (compute / raster visibility) vs paper")
+    s.figure(_save(fig, out, "table2_stages.png"), "Per-stage GPU ms per layer count (stacked), ours and the paper's")
+    return s
+
+
+def table3_rows(m: dict) -> tuple[list[dict], dict]:
+    """Table 3 rows and Fig. 12's fps per frame from :func:`bench.bench_dmt.run`'s result (``m["dmt"]``).
+
+    DMT rows are matched to the paper's by position (the ci preset's 64/128/256 stand for 256/512/1024).
+    """
+    d = m["dmt"]
+    for key in ("dmt", "dmrt", "dmrt_labeling_s"):
+        if key not in d:
+            raise KeyError(f"measurements.dmt has no '{key}' (keys: {', '.join(sorted(d))}): "
+                           f"bench.bench_dmt.run's result differs from what bench.report.table3_rows reads")
+    dmrt = d["dmrt"]
+    pdmt, pd_ = list(paper.TABLE3_DMT.values()), paper.TABLE3_DMRT
+    rows, per_frame = [], {}
+    for i, e in enumerate(d["dmt"]):
+        pp = pdmt[i] if i < len(pdmt) else None
+        row = {"method": f"DMT {e['size'][0]}x{e['size'][1]}",
+               "paper row": pp and f"DMT {pp['size'][0]}x{pp['size'][1]}"}
+        if "error" in e:
+            rows.append({**row, "labeling (s)": None, "note": f"not measured: {e['error']}"})
+            continue
+        fps = e["fps_min_avg_max"]
+        rows.append({**row, "labeling (s)": e["labeling"]["seconds"], "paper labeling (s)": pp and pp["labeling_s"],
+                     "labeling DMT / DMRT": e.get("labeling_ratio_dmt_over_dmrt"),
+                     "paper DMT / DMRT": pp and _ratio(pp["labeling_s"], pd_["labeling_s"]),
+                     "fps min": fps[0], "fps avg": fps[1], "fps max": fps[2],
+                     "paper fps min/avg/max": pp and "/".join(map(str, pp["fps"])),
+                     "avg fps DMRT / DMT": d.get("fps_ratio_dmrt_over_dmt", {}).get(str(e["width"])),
+                     "paper DMRT / DMT": pp and _ratio(pd_["fps"][1], pp["fps"][1]),
+                     "note": "labels cached" if e["labeling"].get("cached") else None})
+        per_frame[f"DMT {e['size'][0]}x{e['size'][1]}"] = e["fps_per_frame"]
+    fps = dmrt["fps_min_avg_max"]
+    rows.append({"method": f"DMRT ({dmrt['layers']} layers)", "paper row": "DMRT 1024x684, 1M proxies, 5 layers",
+                 "labeling (s)": dmrt["labeling_s"], "paper labeling (s)": pd_["labeling_s"],
+                 "labeling DMT / DMRT": 1.0, "paper DMT / DMRT": 1.0, "fps min": fps[0], "fps avg": fps[1],
+                 "fps max": fps[2], "paper fps min/avg/max": "/".join(map(str, pd_["fps"])),
+                 "avg fps DMRT / DMT": 1.0, "paper DMRT / DMT": 1.0, "note": None})
+    per_frame["DMRT"] = dmrt["fps_per_frame"]
+    return rows, per_frame
+
+
+def section_table3(rs: ResultSet, out: Path) -> Section:
+    s = Section("table3_fig12", "Table 3 and Fig. 12: DMT vs DMRT")
+    if _not_run(rs, s, "table3_fig12"):
+        return s
+    rows, per_frame = table3_rows(_meas(rs, "table3_fig12"))
+    s.table("table3", "Labeling time and min/avg/max fps over the walkthrough; ratios DMT/DMRT labeling and "
+                      "DMRT/DMT fps, ours and the paper's", rows)
+    if per_frame:
+        fig, ax = plt.subplots(figsize=(8, 3.8))
+        for name, fps in per_frame.items():
+            ax.plot(np.arange(len(fps)), fps, label=name, lw=2 if name == "DMRT" else 1)
+        ax.set_xlabel("walkthrough frame")
+        ax.set_ylabel("fps")
+        ax.set_yscale("log")
+        ax.legend(fontsize=8)
+        ax.set_title("Fig. 12: fps along the walkthrough, DMT per depth-map width vs DMRT")
+        s.figure(_save(fig, out, "fig12_fps.png"), "Fig. 12: fps per frame along the walkthrough")
+    else:
+        s.text("**Note**: the DMT result has no `fps_per_frame`: Fig. 12 cannot be drawn.")
+    return s
+
+
+def section_fig7(rs: ResultSet, out: Path) -> Section:
+    s = Section("fig7", "Fig. 7: proxy-cloud size vs labeling time, layers and fps")
+    if _not_run(rs, s, "fig7"):
+        return s
+    m = _meas(rs, "fig7")
+    par = rs.experiments["fig7"]["parameters"]
+    sets = sorted(m["sets"], key=lambda x: -x["proxies"])  # the paper's order: most proxies first
+    rows = []
+    for i, st in enumerate(sets):
+        pp = paper.FIG7[i] if i < len(paper.FIG7) else None
+        k = st["layers_needed"] or st["layers_to_converge"]
+        f = st["fps"].get(str(k))
+        rows.append({"proxies": st["proxies"], "sub-sampling": st["subsampling_factor"],
+                     "labeling incl. candidates (s)": st["labeling_total_s"],
+                     "paper proxies": pp and pp["proxies"], "paper labeling (s)": pp and pp["labeling_s"],
+                     "labeling ours / paper": pp and _ratio(st["labeling_total_s"], pp["labeling_s"]),
+                     f"layers needed (holes <= {100 * par['hole_rate_target']:g}%)": st["layers_needed"],
+                     "layers to converge": st["layers_to_converge"],
+                     "paper layers": pp and "/".join(str(a) for a, _ in pp["layers_fps"]),
+                     "fps at layers needed (else converged)": f and f["fps_median"],
+                     "paper fps": pp and "/".join(str(b) for _, b in pp["layers_fps"]),
+                     **{f"fps {kk} layers": st["fps"][kk]["fps_median"] for kk in sorted(st["fps"], key=int)}})
+    s.table("fig7", "Per proxy set (ours: LOD levels of the octree; paper: 4.4M / 1M / 0.2M); fps = 1000 / median "
+                    "GPU frame ms over the walkthrough", rows)
+    kmax = len(sets[0]["hole_rate_per_layers"])
+    hole_rows = [{"layers": k, **{f"{st['proxies']} proxies: representable (%)":
+                                  _pct(st["hole_rate_representable_per_layers"][k - 1]) for st in sets},
+                  **{f"{st['proxies']} proxies: all (%)": _pct(st["hole_rate_per_layers"][k - 1]) for st in sets}}
+                 for k in range(1, kmax + 1)]
+    s.table("fig7_holes", f"Hole rate vs Embree at {len(m['cameras'])} photo cameras per layer count: over the "
+                          f"reference pixels some depth map can show (representable) and over all", hole_rows)
+    fig, axs = plt.subplots(1, 3, figsize=(13, 3.8))
+    for st in sets:
+        axs[0].plot(range(1, kmax + 1), [_pct(x) for x in st["hole_rate_representable_per_layers"]], "o-",
+                    label=f"{st['proxies']:,} proxies")
+    axs[0].axhline(100 * par["hole_rate_target"], color="k", ls="--", lw=0.8, label="target")
+    axs[0].set(xlabel="layers", ylabel="holes (% of representable pixels)", title="holes vs layers")
+    axs[0].legend(fontsize=7)
+    axs[1].loglog([st["proxies"] for st in sets], [st["labeling_total_s"] for st in sets], "o-", label="ours")
+    axs[1].loglog([pp["proxies"] for pp in paper.FIG7], [pp["labeling_s"] for pp in paper.FIG7], "s--", label="paper")
+    axs[1].set(xlabel="proxies", ylabel="labeling s", title="labeling time")
+    axs[1].legend(fontsize=7)
+    for st in sets:
+        ks = sorted(st["fps"], key=int)
+        axs[2].plot([int(k) for k in ks], [st["fps"][k]["fps_median"] for k in ks], "o-", label=f"{st['proxies']:,}")
+    for pp in paper.FIG7:
+        axs[2].plot(*zip(*pp["layers_fps"]), "s--", color="gray", alpha=0.6)
+    axs[2].set(xlabel="layers", ylabel="fps", title="fps (gray: paper)", yscale="log")
+    axs[2].legend(fontsize=7)
+    s.figure(_save(fig, out, "fig7_proxies.png"), "Fig. 7: holes per layer count, labeling time, fps per proxy set")
+    return s
+
+
+def _heat(ax, img, title, vmax=None, cmap="inferno"):
+    a = np.asarray(img, np.float64)
+    finite = a[np.isfinite(a)]
+    vmax = vmax or (float(np.percentile(finite, 99)) if finite.size else 1.0) or 1.0
+    im = ax.imshow(np.where(np.isfinite(a), a, np.nan), cmap=cmap, vmin=0, vmax=vmax)
+    ax.set_title(title, fontsize=8)
+    ax.axis("off")
+    plt.colorbar(im, ax=ax, fraction=0.035)
+
+
+def section_fig8(rs: ResultSet, out: Path) -> Section:
+    s = Section("fig8", "Fig. 8: reconstruction error vs the Embree reference at a photo camera")
+    if _not_run(rs, s, "fig8"):
+        return s
+    m = _meas(rs, "fig8")
+    rows = [{"stage": st, "depth median (mm)": 1e3 * v["depth_median_m"], "depth mean (mm)": 1e3 * v["depth_mean_m"],
+             "depth p95 (mm)": 1e3 * v["depth_p95_m"], "depth median (texels)": v.get("depth_median_texels"),
+             "holes (%)": _pct(v["hole_rate"]), "holes representable (%)": _pct(v.get("hole_rate_representable")),
+             "extra surface (%)": _pct(v["extra_rate"]), "PSNR (dB)": v["psnr_db"],
+             "label agreement (%)": _pct(v["label_agreement"])} for st, v in m["stages"].items()]
+    s.table("fig8", f"Camera {m['camera']} ({m['frame_size'][0]}x{m['frame_size'][1]}), "
+                    f"{rs.experiments['fig8']['parameters']['layers']} layers: coarse splats (8b), raytraced (8c), "
+                    f"raytraced + per-pixel labels (8d)", rows)
+    maps = _maps(rs, "fig8")
+    stages = list(m["stages"])
+    dz = np.concatenate([maps[f"{st}_depth_error_m"].ravel() for st in stages]) * 1e3
+    dz_max = float(np.nanpercentile(dz, 99)) if np.isfinite(dz).any() else 1.0
+    fig, axs = plt.subplots(len(stages) + 1, 3, figsize=(12, 2.9 * (len(stages) + 1)))
+    axs[0, 0].imshow(maps["reference_color"])
+    axs[0, 0].set_title("Embree reference colour", fontsize=8)
+    _heat(axs[0, 1], maps["reference_depth"], "reference depth (m)", cmap="viridis")
+    axs[0, 2].imshow(maps["representable"], cmap="gray")
+    axs[0, 2].set_title("representable pixels (white)", fontsize=8)
+    for a in axs[0]:
+        a.axis("off")
+    for i, st in enumerate(stages, 1):
+        axs[i, 0].imshow(maps[f"{st}_color"])
+        axs[i, 0].set_title(st, fontsize=8)
+        axs[i, 0].axis("off")
+        _heat(axs[i, 1], maps[f"{st}_depth_error_m"] * 1e3, "|depth error| (mm)", vmax=dz_max)
+        _heat(axs[i, 2], maps[f"{st}_color_error"], "colour error (RGB distance)", vmax=120)
+    s.figure(_save(fig, out, "fig8_heatmaps.png"), "Fig. 8: colour, depth-error and colour-error heat maps per stage")
+    return s
+
+
+def section_fig9(rs: ResultSet, out: Path) -> Section:
+    s = Section("fig9_10", "Figs. 9 and 10: convergence of the iterative search")
+    if _not_run(rs, s, "fig9_10"):
+        return s
+    m = _meas(rs, "fig9_10")
+    rows = []
+    for c in m["cases"]:
+        pp = next((x for x in paper.CONVERGENCE if x["radius_scale"] == c["radius_scale"]
+                   and x["layers"] == c["layers"]), None)
+        rows.append({"case": c["case"], "layers": c["layers"], "mean steps per surface pixel": c["mean_iterations"],
+                     "mean steps per searched pixel": c["mean_iterations_searched"],
+                     "paper mean steps": pp and pp["mean_iterations"],
+                     "raytracing (ms)": c["raytracing_ms_median"], "paper raytracing (ms)": pp and pp["raytracing_ms"],
+                     "raytracing ours / paper": pp and _ratio(c["raytracing_ms_median"], pp["raytracing_ms"]),
+                     "holes (%)": _pct(c["hole_rate"]), "holes representable (%)": _pct(c["hole_rate_representable"])})
+    s.table("fig9_10", "Iterative-search steps and raytracing-pass GPU ms over the walkthrough; holes at photo "
+                       "cameras. Worst case (Fig. 10): splat radii x2.5", rows)
+    cases = m["cases"]
+    fig, axs = plt.subplots(1, len(cases), figsize=(4.3 * len(cases), 3.6), squeeze=False)
+    for ax, c in zip(axs[0], cases):
+        mean, count = np.asarray(c["step_mean_m"]), np.asarray(c["step_count"])
+        for layer in range(min(len(mean), 6)):
+            ok = count[layer] > 0
+            if ok.any():
+                ax.semilogy(np.flatnonzero(ok) + 1, mean[layer][ok], "o-", ms=3, label=f"layer {layer + 1}")
+        ax.set(xlabel="iterative-search step", ylabel="mean |step| (m)", title=f"{c['case']}, {c['layers']} layers")
+        ax.legend(fontsize=7)
+    s.figure(_save(fig, out, "fig9_step_sizes.png"), "Fig. 9/10: mean step length per step index and layer "
+                                                       "(the last bin pools later steps)")
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    for c in cases:
+        h = np.asarray(c["iterations_histogram"], np.float64)
+        ax.bar(np.arange(len(h)) + 0.25 * cases.index(c), h / max(h.sum(), 1), width=0.25,
+               label=f"{c['case']}, {c['layers']} layers")
+    ax.set(xlabel="iterative-search steps per pixel (all layers tried)", ylabel="share of searched pixels",
+           xlim=(-0.5, 25))
+    ax.legend(fontsize=7)
+    s.figure(_save(fig, out, "fig9_iterations.png"), "Iterations per pixel histogram (walkthrough frames)")
+    return s
+
+
+def section_fig13(rs: ResultSet, out: Path) -> Section:
+    s = Section("fig13", "Fig. 13: 1, 2 and 3 layers: holes at silhouettes")
+    if _not_run(rs, s, "fig13"):
+        return s
+    m = _meas(rs, "fig13")
+    rows = [{"layers": r["layers"], "holes (%)": _pct(r["hole_rate"]),
+             "holes representable (%)": _pct(r["hole_rate_representable"]), "extra surface (%)": _pct(r["extra_rate"]),
+             f"holes at {m['shown_camera']} (%)": _pct(r["shown_camera"]["hole_rate"])} for r in m["rows"]]
+    s.table("fig13", f"Hole rates vs Embree at {len(m['cameras'])} photo cameras (paper: 2 layers leave barely "
+                     f"visible holes, 3 almost none)", rows)
+    maps = _maps(rs, "fig13")
+    ks = [r["layers"] for r in m["rows"]]
+    fig, axs = plt.subplots(2, len(ks) + 1, figsize=(3.6 * (len(ks) + 1), 5.2))
+    axs[0, 0].imshow(maps["reference_color"])
+    axs[0, 0].set_title("Embree reference", fontsize=8)
+    axs[1, 0].imshow(maps["representable"], cmap="gray")
+    axs[1, 0].set_title("representable pixels", fontsize=8)
+    for j, k in enumerate(ks, 1):
+        axs[0, j].imshow(maps[f"color_{k}"])
+        axs[0, j].set_title(f"{k} layer(s)", fontsize=8)
+        holes = maps[f"holes_{k}"]
+        rgb = np.ones(holes.shape + (3,))
+        rgb[holes > 0] = (0.85, 0.1, 0.1)   # hole: reference surface, frame background
+        rgb[holes < 0] = (0.1, 0.3, 0.9)    # extra: frame surface, reference background
+        axs[1, j].imshow(rgb)
+        axs[1, j].set_title(f"holes (red) / extra (blue), {k} layer(s)", fontsize=8)
+    for a in axs.ravel():
+        a.axis("off")
+    s.figure(_save(fig, out, "fig13_holes.png"), f"Fig. 13: frames and hole maps at {m['shown_camera']}")
+    return s
+
+
+def section_memory(rs: ResultSet, out: Path) -> Section:
+    s = Section("memory", "Section 6.2: GPU memory per resource")
+    if _not_run(rs, s, "memory"):
+        return s
+    m = _meas(rs, "memory")
+    mb = 1e-6
+    pm = paper.MEMORY_MB
+    paper_mb = {"depthmaps": f"{pm['depthmap_each']} each", "images_low": f"{pm['images_low_each']} each",
+                "proxies": f"{pm['proxies']} (1M proxies)", "layers": f"{pm['layers']} (5 layers, 1280x720)",
+                "image_cache": f"{pm['image_cache']} (reserved)"}
+    rows = []
+    for res in sorted(set(m["gpu_bytes"]) | set(m["formula_bytes"])):
+        got, want = m["gpu_bytes"].get(res), m["formula_bytes"].get(res)
+        rows.append({"resource": res, "measured (MB)": got and got * mb, "paper formula (MB)": want and want * mb,
+                     "measured / formula": _ratio(got, want), "paper (MB)": paper_mb.get(res)})
+    rows.append({"resource": "total", "measured (MB)": m["total_measured_bytes"] * mb, "paper formula (MB)": None,
+                 "measured / formula": None, "paper (MB)": f"{pm['depthmaps_and_images_low']} + 65 + cache"})
+    s.table("memory", f"GL objects allocated by the renderer ({m['photos']} photos, {m['bundle']['proxies']} proxies, "
+                      f"{m['layers']} layers at {m['frame_size'][0]}x{m['frame_size'][1]}) vs the paper's formulas "
+                      f"for the same counts (depth map: 1 float per texel; low-res photo RGB8; proxy 6 floats + 1 int; "
+                      f"layer pixel 2 floats; photo cache: the smaller of the renderer's budget and every photo at full size, "
+                      f"RGB8)", rows)
+    s.text("The paper's 37 MB (proxies) and 28 MB (layers) are swapped with respect to its own formulas "
+           "(1M x 28 B = 28 MB, 1280 x 720 x 8 B x 5 = 36.9 MB); their sum, 65 MB, agrees.")
+    return s
+
+
+BUILDERS = {"table1": section_table1, "table2": section_table2, "table3_fig12": section_table3,
+            "fig7": section_fig7, "fig8": section_fig8, "fig9_10": section_fig9, "fig13": section_fig13,
+            "memory": section_memory}
+
+
+def _history_value(rs: ResultSet):
+    """(layers, median total ms, fps) of the default path's 5-layer run (or the nearest layer count)."""
+    m = _meas(rs, "table2")
+    if m is None or not m["runs"]:
+        return None
+    runs = [r for r in m["runs"] if r["method"] == m["runs"][0]["method"]]
+    if not runs:
+        return None
+    r = min(runs, key=lambda r: abs(r["layers"] - 5))
+    return r["layers"], r["median_total_ms"], r["fps_median"]
+
+
+def section_history(sets: list[ResultSet], out: Path) -> Section | None:
+    rows = []
+    for rs in sets:
+        v = _history_value(rs)
+        if v is None:
+            continue
+        c = rs.info["commit"]
+        lab = _meas(rs, "table1")
+        rows.append({"date": rs.date, "commit": rs.commit, "dirty": c.get("dirty"), "layers": v[0],
+                     "total GPU ms": v[1], "fps": v[2],
+                     "labeling (s)": lab and lab["phases_s"].get("labeling_s")})
+    if len(rows) < 2:
+        return None
+    s = Section("history", "History (nightly trend)")
+    s.table("history", "Per result set of this machine and preset, oldest first: frame time of the default "
+                       "visibility path", rows)
+    fig, axs = plt.subplots(1, 2, figsize=(11, 3.4))
+    x = np.arange(len(rows))
+    labels = [f"{r['commit'][:8]}\n{r['date'][:10]}" for r in rows]
+    axs[0].plot(x, [r["total GPU ms"] for r in rows], "o-")
+    axs[0].set(ylabel=f"median frame GPU ms ({rows[-1]['layers']} layers)", title="frame time per commit")
+    axs[1].plot(x, [r["fps"] for r in rows], "o-", color="C1")
+    axs[1].set(ylabel="fps", title="fps per commit")
+    for a in axs:
+        a.set_xticks(x, labels, fontsize=6)
+    s.figure(_save(fig, out, "history.png"), "Frame time and fps along the result history")
+    return s
+
+
+# ----------------------------------------------------------------------------------------------
+# Building
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class ReportResult:
+    out: Path
+    result_set: ResultSet
+    missing: list
+    failed: list
+
+
+def select(sets: list[ResultSet], preset: str | None = None, machine: str | None = None) -> ResultSet:
+    """The newest result set (of ``preset`` / ``machine`` when given)."""
+    cand = [s for s in sets if (preset is None or s.preset == preset) and (machine is None or s.machine == machine)]
+    if not cand:
+        raise InputError(sets[0].dir.parent.parent, f"no result set for preset={preset!r} machine={machine!r} "
+                                                    f"(have: {', '.join(f'{s.machine}/{s.dir.name}' for s in sets)})")
+    return cand[-1]
+
+
+def build_report(results_dir, out, preset: str | None = None, machine: str | None = None,
+                 required=None) -> ReportResult:
+    """Build the report of the newest result set under ``results_dir`` into ``out``.
+
+    Returns
+    -------
+    ReportResult
+        ``out``, the result set used, and the ``missing`` required / ``failed`` experiments.
+    """
+    sets = load_results(results_dir)
+    rs = select(sets, preset, machine)
+    history = [s for s in sets if s.machine == rs.machine and s.preset == rs.preset]
+    out = Path(out)
+    tmp = out.with_name(out.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "figures").mkdir(parents=True)
+    (tmp / "csv").mkdir()
+    (tmp / "results").mkdir()
+    try:
+        sections = []
+        for key in SECTIONS:
+            try:
+                sections.append(BUILDERS[key](rs, tmp))
+            except InputError:
+                raise
+            except (KeyError, TypeError, ValueError, IndexError) as exc:
+                raise InputError(rs.dir / f"{key}.json", f"cannot build the {key} section: "
+                                                         f"{type(exc).__name__}: {exc}") from exc
+        hist = section_history(history, tmp)
+        if hist is not None:
+            sections.append(hist)
+        missing = missing_experiments(rs, required)
+        failed = sorted(rs.failed)
+        header = _header(rs, missing, failed)
+        title = f"DMRT benchmark report: {rs.preset} preset"
+        for s in sections:
+            for b in s.blocks:
+                if isinstance(b, Table):
+                    b.df.to_csv(tmp / "csv" / f"{b.name}.csv", index=False)
+        (tmp / "REPORT.md").write_text(render_markdown(title, header, sections))
+        (tmp / "index.html").write_text(render_html(title, header, sections))
+        for f in sorted(rs.dir.glob("*.json")):
+            shutil.copy2(f, tmp / "results" / f.name)
+        mfile = rs.dir.parent / "machine.json"
+        if mfile.is_file():
+            shutil.copy2(mfile, tmp / "results" / "machine.json")
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    old = out.with_name(out.name + ".old")
+    shutil.rmtree(old, ignore_errors=True)
+    if out.exists():
+        os.replace(out, old)
+    os.replace(tmp, out)
+    shutil.rmtree(old, ignore_errors=True)
+    return ReportResult(out, rs, missing, failed)
+
+
+def _header(rs: ResultSet, missing: list, failed: list) -> list[str]:
+    info = rs.info
+    mach, com = info["machine"], info["commit"]
+    lines = []
+    if missing or failed:
+        parts = [f"{what}: {', '.join(names)}" for what, names in (("not run", missing), ("failed", failed)) if names]
+        lines.append(f"**INCOMPLETE** ({'; '.join(parts)}).")
+    else:
+        lines.append("**Complete**: every required experiment has a result.")
+    lines.append(f"Machine `{rs.machine}`: GL renderer {mach.get('gl_renderer')} ({mach.get('gl_version')}); CPU "
+                 f"{mach.get('cpu')}, {mach.get('cpu_cores')} cores, {fmt(mach.get('memory_gib'))} GiB.")
+    lines.append(f"Commit `{com.get('hash', rs.commit)}`{' (uncommitted changes)' if com.get('dirty') else ''}, "
+                 f"committed {com.get('date')}; preset `{rs.preset}`; newest result {rs.date}; results from "
+                 f"`{rs.dir}`.")
+    if mach.get("gl_is_software"):
+        lines.append("**Note**: a software GL renderer (Mesa llvmpipe): its GPU timer values are meaningless, so "
+                     "every millisecond, fps and speed ratio below is not a measurement of anything; the quality "
+                     "numbers (depth error, holes, steps) are.")
+    lines.append(f"Paper: {paper.MACHINE}. Experiments: " + ", ".join(
+        f"{k} ({'ok' if k in rs.experiments else 'FAILED' if k in rs.failed else 'not run'})" for k in SECTIONS) + ".")
+    return lines

@@ -1,0 +1,338 @@
+"""The benchmark harness and report end to end on the ``ci`` preset (CPU, Mesa llvmpipe), and the
+report's failure modes.
+
+One session-scoped ``dmrt bench --preset ci`` run (on conftest's tiny scene) feeds the checks that
+the report is complete and built from the measured data: every required table and figure present,
+numbers in REPORT.md equal to those in the JSON files, figures that are not blank, hole maps of the
+frame's shape. Speed is never asserted (GPU timer values are meaningless on llvmpipe). The failure
+modes (missing, failed and truncated result files) are checked on small hand-made result sets.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.report import REQUIRED_EXPERIMENTS, fmt
+
+
+# ----------------------------------------------------------------------------------------------
+# The ci preset, once
+# ----------------------------------------------------------------------------------------------
+@pytest.fixture(scope="session")
+def ci_run(tiny_scene, tmp_path_factory):
+    """``dmrt bench --preset ci`` then ``dmrt report --check``: (results dir, result set dir, report dir)."""
+    from dmrt.cli import main
+
+    root = tmp_path_factory.mktemp("bench")
+    results, report = root / "results", root / "report"
+    assert main(["bench", "--preset", "ci", "--out", str(results), "--work", str(root / "work"),
+                 "--scene", str(tiny_scene), "--quiet"]) == 0
+    assert main(["report", str(results), "--out", str(report), "--check"]) == 0
+    (set_dir,) = [p for p in results.glob("*/*") if p.is_dir()]
+    return results, set_dir, report
+
+
+def _result(set_dir: Path, name: str) -> dict:
+    return json.loads((set_dir / f"{name}.json").read_text())
+
+
+def _md_rows(md: str) -> set[str]:
+    return {line for line in md.splitlines() if line.startswith("| ")}
+
+
+def test_ci_results_layout(ci_run):
+    """asv layout: RESULTS/<machine>/<commit>-ci/<experiment>.json with machine, commit, preset,
+    parameters, version and raw measurements; machine.json beside the result sets."""
+    from bench.experiments import EXPERIMENTS
+
+    results, set_dir, _ = ci_run
+    assert set_dir.name.endswith("-ci")
+    assert (set_dir.parent / "machine.json").is_file()
+    for name in REQUIRED_EXPERIMENTS:
+        assert name in EXPERIMENTS
+        r = _result(set_dir, name)
+        assert r["experiment"] == name and r["preset"] == "ci" and r["version"] == EXPERIMENTS[name].version
+        assert r["machine"]["gl_renderer"] and r["machine"]["gl_version"] and r["machine"]["cpu_cores"] >= 1
+        assert r["machine"]["cpu"]
+        assert re.fullmatch(r"[0-9a-f]{12}|unknown", r["commit"]["hash"])
+        assert set_dir.name == f"{r['commit']['hash']}-ci"
+        assert r["parameters"] is not None and r["measurements"]
+    assert not list(set_dir.glob("*.failed.json"))
+
+
+def test_report_is_complete(ci_run):
+    """Every required section with its tables (CSV too) and non-blank figures; nothing 'not run'."""
+    import matplotlib.image as mpimg
+
+    _, _, report = ci_run
+    md = (report / "REPORT.md").read_text()
+    page = (report / "index.html").read_text()
+    assert md.splitlines()[2].startswith("**Complete**")
+    assert "INCOMPLETE" not in md and "FAILED" not in md
+    for name in REQUIRED_EXPERIMENTS:
+        assert f"no `{name}.json`" not in md
+        assert f"id='{name}'" in page
+    figures = ["table2_stages.png", "fig12_fps.png", "fig7_proxies.png", "fig8_heatmaps.png", "fig9_step_sizes.png",
+               "fig9_iterations.png", "fig13_holes.png"]
+    for f in figures:
+        path = report / "figures" / f
+        assert path.stat().st_size > 10_000, f
+        img = mpimg.imread(path)
+        assert img.ndim == 3 and img[..., :3].std() > 0.05, f"{f} looks blank"
+        assert f"figures/{f}" in md and f"figures/{f}" in page
+    for csv in ["table1_scene", "table1_preprocessing", "table2_kbuffer", "table2_compute", "table2_raster",
+                "table2_ratios",
+                "table3", "fig7", "fig7_holes", "fig8", "fig9_10", "fig13", "memory"]:
+        assert (report / "csv" / f"{csv}.csv").stat().st_size > 50, csv
+        assert f"csv/{csv}.csv" in md
+    assert sorted(p.name for p in (report / "results").glob("*.json")) == sorted(
+        [f"{n}.json" for n in REQUIRED_EXPERIMENTS] + ["machine.json"])
+
+
+def test_report_numbers_are_the_measured_ones(ci_run):
+    """Rows of REPORT.md rebuilt from the JSON files (not from the report code) are in it verbatim."""
+    from bench import paper
+
+    _, set_dir, report = ci_run
+    rows = _md_rows((report / "REPORT.md").read_text())
+
+    c = _result(set_dir, "table1")["measurements"]["counts"]
+    assert f"| points | {c['points']} | {paper.TABLE1['Scene 2']['points']} | " \
+           f"{fmt(c['points'] / paper.TABLE1['Scene 2']['points'])} |" in rows
+    assert f"| proxies | {c['proxies']} | 1000000 | {fmt(c['proxies'] / 1e6)} |" in rows
+
+    t2 = _result(set_dir, "table2")["measurements"]
+    assert [r["method"] for r in t2["runs"]] == ["kbuffer"] * 3 + ["compute"] * 3 + ["raster"] * 3
+    k1 = t2["runs"][0]
+    # the raytracing row of the default path's table starts with the 1-layer median and the paper's 1.2 ms
+    assert any(r.startswith(f"| raytracing | {fmt(k1['median_ms']['raytracing'])} | 1.2 |") for r in rows)
+    # mean search steps and the visibility ratios appear in the ratio table
+    ratios = t2["visibility_ratios"]
+    assert set(ratios) == {"raster/compute", "compute/kbuffer", "raster/kbuffer"}
+    assert any(f"| {fmt(ratios['raster/compute']['1'])} | {fmt(ratios['compute/kbuffer']['1'])} | "
+               f"{fmt(ratios['raster/kbuffer']['1'])} |" in r and f"| {fmt(k1['mean_iterations'])} |" in r
+               for r in rows)
+
+    dmt = _result(set_dir, "table3_fig12")["measurements"]["dmt"]
+    for e, p in zip(dmt["dmt"], paper.TABLE3_DMT.values()):
+        w, h = e["size"]
+        want = (f"| DMT {w}x{h} | DMT {p['size'][0]}x{p['size'][1]} | {fmt(e['labeling']['seconds'])} | "
+                f"{fmt(p['labeling_s'])} | {fmt(e['labeling_ratio_dmt_over_dmrt'])} |")
+        assert any(r.startswith(want) for r in rows)
+        assert any(f"| {fmt(e['fps_min_avg_max'][0])} | {fmt(e['fps_min_avg_max'][1])} | " in r for r in rows)
+    assert any(r.startswith(f"| DMRT (5 layers) | DMRT 1024x684, 1M proxies, 5 layers | "
+                            f"{fmt(dmt['dmrt']['labeling_s'])} |") for r in rows)
+
+    fig7 = _result(set_dir, "fig7")["measurements"]
+    for s in fig7["sets"]:
+        assert any(r.startswith(f"| {s['proxies']} | {fmt(s['subsampling_factor'])} | {fmt(s['labeling_total_s'])} |")
+                   for r in rows)
+    first = sorted(fig7["sets"], key=lambda s: -s["proxies"])
+    want = "| 1 | " + " | ".join(fmt(100 * s["hole_rate_representable_per_layers"][0]) for s in first)
+    assert any(r.startswith(want) for r in rows)
+
+    fig8 = _result(set_dir, "fig8")["measurements"]["stages"]
+    for stage, m in fig8.items():
+        assert any(r.startswith(f"| {stage} | {fmt(1e3 * m['depth_median_m'])} | {fmt(1e3 * m['depth_mean_m'])} |")
+                   for r in rows)
+
+    for case in _result(set_dir, "fig9_10")["measurements"]["cases"]:
+        want = f"| {case['case']} | {case['layers']} | {fmt(case['mean_iterations'])} |"
+        assert any(r.startswith(want) for r in rows)
+
+    for row in _result(set_dir, "fig13")["measurements"]["rows"]:
+        assert any(r.startswith(f"| {row['layers']} | {fmt(100 * row['hole_rate'])} | "
+                                f"{fmt(100 * row['hole_rate_representable'])} |") for r in rows)
+
+    mem = _result(set_dir, "memory")["measurements"]
+    got = mem["gpu_bytes"]["depthmaps"]
+    assert any(r.startswith(f"| depthmaps | {fmt(got * 1e-6)} | {fmt(mem['formula_bytes']['depthmaps'] * 1e-6)} |")
+               for r in rows)
+
+
+def test_maps_have_the_frame_shape_and_match_the_json(ci_run):
+    """Fig. 8 and Fig. 13 maps are (h, w) of the frame, and the rates in the JSON are theirs."""
+    _, set_dir, _ = ci_run
+    fig8 = _result(set_dir, "fig8")["measurements"]
+    w, h = fig8["frame_size"]
+    with np.load(set_dir / fig8["maps_file"]) as z:
+        maps = {k: z[k] for k in z.files}
+    ref_surface = maps["reference_depth"] > 0
+    for stage, m in fig8["stages"].items():
+        holes = maps[f"{stage}_holes"]
+        assert holes.shape == (h, w) and maps[f"{stage}_depth_error_m"].shape == (h, w)
+        assert maps[f"{stage}_color"].shape == (h, w, 3)
+        assert (holes > 0).sum() / ref_surface.sum() == pytest.approx(m["hole_rate"])
+
+    fig13 = _result(set_dir, "fig13")["measurements"]
+    w, h = fig13["frame_size"]
+    with np.load(set_dir / fig13["maps_file"]) as z:
+        for row in fig13["rows"]:
+            holes = z[f"holes_{row['layers']}"]
+            assert holes.shape == (h, w) and set(np.unique(holes)) <= {-1.0, 0.0, 1.0}
+            assert z[f"color_{row['layers']}"].shape == (h, w, 3)
+    rates = [r["hole_rate_representable"] for r in fig13["rows"]]
+    assert rates[0] >= rates[1] >= rates[2]  # more layers never add holes
+
+
+def test_fig13_direct_renders_agree_with_fig7_from_one_render(ci_run):
+    """Fig. 7 reads the hole rate of k layers off one max-layer frame (``hole_counts``); Fig. 13 renders
+    1, 2, 3 layers directly at the same photo cameras: the rates must be equal."""
+    _, set_dir, _ = ci_run
+    main_proxies = _result(set_dir, "table1")["measurements"]["counts"]["proxies"]
+    (main,) = [s for s in _result(set_dir, "fig7")["measurements"]["sets"] if s["proxies"] == main_proxies]
+    for row in _result(set_dir, "fig13")["measurements"]["rows"]:
+        k = row["layers"]
+        # equal with depth peeling; the k-buffer keeps 6k + 2 fragments, so a 5-layer frame's first
+        # layers may be (rarely) more complete than a 1-layer frame's: 0.1 percentage point
+        assert row["hole_rate"] == pytest.approx(main["hole_rate_per_layers"][k - 1], abs=1e-3)
+        assert row["hole_rate_representable"] == pytest.approx(main["hole_rate_representable_per_layers"][k - 1],
+                                                               abs=1e-3)
+
+
+def test_derived_proxy_bundle_equals_preprocessing(ci_run, tiny_bundle):
+    """The harness's main bundle (proxies relabeled on the base bundle's depth maps) holds exactly what
+    ``dmrt preprocess`` writes for the same scene and settings."""
+    from dmrt.bundle import read_bundle
+
+    _, set_dir, _ = ci_run
+    derived = read_bundle(_result(set_dir, "table1")["measurements"]["bundle"]["path"])
+    direct = read_bundle(tiny_bundle)
+    assert derived.meta.get("derived_from")
+    for key in ("positions", "normals", "radii", "labels"):
+        np.testing.assert_array_equal(derived.proxy[key], direct.proxy[key], err_msg=key)
+
+
+# ----------------------------------------------------------------------------------------------
+# Failure modes, on hand-made result sets (no GL)
+# ----------------------------------------------------------------------------------------------
+def _table1_payload() -> dict:
+    counts = {"points": 1000, "photos": 4, "proxies": 100, "proxy_levels": 1}
+    return {"experiment": "table1", "version": 1, "date": "2026-01-01T00:00:00+0000", "preset": "ci",
+            "machine": {"gl_renderer": "test GL", "gl_version": "4.5", "cpu": "test CPU", "cpu_cores": 2},
+            "commit": {"hash": "abcdef123456", "date": None, "dirty": False}, "parameters": {},
+            "measurements": {"counts": counts, "depthmap_size": [64, 43], "photo_size": [64, 43],
+                             "phases_s": {"octree_s": 0.5, "labeling_s": 0.25}, "preprocess_total_s": 0.75,
+                             "bundle": {"proxies": 100}}}
+
+
+def _write_set(root: Path, commit: str = "abcdef123456", **files) -> Path:
+    d = root / "test-gl" / f"{commit}-ci"
+    d.mkdir(parents=True)
+    for name, text in files.items():
+        (d / f"{name}.json").write_text(text if isinstance(text, str) else json.dumps(text))
+    return d
+
+
+def test_missing_experiments_show_as_not_run_and_fail_the_check(tmp_path, capsys):
+    from bench.report import build_report
+    from dmrt.cli import main
+
+    _write_set(tmp_path / "results", table1=_table1_payload())
+    r = build_report(tmp_path / "results", tmp_path / "report")
+    assert r.missing == [n for n in REQUIRED_EXPERIMENTS if n != "table1"]
+    md = (tmp_path / "report" / "REPORT.md").read_text()
+    assert md.splitlines()[2].startswith("**INCOMPLETE**")
+    for name in r.missing:
+        assert f"**Not run**: no `{name}.json`" in md
+    assert "| points | 1000 |" in md
+    assert "Not run" in (tmp_path / "report" / "index.html").read_text()
+    # without --check the report is still written and the command succeeds; with it, it fails
+    assert main(["report", str(tmp_path / "results"), "--out", str(tmp_path / "r2")]) == 0
+    with pytest.raises(SystemExit) as exc:
+        main(["report", str(tmp_path / "results"), "--out", str(tmp_path / "r3"), "--check"])
+    assert exc.value.code == 1
+    assert "INCOMPLETE" in capsys.readouterr().err
+
+
+def test_failed_experiment_is_reported_as_failed(tmp_path):
+    from bench.report import build_report
+
+    _write_set(tmp_path / "results", table1=_table1_payload(),
+               **{"fig8.failed": {"experiment": "fig8", "error": "RuntimeError: boom"}})
+    r = build_report(tmp_path / "results", tmp_path / "report")
+    assert r.failed == ["fig8"] and "fig8" in r.missing
+    md = (tmp_path / "report" / "REPORT.md").read_text()
+    assert "**FAILED**: `fig8` raised RuntimeError: boom" in md
+
+
+def test_truncated_result_file_is_a_clear_error_and_keeps_the_old_report(tmp_path, capsys):
+    from bench.report import build_report
+    from dmrt.cli import main
+    from dmrt.errors import InputError
+
+    d = _write_set(tmp_path / "results", table1=_table1_payload())
+    build_report(tmp_path / "results", tmp_path / "report")
+    before = (tmp_path / "report" / "REPORT.md").read_text()
+    text = json.dumps(_table1_payload())
+    (d / "table2.json").write_text(text[: len(text) // 2])
+    with pytest.raises(InputError) as exc:
+        build_report(tmp_path / "results", tmp_path / "report")
+    assert str(d / "table2.json") in str(exc.value) and "not valid JSON" in str(exc.value)
+    assert main(["report", str(tmp_path / "results"), "--out", str(tmp_path / "report")]) == 2
+    assert str(d / "table2.json") in capsys.readouterr().err
+    # the previous report is untouched and no half-built one is left behind
+    assert (tmp_path / "report" / "REPORT.md").read_text() == before
+    assert not (tmp_path / "report.partial").exists()
+    (d / "table2.json").write_text(json.dumps({"experiment": "table2"}))
+    with pytest.raises(InputError, match="field 'version' missing"):
+        build_report(tmp_path / "results", tmp_path / "report")
+
+
+def test_history_of_several_result_sets(ci_run, tmp_path):
+    """Two result sets of one machine and preset: the newest gives the tables, both the history plot."""
+    from bench.report import build_report
+
+    results, set_dir, _ = ci_run
+    copy = tmp_path / "results"
+    shutil.copytree(results, copy)
+    older = copy / set_dir.parent.name / f"000000000000-ci"
+    shutil.copytree(copy / set_dir.parent.name / set_dir.name, older)
+    for f in older.glob("*.json"):
+        r = json.loads(f.read_text())
+        r["date"] = "2000-01-01T00:00:00+0000"
+        r["commit"]["hash"] = "000000000000"
+        f.write_text(json.dumps(r))
+    out = build_report(copy, tmp_path / "report")
+    assert out.result_set.dir.name == set_dir.name
+    md = (tmp_path / "report" / "REPORT.md").read_text()
+    assert "## History" in md and "| 2000-01-01" in md
+    assert (tmp_path / "report" / "figures" / "history.png").stat().st_size > 10_000
+
+
+def test_a_failing_experiment_does_not_stop_the_others(tmp_path, monkeypatch, capsys):
+    """A raising experiment leaves ``<name>.failed.json`` (and no stale result), the next one still runs,
+    and ``dmrt bench`` exits non-zero naming it."""
+    from dataclasses import dataclass
+
+    from bench import experiments
+    from dmrt.cli import main
+
+    @dataclass
+    class NoParams:
+        pass
+
+    def boom(ws, params, out):
+        raise RuntimeError("boom")
+
+    monkeypatch.setitem(experiments.EXPERIMENTS, "boom",
+                        experiments.Experiment("fails", 1, boom, lambda p: NoParams()))
+    monkeypatch.setitem(experiments.EXPERIMENTS, "fine", experiments.Experiment(
+        "works", 1, lambda ws, params, out: {"value": 42}, lambda p: NoParams()))
+    argv = ["bench", "--preset", "ci", "--out", str(tmp_path / "results"), "--work", str(tmp_path / "work"),
+            "--machine", "test-machine", "--quiet", "--only", "boom", "fine"]
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert "boom" in str(exc.value.code)
+    (set_dir,) = (tmp_path / "results" / "test-machine").glob("*-ci")
+    assert json.loads((set_dir / "boom.failed.json").read_text())["error"] == "RuntimeError: boom"
+    assert not (set_dir / "boom.json").exists()
+    fine = json.loads((set_dir / "fine.json").read_text())
+    assert fine["measurements"] == {"value": 42} and fine["preset_config"]["name"] == "ci"
+    assert fine["machine"]["name"] == "test-machine"
