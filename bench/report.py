@@ -416,7 +416,10 @@ def table3_rows(m: dict) -> tuple[list[dict], dict]:
                      "paper fps min/avg/max": pp and "/".join(map(str, pp["fps"])),
                      "avg fps DMRT / DMT": d.get("fps_ratio_dmrt_over_dmt", {}).get(str(e["width"])),
                      "paper DMRT / DMT": pp and _ratio(pd_["fps"][1], pp["fps"][1]),
-                     "note": "labels cached" if e["labeling"].get("cached") else None})
+                     "note": "; ".join(x for x in (
+                         "labels cached" if e["labeling"].get("cached") else None,
+                         "winner-take-all labels: labeling time not comparable" if d.get("labeler") == "wta" else None)
+                         if x) or None})
         per_frame[f"DMT {e['size'][0]}x{e['size'][1]}"] = e["fps_per_frame"]
     fps = dmrt["fps_min_avg_max"]
     rows.append({"method": f"DMRT ({dmrt['layers']} layers)", "paper row": "DMRT 1024x684, 1M proxies, 5 layers",
