@@ -140,8 +140,11 @@ def machine_info() -> dict:
 
 def commit_info(repo: Path | None = None) -> dict:
     """``hash`` (12 hex digits, "unknown" outside a git checkout), ``date`` (commit time, ISO) and
-    ``dirty`` (uncommitted changes to tracked files)."""
+    ``dirty`` (uncommitted changes to tracked files). ``DMRT_COMMIT`` in the environment overrides
+    the hash (a copy of the tree without its git history, e.g. on a rented GPU machine)."""
     repo = repo or Path(__file__).resolve().parent.parent
+    if os.environ.get("DMRT_COMMIT"):
+        return {"hash": os.environ["DMRT_COMMIT"][:12], "date": None, "dirty": None}
 
     def git(*args):
         return subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, timeout=30,

@@ -59,6 +59,10 @@ uniform float u_threshold;  // metres
 #define RAYTRACE 1
 #endif
 
+#ifndef MAX_RESUMES
+#define MAX_RESUMES 2
+#endif
+
 #ifndef STATISTICS
 #define STATISTICS 0
 #endif
@@ -146,7 +150,8 @@ bool refine(int l, vec3 C, vec3 dir, float sa, float fa, float sb, float fb, out
 // Search D_l along the ray C + s * dir (s = camera z) from s0. True with s_hit and the unit world
 // normal n on a valid intersection. The paper's search ends at the first enclosed interval; with
 // SECANT an interval that fails (a sign change across a depth edge of D_l, not a surface, or a
-// hit that fails the discontinuity test) resumes the search beyond it, within the same step budget.
+// hit that fails the discontinuity test) resumes the search beyond it, at most MAX_RESUMES times
+// (a pixel that no depth-map surface covers would otherwise spend every step of the budget).
 bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int iters, out float s_hit,
            out vec3 n) {
     s_hit = 0.0;
@@ -157,12 +162,14 @@ bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int i
     if (!ok) return false;
     float sp = s, fp = f;
     bool restart = true;  // the next step is the paper's (no previous sample for a secant)
+    int resumes = 0;
     for (int i = 0; i < u_max_steps; ++i) {
         iters++;
         if (abs(f) <= CONVERGED * s) {  // on the surface: no interval to refine
             s_hit = s;
             if (valid_hit(l, C, dir, dlen, s_hit, n)) return true;
 #if SECANT
+            if (++resumes > MAX_RESUMES) return false;
             // nudge past the edge point: a texel beyond it along the ray
             float sn = s * (1.0 + 1e-3);
             f = signed_distance(l, C + sn * dir, ok);
@@ -200,6 +207,7 @@ bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int i
         if ((fn > 0.0) != (f > 0.0)) {  // enclosed
             if (refine(l, C, dir, s, f, sn, fn, s_hit) && valid_hit(l, C, dir, dlen, s_hit, n)) return true;
 #if SECANT
+            if (++resumes > MAX_RESUMES) return false;
             restart = true;  // resume beyond the interval
 #else
             return false;
