@@ -15,6 +15,8 @@ Keys (names as :meth:`Viewer.key` takes them; the README lists them too)::
     m            method (dmrt, splats, dmt)            [ ]    fewer / more layers (1..11)
     b            buffer shown (BUFFERS)                l      leveling on / off
     r            record a camera path (again: save)    f12    screenshot    h  overlay
+    o            orbit around the surface point at the image centre (drag / arrows orbit,
+                 w s move toward / away from it; o again: fly)
 
 Recorded paths are :func:`dmrt.walkthrough.save_path` files: ``dmrt render BUNDLE --path FILE
 --out DIR`` replays them (one PNG per frame and each frame's stage timings).
@@ -264,6 +266,7 @@ class Viewer:
         self.speed = config.speed if config.speed is not None else 0.1 * diagonal
         self.up = scene_up(bundle.cameras)
         self.held: set[str] = set()
+        self.pivot: np.ndarray | None = None  # orbit centre (world), None = fly
         self.message = ""  # the last switch or file written, shown in the overlay
         self.jump_to_photo(config.photo)
         if config.fov is not None:
@@ -319,6 +322,29 @@ class Viewer:
         u, _, vt = np.linalg.svd(R)  # keep it a rotation as turns accumulate rounding
         self.R = u @ vt
 
+    def orbit(self, yaw: float, pitch: float) -> None:
+        """Turn as :meth:`turn` does and move the camera on the sphere around :attr:`pivot`, so
+        that the pivot keeps its place in the image and its distance."""
+        offset = self.R @ (self.position - self.pivot)  # camera coordinates: kept
+        self.turn(yaw, pitch)
+        self.position = self.pivot + self.R.T @ offset
+
+    def toggle_orbit(self) -> None:
+        """Orbit around the surface point at the image centre (of the last frame; else a point
+        ``speed`` metres ahead), or back to flying."""
+        if self.pivot is not None:
+            self.pivot = None
+            self.message = "fly"
+            return
+        distance = self.speed
+        if self.frame is not None:
+            h, w = self.frame["depth"].shape
+            z = float(self.frame["depth"][h // 2, w // 2])
+            if z > 0:  # camera z of the centre pixel, on the optical axis
+                distance = z
+        self.pivot = self.position + distance * self.R[2]
+        self.message = f"orbit around a point {distance:.2f} m ahead"
+
     def zoom(self, steps: float) -> None:
         """Narrow (steps > 0) or widen the field of view by 10 % per step, within 5..150 degrees."""
         self.fov = float(np.clip(self.fov * 0.9 ** steps, 5.0, 150.0))
@@ -357,12 +383,15 @@ class Viewer:
             self.screenshot()
         elif name == "h":
             self.overlay = not self.overlay
+        elif name == "o":
+            self.toggle_orbit()
         elif name in ("+", "-"):
             self.zoom(1 if name == "+" else -1)
 
     def drag(self, dx: float, dy: float) -> None:
-        """Mouse drag by (dx, dy) window pixels (y down): look right / down, as in a game."""
-        self.turn(dx * self.config.drag_degrees, -dy * self.config.drag_degrees)
+        """Mouse drag by (dx, dy) window pixels (y down): look right / down, as in a game (orbiting:
+        circle the pivot the same way)."""
+        (self.turn if self.pivot is None else self.orbit)(dx * self.config.drag_degrees, -dy * self.config.drag_degrees)
 
     def scroll(self, dy: float) -> None:
         """Mouse wheel: up narrows the field of view."""
@@ -375,10 +404,16 @@ class Viewer:
         if move.any():
             speed = self.speed * (4.0 if "shift" in self.held else 1.0)
             right, up, forward = move
-            self.position = self.position + dt * speed * (right * self.R[0] + up * self.up + forward * self.R[2])
+            if self.pivot is not None:  # orbiting: w / s along the line to the pivot, not past it
+                to_pivot = self.pivot - self.position
+                step = min(dt * speed * forward, 0.9 * float(np.linalg.norm(to_pivot)))
+                self.position = self.position + step * to_pivot / np.linalg.norm(to_pivot)
+            else:
+                self.position = self.position + dt * speed * (right * self.R[0] + up * self.up + forward * self.R[2])
         turn = sum((np.array(TURN_KEYS[k]) for k in self.held if k in TURN_KEYS), np.zeros(2))
         if turn.any():
-            self.turn(turn[0] * self.config.turn_rate * dt, turn[1] * self.config.turn_rate * dt)
+            (self.turn if self.pivot is None else self.orbit)(turn[0] * self.config.turn_rate * dt,
+                                                              turn[1] * self.config.turn_rate * dt)
 
     def resize(self, width: int, height: int) -> None:
         """Render frames of ``width`` x ``height`` pixels from now on."""

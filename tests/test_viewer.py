@@ -159,6 +159,39 @@ def test_scripted_session(tiny_bundle, ctx, tmp_path):
     v.close()
 
 
+def test_orbit(tiny_bundle, ctx, tmp_path):
+    """``o`` orbits around the surface point at the image centre: dragging and the arrow keys move
+    the camera on a sphere around it (the point stays at the image centre, at the same distance,
+    and the frame still sees the surface there), w comes closer without passing it; ``o`` again
+    flies."""
+    v = make_viewer(tiny_bundle, tmp_path)
+    v.render()
+    z0 = centre_depth(v.frame)
+    v.key("o")
+    pivot = v.pivot.copy()
+    assert np.allclose(pivot, v.position + v.frame["depth"][H // 2, W // 2] * v.R[2])
+    start = v.position.copy()
+    v.drag(60, -20)
+    v.key("right")
+    v.step(0.5)
+    v.key("right", pressed=False)
+    assert np.linalg.norm(v.position - start) > 0.1 * z0  # the camera moved around
+    assert abs(np.linalg.norm(v.position - pivot) - np.linalg.norm(start - pivot)) < 1e-9
+    uv, z = v.camera.project(pivot[None])
+    assert np.allclose(uv[0], (W / 2, H / 2), atol=1e-6)
+    v.render()
+    # the surface point is still on the optical axis (3x3 median; 5 cm: a slanted surface)
+    assert abs(centre_depth(v.frame) - z[0]) < 0.05
+    d0 = np.linalg.norm(v.position - pivot)
+    v.key("w")
+    v.step(100.0)  # far more than the distance: stops short of the pivot
+    v.key("w", pressed=False)
+    assert 0 < np.linalg.norm(v.position - pivot) < d0
+    v.key("o")
+    assert v.pivot is None
+    v.close()
+
+
 def test_window_app_headless(tiny_bundle, ctx, tmp_path):
     """The moderngl-window path: a headless window on the shared context, events forwarded."""
     from dmrt.viewer_window import create_app, run_app
