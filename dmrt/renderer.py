@@ -34,7 +34,6 @@ Everything on the GPU is relative to the bundle's scene origin (float32 keeps mi
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import moderngl
@@ -48,7 +47,7 @@ from dmrt.gl.context import get_context
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.leveling import ScreenLeveler
-from dmrt.texturing import ImageCache
+from dmrt.texturing import ImageCache, texture_frame
 from dmrt.visibility import EMPTY_BITS, EMPTY_LABEL, ProxySplats, VisibilityStage, groups
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
@@ -229,7 +228,6 @@ class Renderer:
                                        "STATISTICS": int(self.config.statistics)})
         self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
         self._histogram = load_program(self.ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
-        self._texturing = load_program(self.ctx, "dmrt_texturing")
         self.counts = self.ctx.buffer(reserve=4 * n)
         self.step_stats = self.ctx.buffer(reserve=16 * self.config.layers * STEP_BINS) if self.config.statistics else None
         c = self.config
@@ -343,26 +341,9 @@ class Renderer:
             set_uniforms(self._histogram, u_count=npix)
             self._histogram.run(groups(npix, 64 * 64))
             ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        t0 = time.perf_counter()
-        counts = np.frombuffer(self.counts.read(), np.uint32)
-        t1 = time.perf_counter()
-        with timer.section("image_management"):
-            self.images.update(counts)
-        t2 = time.perf_counter()
-        self.label_counts = counts.copy()
-
-        with timer.section("texturing"):
-            b["hits"].bind_to_storage_buffer(4)
-            self.photos.bind_to_storage_buffer(5)
-            self.images.slots.bind_to_storage_buffer(6)
-            b["colors"].bind_to_storage_buffer(7)
-            self.images.low.use(1)
-            self.images.high.use(2)
-            set_uniforms(self._texturing, u_low=1, u_high=2, u_low_dims=self.images.low_dims,
-                         u_high_dims=(self.images.high.width, self.images.high.height), **cam_uniforms)
-            self._texturing.run(*grid)
-            ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT | _BARRIER)
-        cpu_ms = {"label_readback": (t1 - t0) * 1e3, "image_management": (t2 - t1) * 1e3}
+        counts, cpu_ms = texture_frame(ctx, timer, self.images, self.counts, b["hits"], b["colors"], self.photos,
+                                       cam_uniforms)
+        self.label_counts = counts
         if self.leveler is not None:
             cpu_ms["leveling"] = self.leveler.run(timer, b["hits"], b["colors"], self.photos, self.images,
                                                   self.depthmaps, cam_uniforms, counts)

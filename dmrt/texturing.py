@@ -176,3 +176,51 @@ class ImageCache:
             self._pool.shutdown(wait=True, cancel_futures=True)
         for obj in (self.low, self.high, self.slots):
             obj.release()
+
+
+def texture_frame(ctx, timer, images: ImageCache, label_counts, hits, colors, photos, cam_uniforms: dict) -> tuple:
+    """Image management after the label histogram, then the texturing pass; shared by the DMRT and
+    DMT renderers (both write the ``Hit`` records of ``shaders/dmrt_frame.glsl``).
+
+    Parameters
+    ----------
+    ctx : moderngl.Context
+    timer : dmrt.gl.GpuTimer, sections ``image_management`` (uploads) and ``texturing``
+    images : ImageCache
+    label_counts : moderngl.Buffer, (n_photos,) uint32 pixels per label, counted on the GPU
+    hits, colors : moderngl.Buffer, the frame's ``Hit`` records and packed RGBA8 colours (written)
+    photos : moderngl.Buffer, the ``Photo`` records (``dmrt.renderer.photo_params``)
+    cam_uniforms : dict, ``u_R, u_t, u_K, u_size`` of the frame
+
+    Returns
+    -------
+    counts : (n_photos,) uint32, the histogram read back
+    cpu_ms : dict, ``label_readback`` (wall ms waiting for the GPU to finish the frame so far) and
+        ``image_management`` (wall ms choosing, decoding and uploading photos)
+    """
+    import time
+
+    import moderngl
+
+    from dmrt.gl.shaders import load_program, set_uniforms
+
+    t0 = time.perf_counter()
+    counts = np.frombuffer(label_counts.read(), np.uint32).copy()
+    t1 = time.perf_counter()
+    with timer.section("image_management"):
+        images.update(counts)
+    t2 = time.perf_counter()
+    w, h = cam_uniforms["u_size"]
+    program = load_program(ctx, "dmrt_texturing")
+    with timer.section("texturing"):
+        hits.bind_to_storage_buffer(4)
+        photos.bind_to_storage_buffer(5)
+        images.slots.bind_to_storage_buffer(6)
+        colors.bind_to_storage_buffer(7)
+        images.low.use(1)
+        images.high.use(2)
+        set_uniforms(program, u_low=1, u_high=2, u_low_dims=images.low_dims,
+                     u_high_dims=(images.high.width, images.high.height), **cam_uniforms)
+        program.run(-(-w // 8), -(-h // 8))
+        ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
+    return counts, {"label_readback": (t1 - t0) * 1e3, "image_management": (t2 - t1) * 1e3}

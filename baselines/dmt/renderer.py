@@ -36,7 +36,6 @@ Usage::
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import moderngl
@@ -52,7 +51,7 @@ from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.leveling import ScreenLeveler
 from dmrt.renderer import HIT_DTYPE, photo_params
-from dmrt.texturing import ImageCache
+from dmrt.texturing import ImageCache, texture_frame
 
 STAGES = ("culling", "rasterization", "stitching", "image_management", "texturing", "leveling")
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
@@ -193,7 +192,6 @@ class DMTRenderer:
         self._resolve = load_program(ctx, "dmt_resolve")
         self._fill = load_program(ctx, "fill_u32")
         self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
-        self._texturing = load_program(ctx, "dmrt_texturing")
         # seam visibility tolerance: within a few DMT texels (a coarse map's surface is further off)
         self.leveler = ScreenLeveler(ctx, n, cfg.leveling_min_samples, cfg.leveling_max_gain,
                                      cfg.discontinuity_threshold, cfg.epsilon) if cfg.leveling else None
@@ -305,26 +303,9 @@ class DMTRenderer:
             set_uniforms(self._histogram, u_count=w * h)
             self._histogram.run(_groups(w * h, 64 * 64))
             ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        t0 = time.perf_counter()
-        counts = np.frombuffer(self.counts.read(), np.uint32)
-        t1 = time.perf_counter()
-        with timer.section("image_management"):
-            self.images.update(counts)
-        t2 = time.perf_counter()
-        self.label_counts = counts.copy()
-
-        with timer.section("texturing"):
-            fb["hits"].bind_to_storage_buffer(4)
-            self.photos.bind_to_storage_buffer(5)
-            self.images.slots.bind_to_storage_buffer(6)
-            fb["colors"].bind_to_storage_buffer(7)
-            self.images.low.use(1)
-            self.images.high.use(2)
-            set_uniforms(self._texturing, u_low=1, u_high=2, u_low_dims=self.images.low_dims,
-                         u_high_dims=(self.images.high.width, self.images.high.height), **cam_uniforms)
-            self._texturing.run(_groups(w, 8), _groups(h, 8))
-            ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT | _BARRIER)
-        cpu_ms = {"label_readback": (t1 - t0) * 1e3, "image_management": (t2 - t1) * 1e3}
+        counts, cpu_ms = texture_frame(ctx, timer, self.images, self.counts, fb["hits"], fb["colors"], self.photos,
+                                       cam_uniforms)
+        self.label_counts = counts
         if self.leveler is not None:
             cpu_ms["leveling"] = self.leveler.run(timer, fb["hits"], fb["colors"], self.photos, self.images,
                                                   self.depthmaps, cam_uniforms, counts)
