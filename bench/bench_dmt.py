@@ -160,7 +160,7 @@ def main(argv=None) -> None:
     p.add_argument("--frames", type=int, default=60, help="walkthrough frames")
     p.add_argument("--width", type=int, default=1280)
     p.add_argument("--height", type=int, default=720)
-    p.add_argument("--labeler", choices=["graphcut", "wta"], default="graphcut")
+    p.add_argument("--labeler", choices=["graphcut", "wta", "own"], default="graphcut")
     p.add_argument("--layers", type=int, default=5, help="DMRT label layers")
     p.add_argument("--warmup", type=int, default=5)
     p.add_argument("--path", type=Path, help="camera path JSON (dmrt path) instead of the default walkthrough")

@@ -418,7 +418,8 @@ def table3_rows(m: dict) -> tuple[list[dict], dict]:
                      "paper DMRT / DMT": pp and _ratio(pd_["fps"][1], pp["fps"][1]),
                      "note": "; ".join(x for x in (
                          "labels cached" if e["labeling"].get("cached") else None,
-                         "winner-take-all labels: labeling time not comparable" if d.get("labeler") == "wta" else None)
+                         f"{d.get('labeler')} labels: labeling time not comparable"
+                         if d.get("labeler") in ("wta", "own") else None)
                          if x) or None})
         per_frame[f"DMT {e['size'][0]}x{e['size'][1]}"] = e["fps_per_frame"]
     fps = dmrt["fps_min_avg_max"]

@@ -299,9 +299,9 @@ def build_parser() -> argparse.ArgumentParser:
     ren.add_argument("--dmt-resolution", type=int, metavar="W",
                      help="DMT depth-map width (default: the bundle's); labels computed and cached on first use")
     ren.add_argument("--dmt-epsilon", type=float, help="DMT stitching threshold, metres (default 0.05)")
-    ren.add_argument("--dmt-labeler", choices=["graphcut", "wta"],
-                     help="DMT labels: graph cut per depth map (default; cached in BUNDLE/dmt/<W>/) or "
-                          "winner-take-all")
+    ren.add_argument("--dmt-labeler", choices=["graphcut", "wta", "own"],
+                     help="DMT labels: graph cut per depth map (default; cached in BUNDLE/dmt/<W>/), "
+                          "winner-take-all, or each map's own photo (no labeling)")
     ren.add_argument("--out", type=Path, required=True, help="frame file, .png (colour) or .exr (all buffers)")
     ren.add_argument("--stats", type=Path, help="write per-stage GPU ms and statistics as JSON")
     ren.add_argument("--dump-stages", type=Path, metavar="DIR",

@@ -550,3 +550,15 @@ def test_leveling_balances_photo_exposures(ctx, bundle, tiny_scene):
     finally:
         leveler.release()
         plain_dmt.release()
+
+
+def test_own_photo_labeler(bundle):
+    """The "own" labeler (frame-rate runs): every non-empty texel of map i carries photo i."""
+    from baselines.dmt import DMTLabelingConfig, dmt_labels
+    from baselines.dmt.geometry import load_depth_map
+
+    labels, meta = dmt_labels(bundle, 64, DMTLabelingConfig(labeler="own"), progress=False)
+    for i, lab in enumerate(labels):
+        depth = load_depth_map(bundle, i, 64)
+        np.testing.assert_array_equal(lab, np.where(depth > 0, i, -1))
+    assert meta["labeler"] == "own"

@@ -10,8 +10,10 @@ jumps larger than the discontinuity threshold; :func:`dmrt.labeling.alpha_expans
 Labeling time therefore grows with the number of texels (paper Table 3: 7 / 23 / 87 min at
 256 / 512 / 1024 wide), where DMRT labels a fixed set of proxies.
 
-A cheap labeler (``"wta"``, winner-take-all on the same data costs, no graph cut) exists for
-frame-rate benchmarks on large scenes: rendering cost does not depend on the labels.
+Cheap labelers exist for frame-rate benchmarks on large scenes, where rendering cost does not
+depend on the labels: ``"wta"`` (winner-take-all on the same data costs, no graph cut) and
+``"own"`` (no labeling: every texel textured by its own depth map's photo, which sees it by
+construction; seconds for any scene).
 
 Cache (inside the bundle, per resolution and labeler)::
 
@@ -46,7 +48,7 @@ from dmrt.preprocess import PreprocessConfig, find_candidates
 
 SCHEMA = "dmrt-dmt-labels"
 SCHEMA_VERSION = 1
-LABELERS = ("graphcut", "wta")
+LABELERS = ("graphcut", "wta", "own")
 
 
 @dataclass
@@ -54,7 +56,8 @@ class DMTLabelingConfig:
     """How DMT labels its depth maps (lengths in metres)."""
 
     # "graphcut": alpha-expansion per depth map (DMT's; the default and what timing comparisons
-    # use). "wta": winner-take-all on the same data costs (fast; for frame-rate runs only).
+    # use). "wta": winner-take-all on the same data costs; "own": each map's own photo (both for
+    # frame-rate runs only).
     labeler: str = "graphcut"
     # Texel pairs whose depths differ by more than this are no graph edge (paper: 20 cm, as at runtime).
     discontinuity_threshold: float = 0.20
@@ -135,7 +138,7 @@ def label_depth_map(bundle, i: int, depth: np.ndarray, stored_depth, photos, ene
     stored_depth, photos : callables ``j -> (H, W) float32`` stored depth map / ``j -> (H, W, 3) uint8``
         full-resolution photo (the occlusion test and the candidates' colours).
     energy, occlusion : configurations (:func:`resolve_config`).
-    labeler : "graphcut" or "wta".
+    labeler : "graphcut", "wta" or "own".
     threshold : float, metres: no graph edge (and no normal tangent) across a larger depth jump.
     radius : float, metres, splat radius of the scan (the occlusion tolerance's first term);
         None = a coarse texel's footprint per point.
@@ -158,6 +161,10 @@ def label_depth_map(bundle, i: int, depth: np.ndarray, stored_depth, photos, ene
     stats = {"texels": int(valid.sum()), "edges": 0, "candidates_mean": 0.0, "energy_per_sweep": [],
              "photos_tested": 0, "candidates_s": 0.0, "costs_s": 0.0, "cut_s": 0.0}
     if not valid.any():
+        return labels.reshape(h, w), stats
+    if labeler == "own":
+        labels[valid] = i
+        stats["cut_s"] = time.perf_counter() - t0
         return labels.reshape(h, w), stats
     # only photos whose frustum meets this map's bounding box can see any of its points
     box = bounding_box(pts)[None]
