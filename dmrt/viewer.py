@@ -17,6 +17,7 @@ Keys (names as :meth:`Viewer.key` takes them; the README lists them too)::
     r            record a camera path (again: save)    f12    screenshot    h  overlay
     o            orbit around the surface point at the image centre (drag / arrows orbit,
                  w s move toward / away from it; o again: fly)
+    p            proxy set: the k coarsest octree levels of the bundle's proxies, k = K, K-1, .., 1
 
 Recorded paths are :func:`dmrt.walkthrough.save_path` files: ``dmrt render BUNDLE --path FILE
 --out DIR`` replays them (one PNG per frame and each frame's stage timings).
@@ -128,15 +129,6 @@ class Method:
     uses_leveling: bool
 
 
-def _accepts(cls, **kwargs) -> bool:
-    """Whether ``cls(**kwargs)`` constructs (features still being built raise on their switch)."""
-    try:
-        cls(**kwargs)
-    except (TypeError, ValueError, NotImplementedError):
-        return False
-    return True
-
-
 def _make_dmrt(bundle, config, ctx):
     return Renderer(bundle, config, ctx)
 
@@ -161,21 +153,10 @@ def _make_dmt(bundle, config, ctx):
 
 
 def available_methods() -> dict[str, Method]:
-    """The methods this installation can show: ``dmrt`` always, ``splats`` when
-    :class:`RenderConfig` has the ``raytrace`` switch, ``dmt`` when :mod:`baselines.dmt` exposes
-    ``DMTRenderer``."""
-    level = _accepts(RenderConfig, leveling=True)
-    methods = {"dmrt": Method("dmrt", _make_dmrt, True, level)}
-    if "raytrace" in {f.name for f in dataclasses.fields(RenderConfig)}:
-        methods["splats"] = Method("splats", _make_splats, True, level)
-    try:
-        from baselines.dmt import DMTConfig, DMTRenderer  # noqa: F401 (availability check)
-    except ImportError:
-        pass
-    else:
-        has_level = "leveling" in {f.name for f in dataclasses.fields(DMTConfig)}
-        methods["dmt"] = Method("dmt", _make_dmt, False, has_level and _accepts(DMTConfig, leveling=True))
-    return methods
+    """The methods the viewer switches between: DMRT, its coarse-splats ablation and DMT."""
+    return {"dmrt": Method("dmrt", _make_dmrt, True, True),
+            "splats": Method("splats", _make_splats, True, True),
+            "dmt": Method("dmt", _make_dmt, False, True)}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -267,6 +248,9 @@ class Viewer:
         self.up = scene_up(bundle.cameras)
         self.held: set[str] = set()
         self.pivot: np.ndarray | None = None  # orbit centre (world), None = fly
+        self.max_proxy_levels = int(bundle.meta.get("counts", {}).get("proxy_levels", 1))
+        self.proxy_levels = self.max_proxy_levels
+        self._proxy_bundles: dict[int, Bundle] = {self.max_proxy_levels: bundle}
         self.message = ""  # the last switch or file written, shown in the overlay
         self.jump_to_photo(config.photo)
         if config.fov is not None:
@@ -385,6 +369,8 @@ class Viewer:
             self.overlay = not self.overlay
         elif name == "o":
             self.toggle_orbit()
+        elif name == "p":
+            self.set_proxy_levels(self.proxy_levels - 1 if self.proxy_levels > 1 else self.max_proxy_levels)
         elif name in ("+", "-"):
             self.zoom(1 if name == "+" else -1)
 
@@ -428,6 +414,28 @@ class Viewer:
             self.leveling = False
         self.message = f"method {name}"
 
+    def set_proxy_levels(self, k: int) -> None:
+        """Render with the proxy set of the ``k`` coarsest octree levels (1..the bundle's)."""
+        self.proxy_levels = int(np.clip(k, 1, self.max_proxy_levels))
+        n = len(self.proxy_bundle().proxy["positions"])
+        self.message = f"proxies: {self.proxy_levels} octree levels, {n} points"
+
+    def proxy_bundle(self) -> Bundle:
+        """The bundle with the current proxy set. The bundle stores P_LD coarsest level first, so
+        the k coarsest levels are a prefix of it; their splat radii come from their own density,
+        as preprocessing computes them (a sparser set needs larger discs), their labels stay."""
+        k = self.proxy_levels
+        if k not in self._proxy_bundles:
+            from dmrt.normals import splat_radii
+            from dmrt.preprocess import PreprocessConfig
+
+            n = int(sum(self.bundle.meta["counts"]["octree_level_counts"][:k]))
+            pre = {**dataclasses.asdict(PreprocessConfig()), **self.bundle.meta.get("parameters", {}).get("preprocess", {})}
+            proxy = {name: np.asarray(a)[:n] for name, a in self.bundle.proxy.items()}
+            proxy["radii"] = splat_radii(proxy["positions"], k=pre["radius_k"], scale=pre["radius_scale"])
+            self._proxy_bundles[k] = dataclasses.replace(self.bundle, _proxy=proxy)
+        return self._proxy_bundles[k]
+
     def set_layers(self, k: int) -> None:
         self.layers = int(np.clip(k, 1, MAX_LAYERS))
         self.message = f"{self.layers} layers"
@@ -456,7 +464,8 @@ class Viewer:
         """The renderer for the current method / layers / leveling, built on first use; the
         least recently used one is released when more than ``max_renderers`` would be alive."""
         method = self.methods[self.method]
-        key = (method.name, self.layers if method.uses_layers else None, self.leveling if method.uses_leveling else None)
+        key = (method.name, self.layers if method.uses_layers else None, self.leveling if method.uses_leveling else None,
+               self.proxy_levels if method.uses_layers else None)
         if key in self._renderers:
             self._renderers.move_to_end(key)
             return self._renderers[key]
@@ -465,7 +474,7 @@ class Viewer:
             if hasattr(old, "release"):
                 old.release()
         config = dataclasses.replace(self.render_config, layers=self.layers, leveling=self.leveling)
-        self._renderers[key] = method.make(self.bundle, config, self.ctx)
+        self._renderers[key] = method.make(self.proxy_bundle() if method.uses_layers else self.bundle, config, self.ctx)
         return self._renderers[key]
 
     # -- recording and screenshots ----------------------------------------------------------
@@ -578,7 +587,7 @@ class Viewer:
         """The overlay's lines (the window title shows the first)."""
         method = self.methods[self.method]
         level = ("on" if self.leveling else "off") if method.uses_leveling else "n/a"
-        layers = f"{self.layers} layers  " if method.uses_layers else ""
+        layers = f"{self.layers} layers  {self.proxy_levels}/{self.max_proxy_levels} proxy levels  " if method.uses_layers else ""
         lines = [f"{self.method}  {layers}{self._shown}  leveling {level}"
                  + (f"  REC {len(self.recorded)}" if self.recording else ""),
                  f"{self.fps:.1f} fps  {self.frame_ms:.1f} ms/frame  fov {self.fov:.0f} deg"]

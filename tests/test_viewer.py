@@ -290,3 +290,29 @@ def test_pyglet_window_keys(tiny_bundle, display):
     assert run.returncode == 0, run.stderr
     out = json.loads(run.stdout.strip().splitlines()[-1])
     assert abs(out["moved"] - 0.5) < 1e-6 and out == {**out, "buffer": "depth", "layers": 3, "photo": 2}
+
+
+def test_proxy_set_switch(tiny_scene, ctx, tmp_path):
+    """``p`` switches the proxy set between the k coarsest octree levels of a bundle preprocessed
+    with two: the coarser set is the first level's points (their labels kept, radii from their
+    own, sparser density: larger), the frame changes, and ``p`` again returns to both levels."""
+    from dmrt.preprocess import PreprocessConfig, preprocess
+
+    path = preprocess(tiny_scene, tmp_path / "two-levels", PreprocessConfig(depthmap_width=128, proxy_levels=2),
+                      progress=False)
+    v = make_viewer(path, tmp_path)
+    full = v.bundle.proxy
+    assert v.max_proxy_levels == v.proxy_levels == 2
+    fine = v.render().copy()
+    v.key("p")
+    assert v.proxy_levels == 1
+    coarse = v.proxy_bundle().proxy
+    n = v.bundle.meta["counts"]["octree_level_counts"][0]
+    assert len(coarse["positions"]) == n < len(full["positions"])
+    np.testing.assert_array_equal(coarse["labels"], full["labels"][:n])
+    assert np.median(coarse["radii"] / full["radii"][:n]) > 1.2
+    assert v.renderer().splats.n == int((coarse["labels"] >= 0).sum())
+    assert np.mean(np.any(v.render() != fine, axis=-1)) > 0.01
+    v.key("p")
+    assert v.proxy_levels == 2 and v.renderer().splats.n == int((full["labels"] >= 0).sum())
+    v.close()
