@@ -76,6 +76,9 @@ class RenderConfig:
     # Iterative search: "adaptive" (paper: every step is h, the signed distance along the line to
     # the photo's centre) or "secant" (h first, then secant steps along the pixel ray).
     search: str = "secant"
+    # Addition to the paper: passes in which a pixel the layers left without a surface searches
+    # the depth maps of its neighbours' hits (shaders/dmrt_raytrace.glsl, FILL); 0 = the paper.
+    fill_passes: int = 2
     # Visibility stage: "kbuffer" (all layers from one splat pass: a per-pixel list of the nearest
     # fragments; 4x faster than peeling for 5 layers on an H200), "compute" (depth peeling by
     # atomicMin splatting, one pass per layer) or "raster" (the paper's GL_POINTS with depth
@@ -125,8 +128,8 @@ class RenderConfig:
     max_thread_pixels: int = 256
 
     def __post_init__(self):
-        if self.layers < 1 or self.max_steps < 1 or self.binary_steps < 0:
-            raise ValueError("RenderConfig: layers and max_steps must be >= 1, binary_steps >= 0")
+        if self.layers < 1 or self.max_steps < 1 or self.binary_steps < 0 or self.fill_passes < 0:
+            raise ValueError("RenderConfig: layers and max_steps must be >= 1, binary_steps and fill_passes >= 0")
         if self.discontinuity_test not in ("quad", "triangle"):
             raise ValueError(f"RenderConfig.discontinuity_test must be 'quad' or 'triangle', "
                              f"not {self.discontinuity_test!r}")
@@ -221,11 +224,11 @@ class Renderer:
         self.splats = ProxySplats(self.ctx, bundle.proxy, self.config.max_thread_pixels)
         self.visibility = VisibilityStage(self.ctx, self.splats, self.config.method, self.int64,
                                           self.config.kbuffer_slots or 6 * self.config.layers + 2, n)
-        self._raytrace = load_program(self.ctx, "dmrt_raytrace",
-                                      {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
-                                       "SECANT": int(self.config.search == "secant"),
-                                       "RAYTRACE": int(self.config.raytrace),
-                                       "STATISTICS": int(self.config.statistics)})
+        defines = {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
+                   "SECANT": int(self.config.search == "secant"), "RAYTRACE": int(self.config.raytrace),
+                   "STATISTICS": int(self.config.statistics)}
+        self._raytrace = load_program(self.ctx, "dmrt_raytrace", defines)
+        self._fill = load_program(self.ctx, "dmrt_raytrace", {**defines, "FILL": 1})
         self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
         self._histogram = load_program(self.ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
         self.counts = self.ctx.buffer(reserve=4 * n)
@@ -310,6 +313,12 @@ class Renderer:
                          u_depthmaps=0, **cam_uniforms)
             self._raytrace.run(*grid)
             ctx.memory_barrier(_BARRIER)
+            for fill_pass in range(cfg.fill_passes if cfg.raytrace else 0):
+                set_uniforms(self._fill, u_pass=fill_pass, u_layers=cfg.layers, u_max_steps=cfg.max_steps,
+                             u_binary_steps=cfg.binary_steps, u_threshold=float(cfg.discontinuity_threshold),
+                             u_depthmaps=0, **cam_uniforms)
+                self._fill.run(*grid)
+                ctx.memory_barrier(_BARRIER)
 
         with timer.section("labeling"):
             self.visibility.fill(b["key"], EMPTY_BITS, 2 * npix if self.int64 else npix)

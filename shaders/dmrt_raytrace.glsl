@@ -67,6 +67,10 @@ uniform float u_threshold;  // metres
 #define STATISTICS 0
 #endif
 
+#ifndef FILL
+#define FILL 0
+#endif
+
 #if STATISTICS
 #define STEP_BINS 32
 // per (layer, step index) four words: count, sum of lengths in 10 um units (low word, high word), 0;
@@ -201,7 +205,7 @@ bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int i
         }
 #endif
 #if STATISTICS
-        record_step(layer, i, abs(sn - s) * dlen);
+        if (layer >= 0) record_step(layer, i, abs(sn - s) * dlen);
 #endif
         if (!ok) return false;
         if ((fn > 0.0) != (f > 0.0)) {  // enclosed
@@ -220,6 +224,42 @@ bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int i
     return false;
 }
 
+#if FILL
+// Hole filling (an addition to the paper; RenderConfig.fill_passes): a pixel that a splat covers
+// but whose layers gave no surface searches the depth maps of its 8 neighbours' hits, starting
+// at their depths, and takes a hit within u_threshold of that neighbour's depth (the same
+// surface: a hit further away is another surface the neighbour's photo sees, often wrongly). Pass u_pass reads only hits found before it (layer < u_layers + u_pass), so the
+// result does not depend on the order in which threads run; a pixel filled here gets the layer
+// index u_layers + u_pass.
+uniform int u_pass;
+
+void main() {
+    ivec2 p = ivec2(gl_GlobalInvocationID.xy);
+    if (p.x >= u_size.x || p.y >= u_size.y) return;
+    uint pix = uint(p.y * u_size.x + p.x);
+    Hit hit = hits[pix];
+    if (hit.depth > 0.0 || layer_depth[pix] == EMPTY_BITS) return;
+    mat3 Rt = transpose(u_R);
+    vec3 C = -(Rt * u_t);
+    vec3 dir = Rt * camera_ray(vec2(p) + 0.5);
+    float dlen = length(dir);
+    int iters = hit.iters;
+    for (int k = 0; k < 9; ++k) {
+        ivec2 q = p + ivec2(k % 3 - 1, k / 3 - 1);
+        if (k == 4 || any(lessThan(q, ivec2(0))) || any(greaterThanEqual(q, u_size))) continue;
+        Hit nb = hits[uint(q.y * u_size.x + q.x)];
+        if (nb.layer < 0 || nb.layer >= u_layers + u_pass || nb.depth <= 0.0) continue;
+        float s_hit;
+        vec3 n;
+        // only the neighbour's own surface: within the discontinuity threshold of its depth
+        if (trace(-1, nb.label, C, dir, dlen, nb.depth, iters, s_hit, n) && abs(s_hit - nb.depth) <= u_threshold) {
+            hits[pix] = Hit(s_hit, nb.label, u_layers + u_pass, iters, n.x, n.y, n.z, -1);
+            return;
+        }
+    }
+    hits[pix].iters = iters;
+}
+#else
 void main() {
     ivec2 p = ivec2(gl_GlobalInvocationID.xy);
     if (p.x >= u_size.x || p.y >= u_size.y) return;
@@ -259,5 +299,6 @@ void main() {
     hit.iters = iters;
     hits[pix] = hit;
 }
+#endif
 
 #endif

@@ -492,7 +492,8 @@ def test_frame_contract(renderers, bundle):
     assert (frame["label"][~hit] == -1).all() and (frame["layer_used"][~hit] == -1).all()
     assert (frame["color"][~hit] == 0).all() and (frame["normal"][~hit] == 0).all()
     assert (frame["label"][hit] >= 0).all() and (frame["label_raw"][hit] >= 0).all()
-    assert (frame["layer_used"][hit] >= 0).all() and (frame["layer_used"] < 3).all()
+    # layers 0..2, or 3..4 for a pixel filled from its neighbours in fill pass 0..1
+    assert (frame["layer_used"][hit] >= 0).all() and (frame["layer_used"] < 3 + 2).all()
     assert (frame["iterations"][hit] >= 1).all()
     np.testing.assert_allclose(np.linalg.norm(frame["normal"][hit], axis=1), 1.0, atol=1e-4)
     # normals face the camera
@@ -596,7 +597,7 @@ def test_raytracing_matches_numpy(ctx, bundle, depthmaps):
     relative depth."""
     from dmrt.renderer import RenderConfig, Renderer
 
-    paper = Renderer(bundle, RenderConfig(layers=3, search="adaptive", async_photos=False,
+    paper = Renderer(bundle, RenderConfig(layers=3, search="adaptive", fill_passes=0, async_photos=False,
                                           max_uploads_per_frame=0), ctx)
     for cam in (bundle.cameras[5].resized(W), novel_camera(bundle.cameras[6], bundle.cameras[7]).resized(W)):
         frame = paper.render(cam)
@@ -619,7 +620,7 @@ def test_step_statistics_match_numpy(ctx, bundle, depthmaps):
     point, far below that)."""
     from dmrt.renderer import STEP_BINS, RenderConfig, Renderer
 
-    r = Renderer(bundle, RenderConfig(layers=3, search="adaptive", statistics=True, method="compute",
+    r = Renderer(bundle, RenderConfig(layers=3, search="adaptive", statistics=True, method="compute", fill_passes=0,
                                       async_photos=False, max_uploads_per_frame=0), ctx)
     cam = novel_camera(bundle.cameras[6], bundle.cameras[7]).resized(W)
     frame = r.render(cam)
@@ -647,6 +648,39 @@ def test_coarse_splats_ablation(ctx, bundle):
     assert (frame["iterations"] == 0).all()
     assert (frame["color"][frame["depth"] > 0].sum(-1) > 0).mean() > 0.99
     r.release()
+
+
+def test_hole_filling_from_neighbours(ctx, bundle):
+    """``fill_passes`` (an addition to the paper): a pixel that a splat covers but no layer gave a
+    surface takes a hit in the depth map of a neighbour's label, within the discontinuity
+    threshold of that neighbour's depth. Checked: it only fills (never changes a raytraced pixel),
+    each filled pixel has such a neighbour from an earlier pass, the result is the same on every
+    run (pass p reads only hits of earlier passes), and fewer holes remain."""
+    from dmrt.renderer import RenderConfig, Renderer
+
+    k = 1  # one layer leaves the most holes to fill
+    sync = {"async_photos": False, "max_uploads_per_frame": 0, "layers": k}
+    plain = Renderer(bundle, RenderConfig(fill_passes=0, **sync), ctx)
+    filling = Renderer(bundle, RenderConfig(fill_passes=2, **sync), ctx)
+    try:
+        cam = novel_camera(bundle.cameras[6], bundle.cameras[7]).resized(W)
+        a, b = plain.render(cam), filling.render(cam)
+        again = filling.render(cam)
+        np.testing.assert_array_equal(again["depth"], b["depth"])
+        traced = a["layer_used"] >= 0
+        np.testing.assert_array_equal(b["depth"][traced], a["depth"][traced])
+        filled = b["layer_used"] >= k
+        assert filled.sum() > 0.3 * (~traced & (plain.layers()["label"][0] >= 0)).sum()
+        assert (a["layer_used"][filled] < 0).all()
+        depth, label, layer = b["depth"], b["label_raw"], b["layer_used"]
+        for y, x in zip(*np.nonzero(filled)):
+            nb = [(depth[j, i], label[j, i]) for j in range(max(y - 1, 0), min(y + 2, depth.shape[0]))
+                  for i in range(max(x - 1, 0), min(x + 2, depth.shape[1]))
+                  if (j, i) != (y, x) and 0 <= layer[j, i] < layer[y, x]]
+            assert any(lab == label[y, x] and abs(d - depth[y, x]) <= 0.2 + 1e-6 for d, lab in nb), (y, x)
+    finally:
+        plain.release()
+        filling.release()
 
 
 def test_secant_search_loses_fewer_pixels_than_the_papers(ctx, bundle):
