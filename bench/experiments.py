@@ -116,10 +116,13 @@ def measure_walkthrough(bundle, config, cameras, warmup: int, desc: str = "walkt
 
 def quality_config(**kw):
     """RenderConfig for quality measurements: every frame's photo cache exactly its most frequent
-    labels (no streaming delay) and no leveling, so colours are the photos' own, as the reference's."""
+    labels (no streaming delay) and no leveling, so colours are the photos' own, as the reference's;
+    no hole filling from neighbours, so that holes are the layers' own (the paper's Figs. 7, 13:
+    :func:`hole_counts` reads every layer count off one frame, which filled pixels would break)."""
     from dmrt.renderer import RenderConfig
 
-    return RenderConfig(**{"async_photos": False, "max_uploads_per_frame": 0, "leveling": False, **kw})
+    return RenderConfig(**{"async_photos": False, "max_uploads_per_frame": 0, "leveling": False, "fill_passes": 0,
+                           **kw})
 
 
 def scaled_radii(bundle, scale: float):
