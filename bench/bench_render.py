@@ -22,6 +22,25 @@ from pathlib import Path
 import numpy as np
 
 
+def bundle_path(args, setup: dict) -> Path:
+    """``args.bundle``, or with ``args.preset`` the preset's scene generated and preprocessed in
+    ``args.work`` (``args.write_normals``: the scan carries normals); seconds go into ``setup``."""
+    if not args.preset:
+        return args.bundle
+    from bench.scenes.synthetic import PRESETS, generate_scene
+    from dmrt.preprocess import preprocess
+
+    shutil.rmtree(args.work, ignore_errors=True)
+    t0 = time.perf_counter()
+    cfg = dataclasses.replace(PRESETS[args.preset], write_normals=args.write_normals)
+    scene = generate_scene(cfg, args.work / "scene")
+    setup["scene_generation_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    out = preprocess(scene, args.work / "bundle")
+    setup["preprocess_s"] = time.perf_counter() - t0
+    return out
+
+
 def main(argv=None) -> None:
     from dmrt.bundle import read_bundle
     from dmrt.gl import get_context, renderer_info
@@ -46,18 +65,7 @@ def main(argv=None) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
 
     setup = {}
-    if args.preset:
-        from bench.scenes.synthetic import PRESETS, generate_scene
-        from dmrt.preprocess import preprocess
-
-        shutil.rmtree(args.work, ignore_errors=True)
-        t0 = time.perf_counter()
-        cfg = dataclasses.replace(PRESETS[args.preset], write_normals=args.write_normals)
-        scene = generate_scene(cfg, args.work / "scene")
-        setup["scene_generation_s"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        args.bundle = preprocess(scene, args.work / "bundle")
-        setup["preprocess_s"] = time.perf_counter() - t0
+    args.bundle = bundle_path(args, setup)
     bundle = read_bundle(args.bundle)
     name = args.preset or bundle.root.name
     keys = bundle.cameras[:: max(1, len(bundle.cameras) // 12)]

@@ -14,15 +14,14 @@ per layer) and the pixels whose list overflowed. One JSON ``visibility-<name>.js
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
 
 
 def main(argv=None) -> None:
+    from bench.bench_render import bundle_path
     from dmrt.bundle import read_bundle
     from dmrt.gl import get_context, renderer_info
     from dmrt.renderer import RenderConfig, Renderer
@@ -43,13 +42,7 @@ def main(argv=None) -> None:
     p.add_argument("--write-normals", action="store_true")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    if args.preset:
-        from bench.scenes.synthetic import PRESETS, generate_scene
-        from dmrt.preprocess import preprocess
-
-        shutil.rmtree(args.work, ignore_errors=True)
-        cfg = dataclasses.replace(PRESETS[args.preset], write_normals=args.write_normals)
-        args.bundle = preprocess(generate_scene(cfg, args.work / "scene"), args.work / "bundle")
+    args.bundle = bundle_path(args, {})
     bundle = read_bundle(args.bundle)
     keys = bundle.cameras[:: max(1, len(bundle.cameras) // 12)]
     path = camera_path(keys, args.frames, args.width, args.height)

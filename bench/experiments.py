@@ -169,6 +169,21 @@ class HoleTally:
         return {k: (self.holes[k] / max(self.pixels[k], 1)).tolist() for k in self.KINDS}
 
 
+def tally_holes(ws, bundle, config, cams, max_layers: int) -> HoleTally:
+    """The holes of ``bundle`` rendered with ``config`` (``max_layers`` layers) at ``cams``
+    against the workspace's Embree reference frames."""
+    from dmrt.renderer import Renderer
+
+    renderer = Renderer(bundle, config)
+    tally = HoleTally(max_layers)
+    try:
+        for cam in cams:
+            tally.add(renderer.render(cam)["layer_used"], ws.reference(cam))
+    finally:
+        renderer.release()
+    return tally
+
+
 def hole_rate(frame: dict, ref: dict, mask: np.ndarray) -> float:
     """Share of ``mask``'s reference surface pixels that are background in ``frame``."""
     m = mask & (ref["depth"] > 0)
@@ -319,7 +334,7 @@ class Fig7Params:
 
 
 def run_fig7(ws: Workspace, p: Fig7Params, out: Path) -> dict:
-    from dmrt.renderer import RenderConfig, Renderer
+    from dmrt.renderer import RenderConfig
 
     cams = [c.resized(p.quality_width, None) for c in ws.photo_cameras(p.photo_cameras)]
     path = walkthrough_cameras(ws, p.walk)
@@ -327,13 +342,7 @@ def run_fig7(ws: Workspace, p: Fig7Params, out: Path) -> dict:
     for levels in p.proxy_levels:
         b = ws.bundle(levels)
         t = b.meta["timings"]
-        renderer = Renderer(b, quality_config(layers=p.max_layers))
-        tally = HoleTally(p.max_layers)
-        try:
-            for cam in cams:
-                tally.add(renderer.render(cam)["layer_used"], ws.reference(cam))
-        finally:
-            renderer.release()
+        tally = tally_holes(ws, b, quality_config(layers=p.max_layers), cams, p.max_layers)
         rates = tally.rates()
         rate = rates["representable"]
         needed = next((k for k in range(1, p.max_layers + 1) if rate[k - 1] <= p.hole_rate_target), None)
@@ -456,14 +465,7 @@ def run_fig9_10(ws: Workspace, p: Fig9Params, out: Path) -> dict:
         finally:
             renderer.release()
         mean_step = np.divide(steps_sum, counts, out=np.zeros_like(steps_sum), where=counts > 0)
-        renderer = Renderer(b, quality_config(**cfg))
-        tally = HoleTally(layers)
-        try:
-            for cam in cams:
-                tally.add(renderer.render(cam)["layer_used"], ws.reference(cam))
-        finally:
-            renderer.release()
-        rates = tally.rates()
+        rates = tally_holes(ws, b, quality_config(**cfg), cams, layers).rates()
         cases.append({"case": name, "radius_scale": scale, "layers": layers,
                       "raytracing_ms_median": timing["median_ms"]["raytracing"],
                       "raytracing_ms_per_frame": timing["stage_ms_per_frame"]["raytracing"],

@@ -22,10 +22,10 @@ Two GPU paths write the same layer buffers (``RenderConfig.method``):
     equals the peeled layers except (a) depths are truncated to 23 - label_bits mantissa bits
     (relative 2^-(23 - label_bits): 2e-6 for 12 photos, 3e-5 for 192) and ties within that break
     by label, (b) where more than ``slots`` fragments lie in front of the k-th layer
-    (:attr:`VisibilityStage.overflow` counts those pixels; their deeper layers stay empty).
+    (:meth:`VisibilityStage.read_overflow` counts those pixels; their deeper layers stay empty).
 ``"raster"``
     The paper's way: GL_POINTS sprites (geometry-shader quads for discs larger than the largest
-    sprite) with the per-fragment ray-disc test and the peeling test in the fragment shader,
+    sprite; the depth maps' raster programs with ``WITH_LABEL``) with the per-fragment ray-disc test and the peeling test in the fragment shader,
     z-buffered by a MIN blend on a float32 target (exact nearest z), then the same label resolve as
     a second draw; each target is copied into the layer buffers by a small compute pass.
 
@@ -152,7 +152,6 @@ class VisibilityStage:
         self._fill = load_program(ctx, "fill_u32")
         self._size = None
         self._packed = None
-        self.overflow = 0
         if method == "kbuffer":
             label_bits = max(1, int(n_labels - 1).bit_length())
             if label_bits > 16:
@@ -165,8 +164,9 @@ class VisibilityStage:
         if self.int64:
             self._unpack = load_program(ctx, "dmrt_layer_unpack")
         if method == "raster":
-            self._points = load_program(ctx, "dmrt_visibility_raster")
-            self._quads = load_program(ctx, "dmrt_visibility_raster_large")
+            # the depth maps' raster programs, with labels and the peeling fragment stage
+            self._points = load_program(ctx, "splat_depth_raster", {"WITH_LABEL": 1})
+            self._quads = load_program(ctx, "splat_depth_raster_large", {"WITH_LABEL": 1})
             self._copy = load_program(ctx, "dmrt_layer_copy")
             layout = [(splats.buffer, "3f 1f 3f 1i", "in_position", "in_radius", "in_normal", "in_label")]
             self._vao_points = ctx.vertex_array(self._points, layout)
