@@ -35,6 +35,13 @@ __all__ = ["estimate_normals", "splat_radii", "orient_normals", "process_chunked
 _BATCH = 65536
 
 
+def _kdtree(c: np.ndarray) -> cKDTree:
+    """A kd-tree for exact kNN queries. Sliding-midpoint splits without node compaction build 3x
+    faster than scipy's median splits (single-threaded, so the build dominates on many cores) and
+    answer queries as fast."""
+    return cKDTree(c, balanced_tree=False, compact_nodes=False)
+
+
 # ---------------------------------------------------------------------------------------------
 # in memory
 # ---------------------------------------------------------------------------------------------
@@ -129,7 +136,7 @@ def estimate_normals(positions, k: int = 16, viewpoints=None, *, per_point: bool
         out[:, 2] = 1.0
         return orient_normals(out, p, viewpoints, per_point).astype(np.float32)
     c = p - p.mean(axis=0)  # centred: large real-world coordinates would lose digits in the covariance
-    tree = tree if tree is not None else cKDTree(c)
+    tree = tree if tree is not None else _kdtree(c)
     k = min(int(k), n)
     out = np.empty((n, 3), np.float64)
     for s in range(0, n, _BATCH):
@@ -176,7 +183,7 @@ def splat_radii(positions, k: int = 8, scale: float = 1.0, *, tree: cKDTree | No
     if n < 2:
         return np.zeros(n, np.float32)
     c = p - p.mean(axis=0)
-    tree = tree if tree is not None else cKDTree(c)
+    tree = tree if tree is not None else _kdtree(c)
     k = min(int(k), n - 1)
     out = np.empty(n, np.float64)
     for s in range(0, n, _BATCH):
@@ -198,7 +205,7 @@ class ChunkedResult:
     radii : (n,) float32 memmap (``work_dir/radii.npy``), or None
     n_points : int
     margin : float
-        Halo width, metres.
+        Halo width, metres (inf when the cloud fit in memory and was processed whole).
     n_unverified : int
         Points whose neighbourhood (k-th neighbour distance) exceeded the margin: their neighbours
         outside the halo were not seen, so they may differ from the in-memory result (sparse
@@ -271,6 +278,8 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
     margin : float, optional
         Halo width in metres; default from the point counts per grid cell (2.5x the k-th neighbour
         distance at the density of the sparsest 5 % of the points, see ``_margin_from_counts``).
+        When neither ``margin`` nor ``bbox`` is given and the cloud fits in the memory budget, it is
+        processed whole, in memory (no buckets).
     memory_limit_mb : float
         Budget for the points of one bucket with its halo and the kNN work arrays.
 
@@ -297,6 +306,10 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
     else:
         lo, hi = (np.asarray(b, np.float64).reshape(3) for b in bbox)
         n = None
+    if n is not None and n <= capacity and margin is None:
+        # the whole cloud fits in the budget: one kd-tree, no buckets, no halos, no spill files
+        return _process_in_memory(src, n, work, normals, radii, k_normals, k_radii, scale, viewpoints,
+                                  progress, t0)
     extent = float(np.max(hi - lo)) or 1.0
 
     def qcoords(p, c):
@@ -422,7 +435,7 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
                 if len(qi) == 0:
                     continue
                 c = pos - pos.mean(axis=0)
-                tree = cKDTree(c)
+                tree = _kdtree(c)
                 kn = min(k_normals, len(pos))  # neighbours of the plane fit, the point included
                 kr = min(k_radii, len(pos) - 1)  # rank of the radius neighbour, the point excluded
                 kq = max(kn if normals else 1, kr + 1 if radii else 1)  # kNN columns needed
@@ -462,6 +475,44 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
         radii=np.load(names["radii"], mmap_mode="r") if radii else None,
         n_points=n, margin=margin, n_unverified=n_unverified, n_buckets=nb,
         max_bucket_points=max_bucket, seconds=time.perf_counter() - t0)
+
+
+def _process_in_memory(src, n, work, normals, radii, k_normals, k_radii, scale, viewpoints, progress,
+                       t0) -> ChunkedResult:
+    """:func:`process_chunked` for a cloud that fits in memory: the in-memory functions on one tree,
+    results written as ``process_chunked`` writes them (renamed into place when complete)."""
+    pos = np.empty((n, 3), np.float64)
+    g = 0
+    with _progress(n, "normals: read", progress) as bar:
+        for p, _ in _iter_normalized(src):
+            if g + len(p) > n:
+                raise RuntimeError("chunks_fn must yield the same points on every call")
+            pos[g:g + len(p)] = p
+            g += len(p)
+            bar.update(len(p))
+    if g != n:
+        raise RuntimeError("chunks_fn must yield the same points on every call")
+    tree = _kdtree(pos - pos.mean(axis=0))  # the centring estimate_normals and splat_radii apply
+    results = {}
+    if normals:
+        results["normals"] = estimate_normals(pos, k_normals, viewpoints, per_point=False, tree=tree)
+    if radii:
+        results["radii"] = splat_radii(pos, k_radii, scale, tree=tree)
+    tmp = {name: work / f".{name}.npy.tmp-{os.getpid()}" for name in results}
+    try:
+        for name, a in results.items():
+            with open(tmp[name], "wb") as fh:
+                np.save(fh, a, allow_pickle=False)
+        for name in results:
+            os.replace(tmp[name], work / f"{name}.npy")
+    except BaseException:
+        for p in tmp.values():
+            p.unlink(missing_ok=True)
+        raise
+    done = {name: np.load(work / f"{name}.npy", mmap_mode="r") for name in results}
+    return ChunkedResult(normals=done.get("normals"), radii=done.get("radii"), n_points=n,
+                         margin=float("inf"), n_unverified=0, n_buckets=1, max_bucket_points=n,
+                         seconds=time.perf_counter() - t0)
 
 
 def iter_with_results(chunks_fn, result: ChunkedResult) -> Iterator[tuple[np.ndarray, dict]]:

@@ -179,6 +179,11 @@ def test_maps_have_the_frame_shape_and_match_the_json(ci_run):
             assert z[f"color_{row['layers']}"].shape == (h, w, 3)
     rates = [r["hole_rate_representable"] for r in fig13["rows"]]
     assert rates[0] >= rates[1] >= rates[2]  # more layers never add holes
+    for row in fig13["rows"]:
+        # hole filling only gives surface to pixels the layers left empty: never more holes, and on
+        # the tiny scene's silhouettes it fills some
+        assert row["fill_passes"] > 0 and row["hole_rate_filled"] < row["hole_rate"]
+        assert row["hole_rate_representable_filled"] <= row["hole_rate_representable"]
 
 
 def test_fig13_direct_renders_agree_with_fig7_from_one_render(ci_run):

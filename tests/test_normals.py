@@ -210,6 +210,13 @@ def test_chunked_equals_in_memory(tmp_path):
     thin = process_chunked(chunks, tmp_path / "thin", margin=0.004, memory_limit_mb=1.5, progress=False)
     assert thin.n_unverified > 0
 
+    # within the budget the cloud is processed whole: one tree, same results, same files
+    whole = process_chunked(chunks, tmp_path / "whole", viewpoints=stations, memory_limit_mb=64, progress=False)
+    assert whole.n_buckets == 1 and whole.n_unverified == 0 and whole.max_bucket_points == len(p)
+    np.testing.assert_allclose(whole.normals, n_mem, atol=2e-5)
+    np.testing.assert_allclose(whole.radii, r_mem, rtol=1e-5)
+    assert sorted(x.name for x in (tmp_path / "whole").iterdir()) == ["normals.npy", "radii.npy"]
+
 
 def test_chunked_results_feed_the_octree_and_per_lod_radii(tmp_path):
     p = scene(20_000, 12_000)
