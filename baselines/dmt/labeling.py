@@ -150,22 +150,22 @@ def label_depth_map(bundle, i: int, depth: np.ndarray, stored_depth, photos, ene
     """
     t0 = time.perf_counter()
     h, w = depth.shape
-    cams = [c.relative_to(bundle.origin) for c in bundle.cameras]
-    cam = cams[i].scaled(w, h)
-    pts = texel_points(depth, cam)
     valid = (depth > 0).ravel()
-    normals = grid_normals(pts, depth, threshold).reshape(-1, 3)[valid]
-    pts = pts.reshape(-1, 3)[valid]
-    normals = orient_normals(normals, pts, cam.center)
     labels = np.full(h * w, -1, np.int32)
     stats = {"texels": int(valid.sum()), "edges": 0, "candidates_mean": 0.0, "energy_per_sweep": [],
              "photos_tested": 0, "candidates_s": 0.0, "costs_s": 0.0, "cut_s": 0.0}
     if not valid.any():
         return labels.reshape(h, w), stats
-    if labeler == "own":
+    if labeler == "own":  # no geometry needed
         labels[valid] = i
         stats["cut_s"] = time.perf_counter() - t0
         return labels.reshape(h, w), stats
+    cams = [c.relative_to(bundle.origin) for c in bundle.cameras]
+    cam = cams[i].scaled(w, h)
+    pts = texel_points(depth, cam)
+    normals = grid_normals(pts, depth, threshold).reshape(-1, 3)[valid]
+    pts = pts.reshape(-1, 3)[valid]
+    normals = orient_normals(normals, pts, cam.center)
     # only photos whose frustum meets this map's bounding box can see any of its points
     box = bounding_box(pts)[None]
     near = [j for j, c in enumerate(cams) if not frustum_culled(box, c.gl_view_projection(1e-3, 1e7))[0]]
