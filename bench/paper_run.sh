@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# The `paper` preset end to end, one experiment per process, for a rented GPU machine whose
+# commands are time-limited: start it detached and collect OUT_DIR/results.tgz while it runs
+# (repacked after every experiment, so a cut-off run still leaves every finished result).
+#
+#   setsid nohup bench/paper_run.sh /tmp/paper >/dev/null 2>&1 </dev/null &
+#   cat /tmp/paper/done.txt                  # one line per experiment: name, exit status, seconds
+#   dmrt report RESULTS --out reports/latest # after unpacking results.tgz here
+#
+# The environment (EGL vendor file, PYTHONPATH with the wheels, DMRT_COMMIT for a tree without git
+# history) is the caller's: see ../shared/GPU.md.
+set -u
+out=${1:?usage: bench/paper_run.sh OUT_DIR [EXPERIMENT ...]}
+shift
+experiments=("$@")
+[ ${#experiments[@]} -gt 0 ] || experiments=(table1 table2 table3_fig12 fig7 fig13 fig8 memory fig9_10)
+mkdir -p "$out"
+for e in "${experiments[@]}"; do
+    t0=$(date +%s)
+    python3 -m dmrt.cli bench --preset paper --out "$out/results" --work "$out/work" --only "$e" >>"$out/log.txt" 2>&1
+    rc=$?
+    echo "$e rc=$rc $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
+    tar czf "$out/results.tgz.tmp" -C "$out" results && mv "$out/results.tgz.tmp" "$out/results.tgz"
+done
+echo finished >>"$out/done.txt"
