@@ -59,7 +59,7 @@ def main(argv=None) -> None:
                 r.render(cam)
             t, labels, overflow = [], [], 0
             for cam in path:
-                t.append(r.render(cam)["timings"])
+                t.append(r.render(cam, readback=False)["timings"])
                 if k == args.layers:
                     labels.append(r.layers()["label"])
                     overflow += r.visibility.read_overflow()

@@ -57,16 +57,17 @@ def fps_summary(totals_ms) -> dict:
     return {"fps_min_avg_max": [1e3 / t.max(), 1e3 / t.mean(), 1e3 / t.min()], "fps_median": 1e3 / float(np.median(t))}
 
 
-def measure_walkthrough(bundle, config, cameras, warmup: int, desc: str = "walkthrough",
+def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
                         on_frame: Callable[[dict], None] | None = None, progress: bool = True) -> dict:
-    """Render ``cameras`` with a fresh renderer after ``warmup`` frames and summarise the timings.
+    """Render ``cameras`` twice with a fresh renderer: a statistics pass that reads every frame
+    back (and warms up: the photo cache reaches its steady state), then the timed pass, whose
+    frames stay on the GPU as in interactive use (``Renderer.render(readback=False)``).
 
     Parameters
     ----------
     bundle : dmrt.bundle.Bundle.  config : dmrt.renderer.RenderConfig.
     cameras : list of Camera (the frame size is each camera's).
-    warmup : frames of the path rendered first, not measured (-1 = the whole path).
-    on_frame : called with every measured frame (e.g. to collect statistics).
+    on_frame : called with every frame of the statistics pass (e.g. to collect statistics).
 
     Returns
     -------
@@ -74,9 +75,8 @@ def measure_walkthrough(bundle, config, cameras, warmup: int, desc: str = "walkt
         ``median_ms`` {stage: median GPU ms}, ``median_total_ms``, ``mean_total_ms`` (the paper's
         Table 2 averages), ``fps_min_avg_max``, ``fps_median``,
         per frame ``total_ms_per_frame``, ``stage_ms_per_frame`` {stage: list}, ``wall_ms_per_frame``
-        (``render()`` wall clock, including the read-back of every buffer), ``median_cpu_ms``,
-        ``mean_iterations`` (over the pixels with a surface), ``surface_fraction``,
-        ``photo_uploads`` and ``gpu_bytes``.
+        (``render()`` wall clock), ``median_cpu_ms``, ``mean_iterations`` (over the pixels with a
+        surface), ``surface_fraction``, ``photo_uploads`` and ``gpu_bytes``.
     """
     from tqdm import tqdm
 
@@ -84,22 +84,22 @@ def measure_walkthrough(bundle, config, cameras, warmup: int, desc: str = "walkt
 
     renderer = Renderer(bundle, config)
     try:
-        for cam in tqdm(cameras if warmup < 0 else cameras[:warmup], desc=f"{desc} (warm-up)", unit="frame",
-                        leave=False, disable=not progress):
-            renderer.render(cam)
-        uploads0 = renderer.images.uploads
-        timings, cpu, wall, iters, surface = [], [], [], [], []
-        for cam in tqdm(cameras, desc=desc, unit="frame", leave=False, disable=not progress):
-            t0 = time.perf_counter()
+        iters, surface = [], []
+        for cam in tqdm(cameras, desc=f"{desc} (statistics)", unit="frame", leave=False, disable=not progress):
             f = renderer.render(cam)
-            wall.append((time.perf_counter() - t0) * 1e3)
-            timings.append(f["timings"])
-            cpu.append(f.get("cpu_ms", {}))
             hit = f["depth"] > 0
             surface.append(float(hit.mean()))
             iters.append(float(f["iterations"][hit].mean()) if hit.any() else 0.0)
             if on_frame is not None:
                 on_frame(f)
+        uploads0 = renderer.images.uploads
+        timings, cpu, wall = [], [], []
+        for cam in tqdm(cameras, desc=desc, unit="frame", leave=False, disable=not progress):
+            t0 = time.perf_counter()
+            f = renderer.render(cam, readback=False)
+            wall.append((time.perf_counter() - t0) * 1e3)
+            timings.append(f["timings"])
+            cpu.append(f.get("cpu_ms", {}))
         stages = list(timings[0])
         totals = [float(sum(t.values())) for t in timings]
         return {"median_ms": {s: float(np.median([t[s] for t in timings])) for s in stages},
@@ -266,7 +266,7 @@ def run_table2(ws: Workspace, p: Table2Params, out: Path) -> dict:
     for method in p.methods:
         for k in p.layers:
             r = measure_walkthrough(b, RenderConfig(layers=k, method=method, leveling=p.leveling), cams,
-                                    p.walk.warmup_frames, f"{method} k={k}", progress=ws.progress)
+                                    f"{method} k={k}", progress=ws.progress)
             runs.append({"method": method, "layers": k, **r})
             print(f"  {method:8s} k={k:2d} " + " ".join(f"{s} {v:.3f}" for s, v in r["median_ms"].items())
                   + f" | total {r['median_total_ms']:.3f} ms, {r['mean_iterations']:.2f} steps", flush=True)
@@ -349,8 +349,7 @@ def run_fig7(ws: Workspace, p: Fig7Params, out: Path) -> dict:
         converged = next(k for k in range(1, p.max_layers + 1) if rate[k - 1] <= rate[-1] + p.converge_tolerance)
         fps = {}
         for k in sorted(set(p.fps_layers) | {needed or converged}):
-            r = measure_walkthrough(b, RenderConfig(layers=k), path, p.walk.warmup_frames, f"LOD {levels} k={k}",
-                                    progress=ws.progress)
+            r = measure_walkthrough(b, RenderConfig(layers=k), path, f"LOD {levels} k={k}", progress=ws.progress)
             fps[str(k)] = {key: r[key] for key in ("median_total_ms", "fps_min_avg_max", "fps_median",
                                                    "median_ms", "total_ms_per_frame", "median_wall_ms")}
         sets.append({**bundle_summary(b), "candidates_s": t.get("candidates_s"), "labeling_s": t.get("labeling_s"),
@@ -451,8 +450,8 @@ def run_fig9_10(ws: Workspace, p: Fig9Params, out: Path) -> dict:
 
         from dmrt.renderer import RenderConfig
 
-        timing = measure_walkthrough(b, RenderConfig(**cfg), path, p.walk.warmup_frames, f"{name} k={layers}",
-                                     on_frame=collect, progress=ws.progress)
+        timing = measure_walkthrough(b, RenderConfig(**cfg), path, f"{name} k={layers}", on_frame=collect,
+                                     progress=ws.progress)
         # step statistics in a second pass: recording them costs atomics, so not in the timed one
         steps_sum, counts = None, None
         renderer = Renderer(b, RenderConfig(**cfg, statistics=True))

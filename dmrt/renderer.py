@@ -43,7 +43,7 @@ from dmrt.bundle import Bundle
 from dmrt.camera import Camera
 from dmrt.errors import InputError
 from dmrt.frames import empty_frame
-from dmrt.gl.context import get_context
+from dmrt.gl.context import check_gl, get_context
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.leveling import ScreenLeveler
@@ -254,7 +254,8 @@ class Renderer:
                              "configuration")
 
     # -- public -------------------------------------------------------------------------------
-    def render(self, camera: Camera, width: int | None = None, height: int | None = None) -> dict:
+    def render(self, camera: Camera, width: int | None = None, height: int | None = None,
+               readback: bool = True) -> dict:
         """Render one frame.
 
         Parameters
@@ -264,6 +265,11 @@ class Renderer:
         width, height : int, optional
             Frame size (default ``config.width/height``, else the camera's; a missing side follows
             the camera's aspect ratio).
+        readback : bool
+            False: the frame stays on the GPU and only ``timings``, ``cpu_ms`` (and
+            ``leveling_gains``, ``step_stats``) are returned. Timing runs use it: reading every
+            buffer back costs more wall time than the frame itself, and a GPU left idle that long
+            between frames lowers its clocks, which inflates the next frame's stage times.
 
         Returns
         -------
@@ -357,16 +363,19 @@ class Renderer:
             cpu_ms["leveling"] = self.leveler.run(timer, b["hits"], b["colors"], self.photos, self.images,
                                                   self.depthmaps, cam_uniforms, counts)
 
-        hits = np.frombuffer(b["hits"].read(), HIT_DTYPE).reshape(h, w)
-        colors = np.frombuffer(b["colors"].read(), np.uint8).reshape(h, w, 4)
-        frame = empty_frame(h, w)
-        frame["depth"] = hits["depth"].copy()
-        frame["label"] = hits["final_label"].copy()
-        frame["color"] = colors[..., :3].copy()
-        frame["normal"] = hits["normal"].copy()
-        frame["label_raw"] = hits["label"].copy()
-        frame["layer_used"] = hits["layer"].copy()
-        frame["iterations"] = hits["iters"].copy()
+        check_gl(ctx, "rendering a DMRT frame")
+        frame = {}
+        if readback:
+            hits = np.frombuffer(b["hits"].read(), HIT_DTYPE).reshape(h, w)
+            colors = np.frombuffer(b["colors"].read(), np.uint8).reshape(h, w, 4)
+            frame = empty_frame(h, w)
+            frame["depth"] = hits["depth"].copy()
+            frame["label"] = hits["final_label"].copy()
+            frame["color"] = colors[..., :3].copy()
+            frame["normal"] = hits["normal"].copy()
+            frame["label_raw"] = hits["label"].copy()
+            frame["layer_used"] = hits["layer"].copy()
+            frame["iterations"] = hits["iters"].copy()
         ms = self.timer.ms
         frame["timings"] = {stage: ms.get(stage, 0.0) for stage in STAGES}
         frame["cpu_ms"] = cpu_ms

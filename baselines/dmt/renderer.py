@@ -46,7 +46,7 @@ from baselines.dmt.labeling import DMTLabelingConfig, dmt_labels
 from dmrt.bundle import Bundle
 from dmrt.camera import Camera
 from dmrt.frames import empty_frame
-from dmrt.gl.context import get_context
+from dmrt.gl.context import check_gl, get_context
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.leveling import ScreenLeveler
@@ -215,7 +215,7 @@ class DMTRenderer:
 
     # -- public -------------------------------------------------------------------------------
     def render(self, camera: Camera, width: int | None = None, height: int | None = None,
-               maps=None) -> dict:
+               maps=None, readback: bool = True) -> dict:
         """Render one frame.
 
         Parameters
@@ -225,6 +225,8 @@ class DMTRenderer:
             camera's aspect ratio).
         maps : sequence of int, optional
             Draw only these depth maps (the others count as culled); default all.
+        readback : bool
+            False: only ``timings``, ``cpu_ms`` and ``stats`` (as ``dmrt.renderer.Renderer.render``).
 
         Returns
         -------
@@ -310,15 +312,18 @@ class DMTRenderer:
             cpu_ms["leveling"] = self.leveler.run(timer, fb["hits"], fb["colors"], self.photos, self.images,
                                                   self.depthmaps, cam_uniforms, counts)
 
-        hits = np.frombuffer(fb["hits"].read(), HIT_DTYPE).reshape(h, w)
-        colors = np.frombuffer(fb["colors"].read(), np.uint8).reshape(h, w, 4)
+        check_gl(ctx, "rendering a DMT frame")
         stats = np.frombuffer(self._stats.read(), np.uint32)
-        frame = empty_frame(h, w)
-        frame["depth"] = hits["depth"].copy()
-        frame["label"] = hits["final_label"].copy()
-        frame["color"] = colors[..., :3].copy()
-        frame["normal"] = hits["normal"].copy()
-        frame["depth_map"] = hits["label"].copy()
+        frame = {}
+        if readback:
+            hits = np.frombuffer(fb["hits"].read(), HIT_DTYPE).reshape(h, w)
+            colors = np.frombuffer(fb["colors"].read(), np.uint8).reshape(h, w, 4)
+            frame = empty_frame(h, w)
+            frame["depth"] = hits["depth"].copy()
+            frame["label"] = hits["final_label"].copy()
+            frame["color"] = colors[..., :3].copy()
+            frame["normal"] = hits["normal"].copy()
+            frame["depth_map"] = hits["label"].copy()
         ms = timer.ms
         frame["timings"] = {stage: ms.get(stage, 0.0) for stage in STAGES}
         frame["cpu_ms"] = cpu_ms

@@ -73,3 +73,19 @@ def renderer_info(ctx: moderngl.Context) -> dict:
         "version": str(info.get("GL_VERSION", "")),
         "is_software": any(s in renderer.lower() for s in _SOFTWARE_RENDERERS),
     }
+
+
+def check_gl(ctx: moderngl.Context, what: str) -> None:
+    """Raise if the GL error flag is set: an invalid call, exhausted GPU memory or a lost context
+    (a driver reset after a dispatch ran too long) leave buffers stale, and a frame read back from
+    them would look like a result.
+
+    Raises
+    ------
+    RuntimeError
+        Naming ``what`` and the GL error (``GL_OUT_OF_MEMORY``, ``GL_CONTEXT_LOST``, ...).
+    """
+    error = ctx.error  # glGetError: a flag the driver keeps, no wait for the GPU
+    if error != "GL_NO_ERROR":
+        raise RuntimeError(f"OpenGL error {error} while {what}: the GPU results are invalid "
+                           "(out of GPU memory, or a lost context after a pass that ran too long?)")
