@@ -431,12 +431,31 @@ class Fig9Params:
     max_iterations_bin: int = 64
 
 
-def run_fig9_10(ws: Workspace, p: Fig9Params, out: Path) -> dict:
+def step_statistics(bundle, config, cameras) -> dict:
+    """Mean step length (metres) and step count per layer and step index, summed over ``cameras``
+    (``RenderConfig(statistics=True)``; see :meth:`dmrt.renderer.Renderer._read_step_stats`)."""
     from dmrt.renderer import Renderer
+
+    steps_sum, counts = None, None
+    renderer = Renderer(bundle, dataclasses.replace(config, statistics=True))
+    try:
+        for cam in cameras:
+            s = renderer.render(cam, readback=False)["step_stats"]
+            c = np.asarray(s["count"], np.int64)
+            t = np.asarray(s["mean_step_m"], np.float64) * c
+            steps_sum, counts = (t, c) if counts is None else (steps_sum + t, counts + c)
+    finally:
+        renderer.release()
+    mean_step = np.divide(steps_sum, counts, out=np.zeros_like(steps_sum), where=counts > 0)
+    return {"step_mean_m": mean_step.tolist(), "step_count": counts.tolist()}
+
+
+def run_fig9_10(ws: Workspace, p: Fig9Params, out: Path) -> dict:
+    from dmrt.renderer import RenderConfig
 
     path = walkthrough_cameras(ws, p.walk)
     cams = [c.resized(p.quality_width, None) for c in ws.photo_cameras(p.photo_cameras)]
-    cases = []
+    cases, configs = [], []
     for name, scale, layers in p.cases:
         b = scaled_radii(ws.bundle(), scale)
         cfg = dict(layers=layers, max_steps=p.max_steps, binary_steps=p.binary_steps)
@@ -448,22 +467,8 @@ def run_fig9_10(ws: Workspace, p: Fig9Params, out: Path) -> dict:
             hist[:] += np.bincount(np.minimum(it, p.max_iterations_bin - 1), minlength=p.max_iterations_bin)
             searched.append(float(it.mean()) if it.size else 0.0)
 
-        from dmrt.renderer import RenderConfig
-
         timing = measure_walkthrough(b, RenderConfig(**cfg), path, f"{name} k={layers}", on_frame=collect,
                                      progress=ws.progress)
-        # step statistics in a second pass: recording them costs atomics, so not in the timed one
-        steps_sum, counts = None, None
-        renderer = Renderer(b, RenderConfig(**cfg, statistics=True))
-        try:
-            for cam in path:
-                s = renderer.render(cam)["step_stats"]
-                c = np.asarray(s["count"], np.int64)
-                t = np.asarray(s["mean_step_m"], np.float64) * c
-                steps_sum, counts = (t, c) if counts is None else (steps_sum + t, counts + c)
-        finally:
-            renderer.release()
-        mean_step = np.divide(steps_sum, counts, out=np.zeros_like(steps_sum), where=counts > 0)
         rates = tally_holes(ws, b, quality_config(**cfg), cams, layers).rates()
         cases.append({"case": name, "radius_scale": scale, "layers": layers,
                       "raytracing_ms_median": timing["median_ms"]["raytracing"],
@@ -471,10 +476,23 @@ def run_fig9_10(ws: Workspace, p: Fig9Params, out: Path) -> dict:
                       "mean_iterations": timing["mean_iterations"],
                       "mean_iterations_searched": float(np.mean(searched)),
                       "iterations_histogram": hist.tolist(),
-                      "step_mean_m": mean_step.tolist(), "step_count": counts.tolist(),
                       "hole_rate": rates["all"][-1], "hole_rate_representable": rates["representable"][-1]})
+        configs.append((b, RenderConfig(**cfg)))
         print(f"  {name} k={layers}: {timing['mean_iterations']:.2f} steps per surface pixel, "
               f"holes {rates['all'][-1]:.2%} ({rates['representable'][-1]:.2%} of representable)", flush=True)
+    # Step statistics (atomics, so not in the timed pass) come last, for every case: on an H200 this
+    # pass with radii x2.5 on the paper preset stopped the GL context (no GL error; every later frame
+    # stale), which the renderer now detects. A case it fails for keeps its other measurements.
+    error = None
+    for case, (b, config) in zip(cases, configs):
+        if error is None:
+            try:
+                case.update(step_statistics(b, config, path))
+                continue
+            except RuntimeError as exc:
+                error = f"{case['case']}, {case['layers']} layers: {exc}"
+                print(f"  step statistics failed: {error}", flush=True)
+        case["step_statistics_error"] = error
     return {"cases": cases, "cameras": [c.name for c in cams]}
 
 

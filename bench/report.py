@@ -30,6 +30,7 @@ import matplotlib
 
 matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
@@ -117,8 +118,9 @@ def load_results(results_dir) -> list[ResultSet]:
 
 
 def missing_experiments(rs: ResultSet, required=None) -> list[str]:
-    """Required experiments without a result in ``rs`` (empty = complete)."""
-    return [name for name in (REQUIRED_EXPERIMENTS if required is None else required) if name not in rs.experiments]
+    """Required experiments neither run nor failed in ``rs`` (see ``rs.failed`` for the others)."""
+    return [name for name in (REQUIRED_EXPERIMENTS if required is None else required)
+            if name not in rs.experiments and name not in rs.failed]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -356,7 +358,7 @@ def section_table2(rs: ResultSet, out: Path) -> Section:
             f"fps {main} (min/avg/max)": "/".join(fmt(x) for x in d["fps_min_avg_max"]) if d else None,
             "fps paper": p["fps"][pk] if pk is not None else None,
             "mean search steps": d and d["mean_iterations"],
-            "median wall ms (incl. read-back)": d and d["median_wall_ms"]})
+            "median wall ms (render call)": d and d["median_wall_ms"]})
     s.table("table2_ratios", f"Ratios: ours ({main} visibility, the default) vs paper; visibility stage of the "
                              f"paper's peeling by rasterization (raster) vs peeling by compute splatting (compute) "
                              f"vs the one-pass k-buffer (kbuffer)", ratio_rows)
@@ -494,6 +496,7 @@ def section_fig7(rs: ResultSet, out: Path) -> Section:
     axs[0].legend(fontsize=7)
     axs[1].loglog([st["proxies"] for st in sets], [st["labeling_total_s"] for st in sets], "o-", label="ours")
     axs[1].loglog([pp["proxies"] for pp in paper.FIG7], [pp["labeling_s"] for pp in paper.FIG7], "s--", label="paper")
+    axs[1].xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # 2x10^5, 3x10^5 ... overlap
     axs[1].set(xlabel="proxies", ylabel="labeling s", title="labeling time")
     axs[1].legend(fontsize=7)
     for st in sets:
@@ -566,12 +569,16 @@ def section_fig9(rs: ResultSet, out: Path) -> Section:
                      "paper mean steps": pp and pp["mean_iterations"],
                      "raytracing (ms)": c["raytracing_ms_median"], "paper raytracing (ms)": pp and pp["raytracing_ms"],
                      "raytracing ours / paper": pp and _ratio(c["raytracing_ms_median"], pp["raytracing_ms"]),
-                     "holes (%)": _pct(c["hole_rate"]), "holes representable (%)": _pct(c["hole_rate_representable"])})
+                     "holes (%)": _pct(c["hole_rate"]), "holes representable (%)": _pct(c["hole_rate_representable"]),
+                     "step lengths": ("not measured: " + c["step_statistics_error"]) if "step_mean_m" not in c else "measured"})
     s.table("fig9_10", "Iterative-search steps and raytracing-pass GPU ms over the walkthrough; holes at photo "
                        "cameras. Worst case (Fig. 10): splat radii x2.5", rows)
     cases = m["cases"]
     fig, axs = plt.subplots(1, len(cases), figsize=(4.3 * len(cases), 3.6), squeeze=False)
     for ax, c in zip(axs[0], cases):
+        if "step_mean_m" not in c:
+            ax.set(title=f"{c['case']}, {c['layers']} layers: not measured")
+            continue
         mean, count = np.asarray(c["step_mean_m"]), np.asarray(c["step_count"])
         for layer in range(min(len(mean), 6)):
             ok = count[layer] > 0

@@ -376,6 +376,7 @@ class Renderer:
             frame["label_raw"] = hits["label"].copy()
             frame["layer_used"] = hits["layer"].copy()
             frame["iterations"] = hits["iters"].copy()
+        self.timer.check_executed("rendering a DMRT frame")
         ms = self.timer.ms
         frame["timings"] = {stage: ms.get(stage, 0.0) for stage in STAGES}
         frame["cpu_ms"] = cpu_ms

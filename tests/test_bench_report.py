@@ -262,7 +262,7 @@ def test_failed_experiment_is_reported_as_failed(tmp_path):
     _write_set(tmp_path / "results", table1=_table1_payload(),
                **{"fig8.failed": {"experiment": "fig8", "error": "RuntimeError: boom"}})
     r = build_report(tmp_path / "results", tmp_path / "report")
-    assert r.failed == ["fig8"] and "fig8" in r.missing
+    assert r.failed == ["fig8"] and "fig8" not in r.missing  # listed once, as failed
     md = (tmp_path / "report" / "REPORT.md").read_text()
     assert "**FAILED**: `fig8` raised RuntimeError: boom" in md
 

@@ -158,3 +158,32 @@ def test_timer_measures_draw_and_dispatch(ctx, shader_dir):
     assert timer.ms == {}
     for obj in (vao, vbo, fbo, buf):
         obj.release()
+
+
+def test_timer_detects_work_that_never_ran(ctx):
+    """A hardware GPU whose context stopped executing (an H200 after a fault) reads 0 ns for every
+    section and reports no GL error: that must raise instead of passing stale frames on."""
+    from dmrt.gl.timer import require_gpu_work
+
+    with pytest.raises(RuntimeError, match="executed none of the work while testing"):
+        require_gpu_work({"visibility": 0.0, "raytracing": 0.0}, "testing")
+    require_gpu_work({"visibility": 0.0, "raytracing": 1e-6}, "testing")  # some work ran
+    require_gpu_work({}, "testing")  # nothing timed: nothing to judge
+    # a real dispatch passes on any driver (llvmpipe: 1 ns, and its times are not judged at all)
+    timer = GpuTimer(ctx)
+    buf = ctx.buffer(reserve=64 * 4)
+    buf.bind_to_storage_buffer(0)
+    with timer.section("dispatch"):
+        load_program(ctx, "fill_u32").run(1)
+    timer.check_executed("testing")
+
+
+def test_gl_errors_raise(ctx):
+    from dmrt.gl import check_gl
+
+    check_gl(ctx, "testing")  # a clean flag passes
+    too_many = ctx.info["GL_MAX_COMPUTE_WORK_GROUP_COUNT"][0] + 1
+    load_program(ctx, "fill_u32").run(too_many)  # GL_INVALID_VALUE: the dispatch does not run
+    with pytest.raises(RuntimeError, match="OpenGL error GL_INVALID_VALUE while testing"):
+        check_gl(ctx, "testing")
+    check_gl(ctx, "testing")  # reading the flag clears it

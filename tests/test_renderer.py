@@ -504,6 +504,12 @@ def test_frame_contract(renderers, bundle):
     again = renderer.render(cam, W)
     for key in ("depth", "label", "color", "normal", "iterations"):
         np.testing.assert_array_equal(again[key], frame[key], err_msg=key)
+    # a frame left on the GPU (timing runs) returns its timings only, and changes nothing after it
+    kept = renderer.render(bundle.cameras[1], W, readback=False)
+    assert set(kept) == {"timings", "cpu_ms"} and set(kept["timings"]) == set(frame["timings"])
+    after = renderer.render(cam, W)
+    for key in ("depth", "label", "color"):
+        np.testing.assert_array_equal(after[key], frame[key], err_msg=key)
 
 
 @pytest.mark.parametrize("variant", ["compute-large", "raster", "raster-quads", "kbuffer", "kbuffer-large"])

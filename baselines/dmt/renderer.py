@@ -324,6 +324,7 @@ class DMTRenderer:
             frame["color"] = colors[..., :3].copy()
             frame["normal"] = hits["normal"].copy()
             frame["depth_map"] = hits["label"].copy()
+        timer.check_executed("rendering a DMT frame")
         ms = timer.ms
         frame["timings"] = {stage: ms.get(stage, 0.0) for stage in STAGES}
         frame["cpu_ms"] = cpu_ms

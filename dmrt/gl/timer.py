@@ -28,6 +28,21 @@ import moderngl
 from dmrt.gl.context import renderer_info
 
 
+def require_gpu_work(ms: dict, what: str) -> None:
+    """Raise if every timed section of a hardware GPU took 0 ns: the context has stopped executing
+    commands. Seen on an H200 (NVIDIA 580) after a fault, with no GL error reported, while buffers
+    kept returning the last good frame; without this check such frames look like results.
+
+    Parameters
+    ----------
+    ms : {section: GPU milliseconds} of one frame (:attr:`GpuTimer.ms`).
+    what : what was being done, for the message.
+    """
+    if ms and not any(ms.values()):
+        raise RuntimeError(f"the GPU executed none of the work while {what} (every timed section took "
+                           f"0 ns): the GL context stopped executing commands and its buffers are stale")
+
+
 class GpuTimer:
     """Accumulates GPU milliseconds per stage name.
 
@@ -83,6 +98,12 @@ class GpuTimer:
         """``{stage name: accumulated GPU milliseconds}`` (waits for outstanding sections)."""
         self._resolve()
         return dict(self._ms)
+
+    def check_executed(self, what: str) -> None:
+        """:func:`require_gpu_work` on the times since :meth:`reset` (hardware GPUs only: a software
+        rasterizer's times do not measure the work)."""
+        if self.reliable:
+            require_gpu_work(self.ms, what)
 
     @property
     def counts(self) -> dict[str, int]:
