@@ -57,6 +57,24 @@ STAGES = ("visibility", "raytracing", "labeling", "image_management", "texturing
 STEP_BINS = 32  # shaders/dmrt_raytrace.glsl
 
 
+def read_frame(hits_buffer: moderngl.Buffer, colors_buffer: moderngl.Buffer, w: int, h: int) -> tuple[dict, np.ndarray]:
+    """Read a frame's ``Hit`` records and packed RGBA8 colours back (shared by DMRT and DMT).
+
+    Returns
+    -------
+    frame : dict, the contract of :mod:`dmrt.frames` (``depth``, ``label``, ``color``, ``normal``)
+    hits : (h, w) HIT_DTYPE records, for the renderer's own extra buffers
+    """
+    hits = np.frombuffer(hits_buffer.read(), HIT_DTYPE).reshape(h, w)
+    colors = np.frombuffer(colors_buffer.read(), np.uint8).reshape(h, w, 4)
+    frame = empty_frame(h, w)
+    frame["depth"] = hits["depth"].copy()
+    frame["label"] = hits["final_label"].copy()
+    frame["color"] = colors[..., :3].copy()
+    frame["normal"] = hits["normal"].copy()
+    return frame, hits
+
+
 @dataclass
 class RenderConfig:
     """Parameters of the DMRT runtime (defaults: the paper's)."""
@@ -366,13 +384,7 @@ class Renderer:
         check_gl(ctx, "rendering a DMRT frame")
         frame = {}
         if readback:
-            hits = np.frombuffer(b["hits"].read(), HIT_DTYPE).reshape(h, w)
-            colors = np.frombuffer(b["colors"].read(), np.uint8).reshape(h, w, 4)
-            frame = empty_frame(h, w)
-            frame["depth"] = hits["depth"].copy()
-            frame["label"] = hits["final_label"].copy()
-            frame["color"] = colors[..., :3].copy()
-            frame["normal"] = hits["normal"].copy()
+            frame, hits = read_frame(b["hits"], b["colors"], w, h)
             frame["label_raw"] = hits["label"].copy()
             frame["layer_used"] = hits["layer"].copy()
             frame["iterations"] = hits["iters"].copy()

@@ -45,12 +45,11 @@ from baselines.dmt.geometry import bounding_box, box_corners, dmt_size, load_dep
 from baselines.dmt.labeling import DMTLabelingConfig, dmt_labels
 from dmrt.bundle import Bundle
 from dmrt.camera import Camera
-from dmrt.frames import empty_frame
 from dmrt.gl.context import check_gl, get_context
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.leveling import ScreenLeveler
-from dmrt.renderer import HIT_DTYPE, photo_params
+from dmrt.renderer import HIT_DTYPE, photo_params, read_frame
 from dmrt.texturing import ImageCache, texture_frame
 
 STAGES = ("culling", "rasterization", "stitching", "image_management", "texturing", "leveling")
@@ -316,13 +315,7 @@ class DMTRenderer:
         stats = np.frombuffer(self._stats.read(), np.uint32)
         frame = {}
         if readback:
-            hits = np.frombuffer(fb["hits"].read(), HIT_DTYPE).reshape(h, w)
-            colors = np.frombuffer(fb["colors"].read(), np.uint8).reshape(h, w, 4)
-            frame = empty_frame(h, w)
-            frame["depth"] = hits["depth"].copy()
-            frame["label"] = hits["final_label"].copy()
-            frame["color"] = colors[..., :3].copy()
-            frame["normal"] = hits["normal"].copy()
+            frame, hits = read_frame(fb["hits"], fb["colors"], w, h)
             frame["depth_map"] = hits["label"].copy()
         timer.check_executed("rendering a DMT frame")
         ms = timer.ms
