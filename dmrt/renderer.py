@@ -55,6 +55,7 @@ HIT_DTYPE = np.dtype([("depth", "<f4"), ("label", "<i4"), ("layer", "<i4"), ("it
                       ("normal", "<f4", 3), ("final_label", "<i4")])  # shaders/dmrt_frame.glsl
 STAGES = ("visibility", "raytracing", "labeling", "image_management", "texturing", "leveling")
 STEP_BINS = 32  # shaders/dmrt_raytrace.glsl
+MAX_STATISTICS_LAYERS = 16  # STAT_LAYERS there: the per-workgroup step sums in shared memory
 
 
 def read_frame(hits_buffer: moderngl.Buffer, colors_buffer: moderngl.Buffer, w: int, h: int) -> tuple[dict, np.ndarray]:
@@ -157,6 +158,9 @@ class RenderConfig:
             raise ValueError(f"RenderConfig.search must be 'adaptive' or 'secant', not {self.search!r}")
         if self.method not in ("compute", "kbuffer", "raster"):
             raise ValueError(f"RenderConfig.method must be 'compute', 'kbuffer' or 'raster', not {self.method!r}")
+        if self.statistics and self.layers > MAX_STATISTICS_LAYERS:
+            raise ValueError(f"RenderConfig.statistics records at most {MAX_STATISTICS_LAYERS} layers, "
+                             f"not {self.layers}")
         if self.kbuffer_slots < 0:
             raise ValueError("RenderConfig.kbuffer_slots must be >= 0")
         if self.leveling_max_gain < 1.0:

@@ -470,6 +470,8 @@ def test_config_is_validated():
         RenderConfig(layers=0)
     with pytest.raises(ValueError, match="leveling_max_gain"):
         RenderConfig(leveling=True, leveling_max_gain=0.5)
+    with pytest.raises(ValueError, match="statistics records at most 16 layers"):
+        RenderConfig(layers=17, statistics=True)
 
 
 def test_frame_contract(renderers, bundle):
