@@ -103,7 +103,7 @@ void record_step(int layer, int i, float metres) {
 }
 
 void clear_steps() {
-    for (uint k = gl_LocalInvocationIndex; k < uint(STAT_LAYERS * STEP_BINS); k += 64u) {
+    for (uint k = gl_LocalInvocationIndex; k < uint(STAT_LAYERS * STEP_BINS); k += gl_WorkGroupSize.x * gl_WorkGroupSize.y) {
         s_count[k] = 0u;
         s_sum_lo[k] = 0u;
         s_sum_hi[k] = 0u;
@@ -115,7 +115,7 @@ void clear_steps() {
 void flush_steps() {
     memoryBarrierShared();
     barrier();
-    for (uint k = gl_LocalInvocationIndex; k < uint(u_layers * STEP_BINS); k += 64u) {
+    for (uint k = gl_LocalInvocationIndex; k < uint(u_layers * STEP_BINS); k += gl_WorkGroupSize.x * gl_WorkGroupSize.y) {
         if (s_count[k] == 0u) continue;
         uint base = 4u * k;
         atomicAdd(step_stats[base], s_count[k]);
