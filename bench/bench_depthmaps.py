@@ -1,5 +1,5 @@
 """Benchmark of depth-map preprocessing (paper Section 4.1): one depth map per photo from one dense
-cloud, with :meth:`dmrt.depthmaps.DepthMapRenderer.render_many` (the cloud uploaded once).
+cloud, with :meth:`dmrt.preprocess.depthmaps.DepthMapRenderer.render_many` (the cloud uploaded once).
 
     python -m bench.bench_depthmaps --points 30000000 --photos 192 --width 1024 \\
         --method compute|raster|both [--resident-mb 4096 1024] [--out FILE.json]
@@ -13,7 +13,7 @@ warm-up, with GL timer queries (upload, splatting, read-back: GPU milliseconds) 
 (the whole loop over the maps, which the caller receives as numpy arrays). The headline figure is
 ``splats/s = points x photos / splatting GPU seconds``; ``splats/s (wall)`` divides by the whole
 loop's wall time instead (uploads and read-backs included). The first map is checked to be equal,
-bit for bit, to :meth:`~dmrt.depthmaps.DepthMapRenderer.render` of the same camera.
+bit for bit, to :meth:`~dmrt.preprocess.depthmaps.DepthMapRenderer.render` of the same camera.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import time
 import numpy as np
 
 from dmrt.camera import Camera
-from dmrt.depthmaps import DepthMapConfig, DepthMapRenderer, depth_map_size
+from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer, depth_map_size
 from dmrt.gl import GpuTimer, get_context, renderer_info
 
 BENCH_VERSION = 1

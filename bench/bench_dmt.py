@@ -5,7 +5,7 @@
 For each DMT depth-map resolution: the labeling of every depth map (graph cut per map, timed in
 this run unless ``--reuse-labels``; cached in the bundle under ``dmt/<W>/``) and a walkthrough
 rendered with :class:`baselines.dmt.DMTRenderer`; then the same walkthrough with DMRT
-(:class:`dmrt.renderer.Renderer`, ``--layers`` label layers, the bundle's own depth maps). Frame
+(:class:`dmrt.runtime.renderer.Renderer`, ``--layers`` label layers, the bundle's own depth maps). Frame
 times are GPU milliseconds (GL timer queries, the sum of every stage) per frame; fps = 1000 / that,
 min / avg / max as in Table 3 (avg = 1000 / mean frame time). DMRT's labeling time is the bundle's
 (``bundle.json`` timings: candidates + graph cut, the same work DMT's figure covers); the ratio
@@ -63,7 +63,7 @@ def run(bundle_path, resolutions=(256, 512, 1024), frames: int = 60, width: int 
     bundle_path : a preprocessed bundle (its depth maps at least as wide as the largest resolution).
     resolutions : DMT depth-map widths (heights follow the photos' aspect).
     frames, width, height : walkthrough length and frame size (default path: through every
-        ``n / 12``-th photo camera, :func:`dmrt.walkthrough.camera_path`).
+        ``n / 12``-th photo camera, :func:`dmrt.runtime.walkthrough.camera_path`).
     labeler : "graphcut" (timing comparisons) or "wta".
     layers : DMRT label layers (paper's comparison: 5).
     warmup : frames rendered before timing (compilation, first allocations, photo cache).
@@ -81,10 +81,10 @@ def run(bundle_path, resolutions=(256, 512, 1024), frames: int = 60, width: int 
     """
     from baselines.dmt import DMTConfig, DMTLabelingConfig, DMTRenderer, dmt_labels
     from baselines.dmt.geometry import dmt_size
-    from dmrt.bundle import read_bundle
+    from dmrt.io.bundle import read_bundle
     from dmrt.errors import InputError
     from dmrt.gl import get_context, renderer_info
-    from dmrt.walkthrough import camera_path, load_path
+    from dmrt.runtime.walkthrough import camera_path, load_path
 
     bundle = read_bundle(bundle_path)
     cams = bundle.cameras
@@ -120,7 +120,7 @@ def run(bundle_path, resolutions=(256, 512, 1024), frames: int = 60, width: int 
         renderer.release()
         result["dmt"].append(entry)
     if dmrt:
-        from dmrt.renderer import RenderConfig, Renderer
+        from dmrt.runtime.renderer import RenderConfig, Renderer
 
         renderer = Renderer(bundle, RenderConfig(layers=layers))
         result["dmrt"] = {"layers": layers, "labeling_s": dmrt_label_s, **_walk(renderer, cameras, warmup)}

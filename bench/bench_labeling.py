@@ -26,7 +26,7 @@ from dataclasses import asdict
 import numpy as np
 
 from dmrt.camera import Camera
-from dmrt.labeling import (Candidates, LabelingConfig, candidate_data_costs, energy, knn_edges,
+from dmrt.preprocess.labeling import (Candidates, LabelingConfig, candidate_data_costs, energy, knn_edges,
                            label_points)
 
 BENCH_VERSION = 1
@@ -131,7 +131,7 @@ def main(argv=None):
     ap.add_argument("--full-moves", action="store_true",
                     help="full expansion moves in every sweep (LabelingConfig.local_moves=False)")
     ap.add_argument("--check", action="store_true",
-                    help="recompute the final energy independently with dmrt.labeling.energy")
+                    help="recompute the final energy independently with dmrt.preprocess.labeling.energy")
     ap.add_argument("--progress", action="store_true")
     ap.add_argument("--out", help="write the results as JSON here")
     a = ap.parse_args(argv)

@@ -1,4 +1,4 @@
-"""Benchmark of the out-of-core level-of-detail build (dmrt.octree; paper Section 4.1/4.2: P_HD in an
+"""Benchmark of the out-of-core level-of-detail build (dmrt.preprocess.octree; paper Section 4.1/4.2: P_HD in an
 out-of-core octree, the proxies P_LD = its k coarsest levels, sub-sampled 87x to 2075x).
 
     python -m bench.bench_octree --points 20000000 --memory-limit-mb 256 --out-dir /tmp/oct [--json FILE]
@@ -34,7 +34,7 @@ import time
 
 import numpy as np
 
-from dmrt.octree import Octree, OctreeConfig
+from dmrt.preprocess.octree import Octree, OctreeConfig
 
 BENCH_VERSION = 1
 RECORD_BYTES = 24 + 12 + 3

@@ -25,7 +25,7 @@ from pathlib import Path
 def main(argv=None) -> None:
     from bench.scenes.synthetic import PRESETS, generate_scene
     from dmrt.gl import get_context, renderer_info
-    from dmrt.preprocess import PreprocessConfig, preprocess
+    from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--preset", choices=sorted(PRESETS), default="tiny")

@@ -33,9 +33,9 @@ def log_gain_spread(frame: dict, truth: np.ndarray) -> tuple[float, float] | Non
 
 def main(argv=None) -> None:
     from baselines.dmt import DMTConfig, DMTRenderer
-    from dmrt.bundle import read_bundle
-    from dmrt.renderer import RenderConfig, Renderer
-    from dmrt.scene import load_scene
+    from dmrt.io.bundle import read_bundle
+    from dmrt.runtime.renderer import RenderConfig, Renderer
+    from dmrt.io.scene import load_scene
     from reference.metrics import compare
     from reference.render import EmbreeReference
 
@@ -50,7 +50,7 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     if args.preset:
         from bench.scenes.synthetic import PRESETS, generate_scene
-        from dmrt.preprocess import PreprocessConfig, preprocess
+        from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
 
         args.scene = generate_scene(PRESETS[args.preset], args.work / "scene", force=True, progress=False)
         width = PRESETS[args.preset].photo_size[0]

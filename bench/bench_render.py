@@ -28,7 +28,7 @@ def bundle_path(args, setup: dict) -> Path:
     if not args.preset:
         return args.bundle
     from bench.scenes.synthetic import PRESETS, generate_scene
-    from dmrt.preprocess import preprocess
+    from dmrt.preprocess.pipeline import preprocess
 
     shutil.rmtree(args.work, ignore_errors=True)
     t0 = time.perf_counter()
@@ -42,10 +42,10 @@ def bundle_path(args, setup: dict) -> Path:
 
 
 def main(argv=None) -> None:
-    from dmrt.bundle import read_bundle
+    from dmrt.io.bundle import read_bundle
     from dmrt.gl import get_context, renderer_info
-    from dmrt.renderer import RenderConfig, Renderer
-    from dmrt.walkthrough import camera_path
+    from dmrt.runtime.renderer import RenderConfig, Renderer
+    from dmrt.runtime.walkthrough import camera_path
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     src = p.add_mutually_exclusive_group(required=True)

@@ -22,10 +22,10 @@ import numpy as np
 
 def main(argv=None) -> None:
     from bench.bench_render import bundle_path
-    from dmrt.bundle import read_bundle
+    from dmrt.io.bundle import read_bundle
     from dmrt.gl import get_context, renderer_info
-    from dmrt.renderer import RenderConfig, Renderer
-    from dmrt.walkthrough import camera_path
+    from dmrt.runtime.renderer import RenderConfig, Renderer
+    from dmrt.runtime.walkthrough import camera_path
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     src = p.add_mutually_exclusive_group(required=True)

@@ -44,7 +44,7 @@ def walk_of(preset: BenchPreset) -> Walk:
 
 
 def walkthrough_cameras(ws: Workspace, walk: Walk) -> list:
-    from dmrt.walkthrough import camera_path
+    from dmrt.runtime.walkthrough import camera_path
 
     cams = ws.bundle().cameras
     keys = cams[:: max(1, len(cams) // walk.keys)]
@@ -65,7 +65,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
 
     Parameters
     ----------
-    bundle : dmrt.bundle.Bundle.  config : dmrt.renderer.RenderConfig.
+    bundle : dmrt.io.bundle.Bundle.  config : dmrt.runtime.renderer.RenderConfig.
     cameras : list of Camera (the frame size is each camera's).
     on_frame : called with every frame of the statistics pass (e.g. to collect statistics).
 
@@ -80,7 +80,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
     """
     from tqdm import tqdm
 
-    from dmrt.renderer import Renderer
+    from dmrt.runtime.renderer import Renderer
 
     renderer = Renderer(bundle, config)
     try:
@@ -119,7 +119,7 @@ def quality_config(**kw):
     labels (no streaming delay) and no leveling, so colours are the photos' own, as the reference's;
     no hole filling from neighbours, so that holes are the layers' own (the paper's Figs. 7, 13:
     :func:`hole_counts` reads every layer count off one frame, which filled pixels would break)."""
-    from dmrt.renderer import RenderConfig
+    from dmrt.runtime.renderer import RenderConfig
 
     return RenderConfig(**{"async_photos": False, "max_uploads_per_frame": 0, "leveling": False, "fill_passes": 0,
                            **kw})
@@ -172,7 +172,7 @@ class HoleTally:
 def tally_holes(ws, bundle, config, cams, max_layers: int) -> HoleTally:
     """The holes of ``bundle`` rendered with ``config`` (``max_layers`` layers) at ``cams``
     against the workspace's Embree reference frames."""
-    from dmrt.renderer import Renderer
+    from dmrt.runtime.renderer import Renderer
 
     renderer = Renderer(bundle, config)
     tally = HoleTally(max_layers)
@@ -258,7 +258,7 @@ class Table2Params:
 
 
 def run_table2(ws: Workspace, p: Table2Params, out: Path) -> dict:
-    from dmrt.renderer import RenderConfig
+    from dmrt.runtime.renderer import RenderConfig
 
     b = ws.bundle()
     cams = walkthrough_cameras(ws, p.walk)
@@ -299,7 +299,7 @@ def run_table3_fig12(ws: Workspace, p: Table3Params, out: Path) -> dict:
     the main bundle and the walkthrough of the other experiments; its result is stored unchanged
     under ``dmt`` (:func:`bench.report.table3_rows` reads it)."""
     from bench.bench_dmt import run as dmt_run
-    from dmrt.walkthrough import save_path
+    from dmrt.runtime.walkthrough import save_path
 
     cams = walkthrough_cameras(ws, p.walk)
     path = ws.work / "walkthrough.json"
@@ -334,7 +334,7 @@ class Fig7Params:
 
 
 def run_fig7(ws: Workspace, p: Fig7Params, out: Path) -> dict:
-    from dmrt.renderer import RenderConfig
+    from dmrt.runtime.renderer import RenderConfig
 
     cams = [c.resized(p.quality_width, None) for c in ws.photo_cameras(p.photo_cameras)]
     path = walkthrough_cameras(ws, p.walk)
@@ -383,7 +383,7 @@ class Fig8Params:
 
 
 def run_fig8(ws: Workspace, p: Fig8Params, out: Path) -> dict:
-    from dmrt.renderer import Renderer
+    from dmrt.runtime.renderer import Renderer
     from reference.metrics import compare
 
     b = ws.bundle()
@@ -433,8 +433,8 @@ class Fig9Params:
 
 def step_statistics(bundle, config, cameras) -> dict:
     """Mean step length (metres) and step count per layer and step index, summed over ``cameras``
-    (``RenderConfig(statistics=True)``; see :meth:`dmrt.renderer.Renderer._read_step_stats`)."""
-    from dmrt.renderer import Renderer
+    (``RenderConfig(statistics=True)``; see :meth:`dmrt.runtime.renderer.Renderer._read_step_stats`)."""
+    from dmrt.runtime.renderer import Renderer
 
     steps_sum, counts = None, None
     renderer = Renderer(bundle, dataclasses.replace(config, statistics=True))
@@ -451,7 +451,7 @@ def step_statistics(bundle, config, cameras) -> dict:
 
 
 def run_fig9_10(ws: Workspace, p: Fig9Params, out: Path) -> dict:
-    from dmrt.renderer import RenderConfig
+    from dmrt.runtime.renderer import RenderConfig
 
     path = walkthrough_cameras(ws, p.walk)
     cams = [c.resized(p.quality_width, None) for c in ws.photo_cameras(p.photo_cameras)]
@@ -513,7 +513,7 @@ class Fig13Params:
 def filled_holes(ws: Workspace, bundle, layers: int, cams) -> dict:
     """Hole and extra-surface rates with the renderer's default hole filling from neighbours (beyond
     the paper; Fig. 13's other rates are the layers' own), summed over ``cams``."""
-    from dmrt.renderer import RenderConfig, Renderer
+    from dmrt.runtime.renderer import RenderConfig, Renderer
     from reference.metrics import compare
 
     passes = RenderConfig().fill_passes
@@ -536,7 +536,7 @@ def filled_holes(ws: Workspace, bundle, layers: int, cams) -> dict:
 
 
 def run_fig13(ws: Workspace, p: Fig13Params, out: Path) -> dict:
-    from dmrt.renderer import Renderer
+    from dmrt.runtime.renderer import Renderer
     from reference.metrics import compare
 
     b = ws.bundle()
@@ -585,7 +585,7 @@ class MemoryParams:
 
 def run_memory(ws: Workspace, p: MemoryParams, out: Path) -> dict:
     from bench import paper
-    from dmrt.renderer import RenderConfig, Renderer
+    from dmrt.runtime.renderer import RenderConfig, Renderer
 
     b = ws.bundle()
     cam = walkthrough_cameras(ws, Walk(p.frame_size, 2, 2, 0))[0]

@@ -50,7 +50,7 @@ class BenchPreset:
     # Synthetic scene: a preset of bench.scenes.synthetic.PRESETS and overrides of its SynthConfig.
     scene: str
     synth: dict = field(default_factory=dict)
-    # Overrides of dmrt.preprocess.PreprocessConfig for the base bundle (proxy_levels is set here).
+    # Overrides of dmrt.preprocess.pipeline.PreprocessConfig for the base bundle (proxy_levels is set here).
     preprocess: dict = field(default_factory=dict)
     # Frames of the walkthroughs (the paper: 1280x720).
     frame_size: tuple[int, int] = (1280, 720)
@@ -204,18 +204,18 @@ def derive_proxy_bundle(base: Path, levels: int, out: Path, progress: bool = Fal
     """A bundle like ``base`` whose proxies are the ``levels`` coarsest octree levels.
 
     The base bundle's proxies are LOD ``L`` = octree levels ``0 .. L-1`` concatenated in level order
-    (:meth:`dmrt.octree.Octree.read_lod`), so LOD ``levels <= L`` is their first ``lod_counts[levels-1]``
-    rows. Steps 4-6 of :func:`dmrt.preprocess.preprocess` are redone for them exactly as
+    (:meth:`dmrt.preprocess.octree.Octree.read_lod`), so LOD ``levels <= L`` is their first ``lod_counts[levels-1]``
+    rows. Steps 4-6 of :func:`dmrt.preprocess.pipeline.preprocess` are redone for them exactly as
     preprocessing does (splat radii from their own density, candidates from the base's depth maps,
     alpha-expansion labeling) and timed; depth maps and photos are shared through symbolic links.
     This makes the proxy sweep cost one labeling per proxy set instead of one whole preprocessing.
     It mirrors those steps of ``preprocess``: a change there must be made here too
     (``tests/test_bench_report.py::test_derived_proxy_bundle_equals_preprocessing`` compares them).
     """
-    from dmrt.bundle import PROXY_ARRAYS, read_bundle
-    from dmrt.labeling import LabelingConfig, label_points
-    from dmrt.normals import splat_radii
-    from dmrt.preprocess import PreprocessConfig, find_candidates
+    from dmrt.io.bundle import PROXY_ARRAYS, read_bundle
+    from dmrt.preprocess.labeling import LabelingConfig, label_points
+    from dmrt.preprocess.normals import splat_radii
+    from dmrt.preprocess.pipeline import PreprocessConfig, find_candidates
 
     src = read_bundle(base)
     meta = json.loads(json.dumps(src.meta))
@@ -328,7 +328,7 @@ class Workspace:
         """The preset's one full preprocessing (proxies: the finest level count any experiment uses)."""
         if "base" in self._bundles:
             return self._bundles["base"]
-        from dmrt.preprocess import PreprocessConfig, preprocess
+        from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
 
         scene = self.scene_dir
         config = PreprocessConfig(**{**self.preset.preprocess, "proxy_levels": self.base_levels})
@@ -355,7 +355,7 @@ class Workspace:
         """Proxy levels of the main bundle: the preset's, else what ``dmrt preprocess`` would choose."""
         if self.preset.main_proxy_levels:
             return self.preset.main_proxy_levels
-        from dmrt.preprocess import PreprocessConfig, choose_proxy_levels
+        from dmrt.preprocess.pipeline import PreprocessConfig, choose_proxy_levels
 
         counts = json.loads((self.base_bundle() / "bundle.json").read_text())["counts"]
         config = PreprocessConfig(**{k: v for k, v in self.preset.preprocess.items() if k != "proxy_levels"})
@@ -387,8 +387,8 @@ class Workspace:
         return path
 
     def bundle(self, levels: int | None = None):
-        """:class:`dmrt.bundle.Bundle` of :meth:`bundle_path` (read once)."""
-        from dmrt.bundle import read_bundle
+        """:class:`dmrt.io.bundle.Bundle` of :meth:`bundle_path` (read once)."""
+        from dmrt.io.bundle import read_bundle
 
         key = ("read", levels or self.main_levels)
         if key not in self._bundles:
@@ -418,7 +418,7 @@ class Workspace:
             with np.load(path) as z:
                 return {k: z[k] for k in z.files}
         if self._reference is None:
-            from dmrt.scene import load_scene
+            from dmrt.io.scene import load_scene
             from reference.render import EmbreeReference
 
             self._reference = EmbreeReference.from_scene(load_scene(self.scene_dir))
@@ -443,7 +443,7 @@ def representable_mask(camera, depth: np.ndarray, bundle, threshold: float = 0.2
     Parameters
     ----------
     camera : Camera of the reference frame.  depth : (h, w) float32 reference camera z (0 = none).
-    bundle : dmrt.bundle.Bundle (its depth maps and cameras).
+    bundle : dmrt.io.bundle.Bundle (its depth maps and cameras).
     """
     dirs, center = camera.pixel_rays()
     sel = np.flatnonzero(depth.ravel() > 0)

@@ -17,7 +17,7 @@ experiments=("$@")
 mkdir -p "$out"
 for e in "${experiments[@]}"; do
     t0=$(date +%s)
-    python3 -m dmrt.cli bench --preset paper --out "$out/results" --work "$out/work" --only "$e" >>"$out/log.txt" 2>&1
+    python3 -m dmrt.app.cli bench --preset paper --out "$out/results" --work "$out/work" --only "$e" >>"$out/log.txt" 2>&1
     rc=$?
     echo "$e rc=$rc $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
     tar czf "$out/results.tgz.tmp" -C "$out" results && mv "$out/results.tgz.tmp" "$out/results.tgz"

@@ -1,6 +1,6 @@
 """Error metrics between a rendered frame and the reference frame, with per-pixel heat maps.
 
-All metrics compare frames of the same camera and resolution (see :mod:`dmrt.frames`).
+All metrics compare frames of the same camera and resolution (see :mod:`dmrt.io.frames`).
 """
 
 from __future__ import annotations

@@ -64,7 +64,7 @@ def build_scene_mesh(scene, out: Path | None = None, depth: int = 9, normals_k: 
 
     Normals missing from the cloud are estimated and oriented toward the nearest photo camera.
     """
-    from dmrt.normals import estimate_normals
+    from dmrt.preprocess.normals import estimate_normals
 
     cloud = scene.read_points()
     normals = cloud.normals

@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from dmrt.camera import Camera
-from dmrt.frames import empty_frame
+from dmrt.io.frames import empty_frame
 from reference.raycast import MeshRaycaster
 
 # Grazing views (|cos theta| below this) texture badly and are not chosen.
@@ -100,7 +100,7 @@ class EmbreeReference:
 
     @classmethod
     def from_scene(cls, scene) -> "EmbreeReference":
-        """Build from a loaded :class:`dmrt.scene.Scene` that has a ``mesh.ply``."""
+        """Build from a loaded :class:`dmrt.io.scene.Scene` that has a ``mesh.ply``."""
         if scene.mesh_path is None:
             from dmrt.errors import InputError
             raise InputError(scene.root, "scene has no mesh.ply: the Embree reference needs a reference mesh")
@@ -113,7 +113,7 @@ class EmbreeReference:
         return self._cache[i]
 
     def render(self, camera: Camera, width: int | None = None, height: int | None = None) -> dict:
-        """Frame outputs (see :mod:`dmrt.frames`) for ``camera`` at ``width`` x ``height``.
+        """Frame outputs (see :mod:`dmrt.io.frames`) for ``camera`` at ``width`` x ``height``.
 
         ``timings`` holds wall-clock ms of the CPU stages (Embree runs on the CPU).
         """

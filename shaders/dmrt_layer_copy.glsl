@@ -1,5 +1,5 @@
 // DMRT raster visibility path: copy a float32 render target into label layer u_layer of the layer
-// buffers (dmrt/visibility.py): u_resolve 0 = camera z -> float bits (clear value -> empty),
+// buffers (dmrt/runtime/visibility.py): u_resolve 0 = camera z -> float bits (clear value -> empty),
 // u_resolve 1 = label (stored as float, exact below 2^24) -> int (clear value -> empty).
 #if defined COMPUTE_SHADER
 

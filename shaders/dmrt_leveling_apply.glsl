@@ -1,5 +1,5 @@
 // Screen-space leveling, pass 2: every textured pixel's colour times its photo's gain (solved on
-// the CPU from the seam sums of dmrt_leveling_seams.glsl, dmrt.leveling).
+// the CPU from the seam sums of dmrt_leveling_seams.glsl, dmrt.runtime.leveling).
 #include "splat_depth_common.glsl"
 #include "dmrt_frame.glsl"
 

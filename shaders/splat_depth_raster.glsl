@@ -4,7 +4,7 @@
 // whose centre leaves the view volume is clipped whole, which would drop discs at the border.
 // Discs whose sprite would exceed the implementation's largest point size (255 px on llvmpipe) are
 // left to splat_depth_raster_large (quads from a geometry shader).
-// WITH_LABEL 1: the DMRT visibility stage's raster path (dmrt/visibility.py): each disc carries its
+// WITH_LABEL 1: the DMRT visibility stage's raster path (dmrt/runtime/visibility.py): each disc carries its
 // label, and the fragment stage is dmrt_visibility_fragment.glsl (ray-disc and peeling tests).
 #include "splat_depth_common.glsl"
 

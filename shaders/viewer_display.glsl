@@ -1,4 +1,4 @@
-// The viewer's display pass (dmrt/viewer.py): one buffer of a rendered frame mapped to colours on a
+// The viewer's display pass (dmrt/app/viewer.py): one buffer of a rendered frame mapped to colours on a
 // full-screen triangle, with the text overlay blended on top.
 //
 // Textures hold the frame in image order (row 0 = the top of the image, as every frame array), so
@@ -6,7 +6,7 @@
 // filtered: at the frame's own size the display is exact (the viewer's tests compare it byte for
 // byte with the frame), and a window of another size shows the frame scaled with nearest pixels.
 //
-// MODE_* come from dmrt.viewer.BUFFERS (one place for the numbering).
+// MODE_* come from dmrt.app.viewer.BUFFERS (one place for the numbering).
 
 #if defined VERTEX_SHADER
 
@@ -32,7 +32,7 @@ uniform vec2 u_range;         // depth: (near, far) of the frame's surface; iter
 uniform sampler2D u_overlay;  // RGBA8 text box, alpha = coverage (not premultiplied)
 uniform int u_show_overlay;
 
-// Label -> colour, mirrored by dmrt.frames.label_colors (numpy): hue along the golden-ratio
+// Label -> colour, mirrored by dmrt.io.frames.label_colors (numpy): hue along the golden-ratio
 // sequence (neighbouring photo indices get far-apart hues; any few labels get distinct ones),
 // value varied by a second low-discrepancy sequence (never below 0.7); -1 (no label) is black.
 vec3 label_color(int label) {

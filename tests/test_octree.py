@@ -1,4 +1,4 @@
-"""Out-of-core levels of detail (dmrt.octree): partition, nesting, evenness, out-of-core equivalence.
+"""Out-of-core levels of detail (dmrt.preprocess.octree): partition, nesting, evenness, out-of-core equivalence.
 
 The truths here are independent of the implementation: a naive in-memory reference of the level
 definition (per level, per cell, the free point closest to the cell centre, ties by x, y, z), the
@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from dmrt.errors import InputError
-from dmrt.octree import Octree, OctreeConfig, morton_encode
+from dmrt.morton import morton_encode
+from dmrt.preprocess.octree import Octree, OctreeConfig
 
 N_BIG = 2_000_000
 CHUNK = 50_000

@@ -8,7 +8,7 @@ check it against :func:`grid_triangles`.
 Resampling to a DMT resolution
 ------------------------------
 A bundle stores one depth map per photo at one resolution (``W_s`` texels wide). DMT at width
-``W <= W_s`` uses ``(W, H)`` maps, ``H`` following the photo's aspect (:func:`dmrt.depthmaps.depth_map_size`).
+``W <= W_s`` uses ``(W, H)`` maps, ``H`` following the photo's aspect (:func:`dmrt.preprocess.depthmaps.depth_map_size`).
 Coarse texel ``(r, c)`` takes the value of the *stored texel nearest to its centre*: column
 ``floor((c + 0.5) W_s / W)``, row ``floor((r + 0.5) H_s / H)``. No averaging, so an empty texel never
 mixes with a surface and a depth edge stays a jump (a mean or bilinear filter would invent surface
@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from dmrt.camera import Camera
-from dmrt.depthmaps import depth_map_size
+from dmrt.preprocess.depthmaps import depth_map_size
 from dmrt.errors import InputError
 
 # Triangle split of the quad of texels (00, 10, 01, 11) - (column, row) offsets - along the 10-01

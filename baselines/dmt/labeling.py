@@ -2,11 +2,11 @@
 
 DMT textures each depth map on its own: every non-empty texel of photo ``i``'s depth map (at the
 DMT resolution, :mod:`baselines.dmt.geometry`) is a 3D point; its candidates are the photos that see
-it, by the same occlusion test as DMRT's proxies (:func:`dmrt.preprocess.find_candidates`, with the
+it, by the same occlusion test as DMRT's proxies (:func:`dmrt.preprocess.pipeline.find_candidates`, with the
 bundle's own tolerances, against the bundle's stored depth maps); data costs are DMRT's
-(:func:`dmrt.labeling.candidate_data_costs`, normals from the depth-map grid) and so is the seam
+(:func:`dmrt.preprocess.labeling.candidate_data_costs`, normals from the depth-map grid) and so is the seam
 term; the graph is the texel grid's 4-neighbourhood without edges to empty texels or across depth
-jumps larger than the discontinuity threshold; :func:`dmrt.labeling.alpha_expansion` minimises it.
+jumps larger than the discontinuity threshold; :func:`dmrt.preprocess.labeling.alpha_expansion` minimises it.
 Labeling time therefore grows with the number of texels (paper Table 3: 7 / 23 / 87 min at
 256 / 512 / 1024 wide), where DMRT labels a fixed set of proxies.
 
@@ -43,8 +43,8 @@ import numpy as np
 from baselines.dmt.geometry import (bounding_box, dmt_size, frustum_culled, grid_edges, grid_normals,
                                     load_depth_map, orient_normals, texel_points)
 from dmrt.errors import InputError
-from dmrt.labeling import Candidates, LabelingConfig, alpha_expansion, candidate_data_costs, winner_take_all
-from dmrt.preprocess import PreprocessConfig, find_candidates
+from dmrt.preprocess.labeling import Candidates, LabelingConfig, alpha_expansion, candidate_data_costs, winner_take_all
+from dmrt.preprocess.pipeline import PreprocessConfig, find_candidates
 
 SCHEMA = "dmrt-dmt-labels"
 SCHEMA_VERSION = 1

@@ -15,7 +15,7 @@ Per frame, each stage timed on the GPU (:class:`dmrt.gl.GpuTimer`):
    that point, by the depth test); then the pixel's label is that map's label at its texel nearest
    to the fragment (``shaders/dmt_resolve.glsl`` packs the results);
 4. ``image_management`` and 5. ``texturing`` - DMRT's own passes and photo cache
-   (:mod:`dmrt.texturing`) on the DMT labels.
+   (:mod:`dmrt.runtime.texturing`) on the DMT labels.
 
 The stitching rule. The DMRT paper (Fig. 11) describes DMT's behaviour: with a small ε two depth
 maps of one surface that disagree by more than ε count as different surfaces and the nearer one
@@ -26,7 +26,7 @@ same texel count means the closest and most frontal view (the labeling data term
 Depth, normal and the map come from the winning fragment: DMT shows the winner's geometry, there
 is no blending.
 
-6. ``leveling`` (``DMTConfig.leveling``) - DMRT's screen-space leveling (:mod:`dmrt.leveling`).
+6. ``leveling`` (``DMTConfig.leveling``) - DMRT's screen-space leveling (:mod:`dmrt.runtime.leveling`).
 
 Usage::
 
@@ -43,14 +43,14 @@ import numpy as np
 
 from baselines.dmt.geometry import bounding_box, box_corners, dmt_size, load_depth_map, texel_points
 from baselines.dmt.labeling import DMTLabelingConfig, dmt_labels
-from dmrt.bundle import Bundle
+from dmrt.io.bundle import Bundle
 from dmrt.camera import Camera
 from dmrt.gl.context import check_gl, get_context
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
-from dmrt.leveling import ScreenLeveler
-from dmrt.renderer import HIT_DTYPE, photo_params, read_frame
-from dmrt.texturing import ImageCache, texture_frame
+from dmrt.runtime.leveling import ScreenLeveler
+from dmrt.runtime.renderer import HIT_DTYPE, photo_params, read_frame
+from dmrt.runtime.texturing import ImageCache, texture_frame
 
 STAGES = ("culling", "rasterization", "stitching", "image_management", "texturing", "leveling")
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
@@ -83,7 +83,7 @@ class DMTConfig:
     near: float = 0.05
     # Clamp of |cos θ| in the quality key (a grazing view's footprint is at most 20x its frontal one).
     min_cos: float = 0.05
-    # Photo cache and streaming, as RenderConfig (dmrt.renderer): GPU MiB for full-resolution photos
+    # Photo cache and streaming, as RenderConfig (dmrt.runtime.renderer): GPU MiB for full-resolution photos
     # (paper: 1 GB), background decoding, uploads per frame (0 = no bound), CPU MiB of decoded photos.
     cache_mb: float = 1024.0
     async_photos: bool = True
@@ -92,7 +92,7 @@ class DMTConfig:
     # Progress bar when the labels must be computed.
     progress: bool = True
 
-    # Screen-space leveling, as RenderConfig's (dmrt.leveling).
+    # Screen-space leveling, as RenderConfig's (dmrt.runtime.leveling).
     leveling: bool = False
     leveling_min_samples: int = 16
     leveling_max_gain: float = 2.0
@@ -225,12 +225,12 @@ class DMTRenderer:
         maps : sequence of int, optional
             Draw only these depth maps (the others count as culled); default all.
         readback : bool
-            False: only ``timings``, ``cpu_ms`` and ``stats`` (as ``dmrt.renderer.Renderer.render``).
+            False: only ``timings``, ``cpu_ms`` and ``stats`` (as ``dmrt.runtime.renderer.Renderer.render``).
 
         Returns
         -------
         dict
-            The frame contract of :mod:`dmrt.frames` - ``depth`` (h, w) float32 camera z (0 =
+            The frame contract of :mod:`dmrt.io.frames` - ``depth`` (h, w) float32 camera z (0 =
             background), ``label`` (h, w) int32 (-1 = none), ``color`` (h, w, 3) uint8, ``normal``
             (h, w, 3) float32 unit world normal facing the camera - plus ``depth_map`` (h, w) int32
             (the depth map that won the pixel, -1 = none), ``timings`` {stage: GPU ms} for
@@ -296,7 +296,7 @@ class DMTRenderer:
             self._resolve.run(_groups(w, 8), _groups(h, 8))
             ctx.memory_barrier(_BARRIER)
 
-        # image management and texturing: DMRT's passes on the DMT hits (dmrt.renderer)
+        # image management and texturing: DMRT's passes on the DMT hits (dmrt.runtime.renderer)
         with timer.section("image_management"):
             self._run_fill(self.counts, 0, n)
             fb["hits"].bind_to_storage_buffer(4)

@@ -492,8 +492,8 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
     The scene is assembled in ``<out>.partial`` and renamed when complete, so an interrupted run
     never leaves a scene that looks whole. An existing ``out`` is replaced only with ``force``.
     """
-    from dmrt.colmap import write_model
-    from dmrt.pointcloud import PointCloud, PointWriter
+    from dmrt.io.colmap import write_model
+    from dmrt.io.pointcloud import PointCloud, PointWriter
 
     out = Path(out)
     if out.exists() and not force:

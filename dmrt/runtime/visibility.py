@@ -13,7 +13,7 @@ Two GPU paths write the same layer buffers (``RenderConfig.method``):
     Per layer two compute passes: ``atomicMin`` on the float bits of z, then a resolve pass where
     discs whose z equals the stored one ``atomicMin`` their label. Portable (no 64-bit atomics,
     which Mesa llvmpipe lacks); discs larger than ``max_thread_pixels`` pixels are splatted by a
-    whole workgroup each (dispatch-indirect), as in :mod:`dmrt.depthmaps`.
+    whole workgroup each (dispatch-indirect), as in :mod:`dmrt.preprocess.depthmaps`.
 ``"kbuffer"``
     One splat pass for all k layers (the paper's future work): every disc hit is inserted into a
     per-pixel sorted list of its ``slots`` nearest fragments (32-bit keys: depth bits with the low
@@ -39,6 +39,7 @@ import moderngl
 import numpy as np
 
 from dmrt.gl.shaders import load_program, set_uniforms
+from dmrt.morton import morton_order
 
 EMPTY_BITS = 0xFFFFFFFF
 EMPTY_LABEL = 0x7FFFFFFF
@@ -56,8 +57,6 @@ def pack_proxies(proxy: dict) -> np.ndarray:
     neighbouring discs of similar screen size, which the GPU runs in lockstep (-25 % visibility
     time on an H200, bench/bench_visibility.py).
     """
-    from dmrt.labeling import morton_order
-
     keep = np.asarray(proxy["labels"]) >= 0
     if keep.sum() > 1:
         idx = np.flatnonzero(keep)
@@ -83,7 +82,7 @@ class ProxySplats:
     ctx : moderngl.Context
     proxy : dict
         ``positions`` (n, 3) float32 scene-origin-relative metres, ``normals`` (n, 3) float32,
-        ``radii`` (n,) float32 metres, ``labels`` (n,) int32 (as :attr:`dmrt.bundle.Bundle.proxy`).
+        ``radii`` (n,) float32 metres, ``labels`` (n,) int32 (as :attr:`dmrt.io.bundle.Bundle.proxy`).
     max_thread_pixels : int
         Compute passes: discs whose pixel box exceeds this go to the workgroup-per-disc pass.
     """

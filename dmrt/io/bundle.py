@@ -28,6 +28,7 @@ import numpy as np
 
 from dmrt.camera import Camera
 from dmrt.errors import InputError
+from dmrt.io.atomic import atomic_dir
 
 SCHEMA = "dmrt-bundle"
 SCHEMA_VERSION = 1
@@ -69,7 +70,7 @@ class Bundle:
 
     def depth_map(self, i: int) -> np.ndarray:
         """(h, w) float32 camera z of photo ``i``'s depth map, 0 = empty."""
-        from dmrt.depthmaps import read_depth_exr
+        from dmrt.preprocess.depthmaps import read_depth_exr
 
         return read_depth_exr(self.path("depthmaps", i))
 
@@ -151,19 +152,19 @@ def read_bundle(path) -> Bundle:
 
 
 class BundleWriter:
-    """Assembles a bundle in ``<out>.partial`` and renames it to ``out`` on success.
+    """Assembles a bundle in ``<out>.partial`` (:func:`dmrt.io.atomic.atomic_dir`); it is renamed to
+    ``out`` when the ``with`` block that called :meth:`finish` ends without an error.
 
     ``force`` replaces an existing bundle; otherwise an existing ``out`` is refused up front.
     """
 
     def __init__(self, out, force: bool = False):
         self.out = Path(out)
-        if self.out.exists() and not force:
-            raise FileExistsError(f"{self.out}: already exists (use --force to overwrite)")
-        self.tmp = self.out.with_name(self.out.name + ".partial")
+        self._dir = atomic_dir(self.out, force=force, what="bundle")
+        self._finished = False
 
     def __enter__(self) -> "BundleWriter":
-        shutil.rmtree(self.tmp, ignore_errors=True)
+        self.tmp = self._dir.__enter__()
         for sub in ("depthmaps", "images", "images_low"):
             (self.tmp / sub).mkdir(parents=True)
         return self
@@ -185,13 +186,13 @@ class BundleWriter:
         np.savez(self.tmp / "proxy.npz", **arrays)
 
     def finish(self, meta: dict) -> Path:
+        """Write ``bundle.json`` (the last file: a folder without it is no bundle); returns ``out``."""
         meta = {"schema": SCHEMA, "version": SCHEMA_VERSION, **meta}
         (self.tmp / "bundle.json").write_text(json.dumps(meta, indent=1))
-        if self.out.exists():
-            shutil.rmtree(self.out)
-        os.replace(self.tmp, self.out)
+        self._finished = True
         return self.out
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is not None:
-            shutil.rmtree(self.tmp, ignore_errors=True)
+        if exc_type is None and not self._finished:
+            exc_type = RuntimeError  # a block that never finished leaves no bundle
+        self._dir.__exit__(exc_type, exc, tb)

@@ -27,7 +27,7 @@ from concurrent.futures import Future, ThreadPoolExecutor, wait
 
 import numpy as np
 
-from dmrt.bundle import Bundle
+from dmrt.io.bundle import Bundle
 from dmrt.errors import InputError
 
 
@@ -189,7 +189,7 @@ def texture_frame(ctx, timer, images: ImageCache, label_counts, hits, colors, ph
     images : ImageCache
     label_counts : moderngl.Buffer, (n_photos,) uint32 pixels per label, counted on the GPU
     hits, colors : moderngl.Buffer, the frame's ``Hit`` records and packed RGBA8 colours (written)
-    photos : moderngl.Buffer, the ``Photo`` records (``dmrt.renderer.photo_params``)
+    photos : moderngl.Buffer, the ``Photo`` records (``dmrt.runtime.renderer.photo_params``)
     cam_uniforms : dict, ``u_R, u_t, u_K, u_size`` of the frame
 
     Returns

@@ -4,7 +4,7 @@
 and turns input (:meth:`Viewer.key`, :meth:`Viewer.drag`, :meth:`Viewer.scroll`,
 :meth:`Viewer.step`) into frames (:meth:`Viewer.render` returns the displayed image). It needs a GL
 context, not a window, so tests drive it headless through scripted input. The window
-(moderngl-window) lives in :mod:`dmrt.viewer_window`, which only forwards events to a Viewer and
+(moderngl-window) lives in :mod:`dmrt.app.viewer_window`, which only forwards events to a Viewer and
 draws its frame; ``dmrt view BUNDLE`` opens it.
 
 Keys (names as :meth:`Viewer.key` takes them; the README lists them too)::
@@ -19,7 +19,7 @@ Keys (names as :meth:`Viewer.key` takes them; the README lists them too)::
                  w s move toward / away from it; o again: fly)
     p            proxy set: the k coarsest octree levels of the bundle's proxies, k = K, K-1, .., 1
 
-Recorded paths are :func:`dmrt.walkthrough.save_path` files: ``dmrt render BUNDLE --path FILE
+Recorded paths are :func:`dmrt.runtime.walkthrough.save_path` files: ``dmrt render BUNDLE --path FILE
 --out DIR`` replays them (one PNG per frame and each frame's stage timings).
 """
 
@@ -36,12 +36,12 @@ import moderngl
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from dmrt.bundle import Bundle
+from dmrt.io.bundle import Bundle
 from dmrt.camera import Camera
 from dmrt.gl.context import get_context
 from dmrt.gl.shaders import load_program, set_uniforms
-from dmrt.renderer import RenderConfig, Renderer
-from dmrt.walkthrough import save_path
+from dmrt.runtime.renderer import RenderConfig, Renderer
+from dmrt.runtime.walkthrough import save_path
 
 # The buffers the viewer shows, in the order ``b`` cycles through them; the value is the display
 # shader's mode (shaders/viewer_display.glsl gets them as MODE_* defines). The paper's Fig. 3:
@@ -118,7 +118,7 @@ class Method:
     """A renderer the viewer can switch to.
 
     ``make(bundle, config, ctx)`` returns an object whose ``render(camera, width, height)`` gives
-    the frame dict of :mod:`dmrt.frames`; ``config`` is a :class:`RenderConfig` carrying the
+    the frame dict of :mod:`dmrt.io.frames`; ``config`` is a :class:`RenderConfig` carrying the
     viewer's layer count and leveling switch. ``uses_layers`` / ``uses_leveling`` say whether
     those switches change this method's frames (they decide when a new renderer is needed).
     """
@@ -194,7 +194,7 @@ class Viewer:
     Parameters
     ----------
     bundle : Bundle
-        From :func:`dmrt.bundle.read_bundle`.
+        From :func:`dmrt.io.bundle.read_bundle`.
     config : ViewerConfig, optional
     render_config : RenderConfig, optional
         Everything else the renderers use (photo streaming, search, visibility path); its
@@ -426,8 +426,8 @@ class Viewer:
         as preprocessing computes them (a sparser set needs larger discs), their labels stay."""
         k = self.proxy_levels
         if k not in self._proxy_bundles:
-            from dmrt.normals import splat_radii
-            from dmrt.preprocess import PreprocessConfig
+            from dmrt.preprocess.normals import splat_radii
+            from dmrt.preprocess.pipeline import PreprocessConfig
 
             n = int(sum(self.bundle.meta["counts"]["octree_level_counts"][:k]))
             pre = {**dataclasses.asdict(PreprocessConfig()), **self.bundle.meta.get("parameters", {}).get("preprocess", {})}
@@ -480,7 +480,7 @@ class Viewer:
     # -- recording and screenshots ----------------------------------------------------------
     def toggle_recording(self) -> None:
         """Start recording the cameras of the rendered frames, or stop and write them to a free
-        name beside ``config.path_file`` (:func:`dmrt.walkthrough.save_path`)."""
+        name beside ``config.path_file`` (:func:`dmrt.runtime.walkthrough.save_path`)."""
         if not self.recording:
             self.recording, self.recorded = True, []
             self.message = "recording"

@@ -93,6 +93,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dmrt.morton import morton_order
+
 __all__ = [
     "LabelingConfig", "LabelingResult", "Candidates", "data_costs", "candidate_data_costs",
     "knn_edges", "smoothness_costs", "energy", "winner_take_all", "icm", "alpha_expansion",
@@ -630,23 +632,6 @@ def icm(labels0, data, edges, colors, config: LabelingConfig | None = None, swee
 # --------------------------------------------------------------------------------------------
 # alpha-expansion
 # --------------------------------------------------------------------------------------------
-def morton_order(positions) -> np.ndarray:
-    """Permutation sorting points along a 3D Z-order curve (10 bits per axis)."""
-    p = np.asarray(positions, np.float64)
-    lo, hi = p.min(0), p.max(0)
-    q = ((p - lo) / max(float((hi - lo).max()), 1e-12) * 1023).astype(np.uint64)
-
-    def spread(v):
-        v = (v | (v << np.uint64(16))) & np.uint64(0x030000FF)
-        v = (v | (v << np.uint64(8))) & np.uint64(0x0300F00F)
-        v = (v | (v << np.uint64(4))) & np.uint64(0x030C30C3)
-        v = (v | (v << np.uint64(2))) & np.uint64(0x09249249)
-        return v
-
-    code = spread(q[:, 0]) | (spread(q[:, 1]) << np.uint64(1)) | (spread(q[:, 2]) << np.uint64(2))
-    return np.argsort(code, kind="stable")
-
-
 # Colours inside the expansion are packed as 4 float32 (RGB + 0) and moved around as one
 # complex128 per colour: numpy gathers one 16-byte scalar far faster than a (k, 3) row.
 def _pack(col3) -> np.ndarray:

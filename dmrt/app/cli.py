@@ -56,8 +56,8 @@ def cmd_scene_synth(args) -> None:
 
 
 def cmd_reference(args) -> None:
-    from dmrt.frames import write_frame
-    from dmrt.scene import load_scene
+    from dmrt.io.frames import write_frame
+    from dmrt.io.scene import load_scene
     from reference.render import EmbreeReference
 
     scene = load_scene(args.scene)
@@ -69,8 +69,8 @@ def cmd_reference(args) -> None:
 
 
 def cmd_preprocess(args) -> None:
-    from dmrt.labeling import LabelingConfig
-    from dmrt.preprocess import PreprocessConfig, preprocess
+    from dmrt.preprocess.labeling import LabelingConfig
+    from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
 
     out = preprocess(args.scene, args.out, config_from_args(PreprocessConfig, args),
                      config_from_args(LabelingConfig, args), force=args.force, progress=not args.quiet)
@@ -78,7 +78,7 @@ def cmd_preprocess(args) -> None:
 
 
 def cmd_scene_mesh(args) -> None:
-    from dmrt.scene import load_scene
+    from dmrt.io.scene import load_scene
     from reference.poisson import build_scene_mesh
 
     out = build_scene_mesh(load_scene(args.scene, check_images=False), args.out, depth=args.depth)
@@ -90,7 +90,7 @@ def load_pose(path) -> "Camera":
     cy, R, t``; world frame, COLMAP convention)."""
     import json
 
-    from dmrt.bundle import camera_from_json
+    from dmrt.io.bundle import camera_from_json
 
     path = Path(path)
     try:
@@ -113,7 +113,7 @@ def make_renderer(bundle, args):
                                    ("labeler", args.dmt_labeler)) if v is not None}
         config = dataclasses.replace(config_from_args(DMTConfig, args), **{"width": None, **given})
         return DMTRenderer(bundle, config), config
-    from dmrt.renderer import RenderConfig, Renderer
+    from dmrt.runtime.renderer import RenderConfig, Renderer
 
     config = config_from_args(RenderConfig, args)
     if args.visibility:
@@ -126,8 +126,8 @@ def cmd_render(args) -> None:
 
     import numpy as np
 
-    from dmrt.bundle import read_bundle
-    from dmrt.frames import write_frame
+    from dmrt.io.bundle import read_bundle
+    from dmrt.io.frames import write_frame
 
     bundle = read_bundle(args.bundle)
     if sum(x is not None for x in (args.camera, args.pose, args.path)) != 1:
@@ -150,7 +150,7 @@ def cmd_render(args) -> None:
     frame = renderer.render(camera, args.width, args.height)
     write_frame(args.out, frame)
     if args.dump_stages:
-        from dmrt.frames import write_stage_images
+        from dmrt.io.frames import write_stage_images
 
         splats = renderer.layers()["label"][0] if hasattr(renderer, "layers") else None
         write_stage_images(args.dump_stages, frame, splats)
@@ -174,7 +174,7 @@ def render_walkthrough(bundle, args) -> None:
     """Render a camera path into ``--out`` (a folder): one PNG per frame and ``timings.json``."""
     import json
 
-    from dmrt.walkthrough import load_path
+    from dmrt.runtime.walkthrough import load_path
 
     cameras = load_path(args.path)
     renderer, config = make_renderer(bundle, args)
@@ -182,7 +182,7 @@ def render_walkthrough(bundle, args) -> None:
     out.mkdir(parents=True, exist_ok=True)
     from tqdm import tqdm
 
-    from dmrt.frames import write_frame
+    from dmrt.io.frames import write_frame
 
     per_frame = []
     for n, cam in enumerate(tqdm(cameras, desc="walkthrough", unit="frame")):
@@ -196,8 +196,8 @@ def render_walkthrough(bundle, args) -> None:
 
 
 def cmd_path(args) -> None:
-    from dmrt.bundle import read_bundle
-    from dmrt.walkthrough import camera_path, save_path
+    from dmrt.io.bundle import read_bundle
+    from dmrt.runtime.walkthrough import camera_path, save_path
 
     bundle = read_bundle(args.bundle)
     keys = bundle.cameras[:: max(1, args.every)]
@@ -206,10 +206,10 @@ def cmd_path(args) -> None:
 
 
 def cmd_view(args) -> None:
-    from dmrt.bundle import read_bundle
-    from dmrt.renderer import RenderConfig
-    from dmrt.viewer import ViewerConfig, available_methods
-    from dmrt.viewer_window import run_viewer
+    from dmrt.io.bundle import read_bundle
+    from dmrt.runtime.renderer import RenderConfig
+    from dmrt.app.viewer import ViewerConfig, available_methods
+    from dmrt.app.viewer_window import run_viewer
 
     bundle = read_bundle(args.bundle)
     try:
@@ -254,9 +254,9 @@ def cmd_report(args) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from bench.scenes.synthetic import PRESETS, SynthConfig
-    from dmrt.labeling import LabelingConfig
-    from dmrt.preprocess import PreprocessConfig
-    from dmrt.renderer import RenderConfig
+    from dmrt.preprocess.labeling import LabelingConfig
+    from dmrt.preprocess.pipeline import PreprocessConfig
+    from dmrt.runtime.renderer import RenderConfig
 
     p = argparse.ArgumentParser(prog="dmrt", description="Multi-Depth-Map Raytracing suite")
     sub = p.add_subparsers(dest="command", required=True)
@@ -328,7 +328,7 @@ def build_parser() -> argparse.ArgumentParser:
     ref.add_argument("--out", type=Path, required=True, help="frame file, .exr (all channels) or .png")
     ref.set_defaults(func=cmd_reference)
 
-    from dmrt.viewer import ViewerConfig
+    from dmrt.app.viewer import ViewerConfig
 
     view = sub.add_parser("view", help="interactive viewer: fly through a bundle (DMRT, coarse splats, DMT)")
     view.add_argument("bundle", type=Path)

@@ -25,8 +25,9 @@ from typing import Iterator
 import numpy as np
 from scipy.spatial import cKDTree
 
-from dmrt.octree import (_Appender, _chunk_source, _iter_normalized, _merge_counts, _progress,
-                         _in_sorted, _read_records, _unique_counts, compute_bbox, morton_encode)
+from dmrt.preprocess.octree import (_Appender, _chunk_source, _iter_normalized, _merge_counts, _progress,
+                         _in_sorted, _read_records, _unique_counts, compute_bbox)
+from dmrt.morton import morton_encode
 
 __all__ = ["estimate_normals", "splat_radii", "orient_normals", "process_chunked", "ChunkedResult",
            "iter_with_results"]
@@ -267,7 +268,7 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
 
     Parameters
     ----------
-    chunks_fn : callable returning an iterator of chunks (as :meth:`dmrt.octree.Octree.build`;
+    chunks_fn : callable returning an iterator of chunks (as :meth:`dmrt.preprocess.octree.Octree.build`;
         e.g. ``lambda: octree.iter_levels(range(k))`` for the radii of a level of detail)
         Read 2 or 3 times, in the same order each time.
     work_dir : path
@@ -517,7 +518,7 @@ def _process_in_memory(src, n, work, normals, radii, k_normals, k_radii, scale, 
 
 def iter_with_results(chunks_fn, result: ChunkedResult) -> Iterator[tuple[np.ndarray, dict]]:
     """The input chunks again, with ``normals`` and/or ``radii`` attributes from ``result`` added
-    (ready for :meth:`dmrt.octree.Octree.build`)."""
+    (ready for :meth:`dmrt.preprocess.octree.Octree.build`)."""
     g = 0
     for pos, attrs in _iter_normalized(_chunk_source(chunks_fn)):
         m = len(pos)

@@ -2,15 +2,15 @@
 
 Phases, each with a progress bar and a wall-clock timing in ``bundle.json``:
 
-1. **octree** — P_HD into nested levels of detail, out of core (:mod:`dmrt.octree`);
+1. **octree** — P_HD into nested levels of detail, out of core (:mod:`dmrt.preprocess.octree`);
 2. **normals/radii** — normals by plane fit where the input has none, oriented toward the nearest
-   photo camera; splat radii from the local density (:mod:`dmrt.normals`), out of core;
-3. **depth maps** — P_HD splatted as oriented discs from every photo's camera (:mod:`dmrt.depthmaps`);
+   photo camera; splat radii from the local density (:mod:`dmrt.preprocess.normals`), out of core;
+3. **depth maps** — P_HD splatted as oriented discs from every photo's camera (:mod:`dmrt.preprocess.depthmaps`);
 4. **proxies** — P_LD = the k coarsest octree levels, with radii from their own density;
 5. **candidates** — the photos that see each proxy: inside the frame, in front, not grazing, and
    not occluded according to that photo's depth map;
-6. **labeling** — one photo per proxy by alpha-expansion (:mod:`dmrt.labeling`);
-7. **bundle** — written atomically (:mod:`dmrt.bundle`) with low-resolution photo copies.
+6. **labeling** — one photo per proxy by alpha-expansion (:mod:`dmrt.preprocess.labeling`);
+7. **bundle** — written atomically (:mod:`dmrt.io.bundle`) with low-resolution photo copies.
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from dmrt.bundle import BundleWriter, camera_to_json
-from dmrt.labeling import Candidates, LabelingConfig, label_points
-from dmrt.scene import Scene, load_scene
+from dmrt.io.bundle import BundleWriter, camera_to_json
+from dmrt.preprocess.labeling import Candidates, LabelingConfig, label_points
+from dmrt.io.scene import Scene, load_scene
 
 
 @dataclass
@@ -155,10 +155,10 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
     """Preprocess ``scene_dir`` into the bundle ``out``; returns its path."""
     from PIL import Image
 
-    from dmrt.depthmaps import DepthMapConfig, DepthMapRenderer, write_depth_exr
+    from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer, write_depth_exr
     from dmrt.gl import GpuTimer, get_context
-    from dmrt.normals import process_chunked, splat_radii
-    from dmrt.octree import Octree, OctreeConfig
+    from dmrt.preprocess.normals import process_chunked, splat_radii
+    from dmrt.preprocess.octree import Octree, OctreeConfig
 
     config = config or PreprocessConfig()
     labeling = labeling or LabelingConfig()
@@ -247,7 +247,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                 photos_cache[j] = scene.read_image(j)
             return photos_cache[j]
 
-        from dmrt.depthmaps import read_depth_exr
+        from dmrt.preprocess.depthmaps import read_depth_exr
         cands = find_candidates(positions, normals, hd_radii, cams_local,
                                 lambda j: read_depth_exr(bw.tmp / depth_files[j]), photo, config, progress,
                                 radii=radii)

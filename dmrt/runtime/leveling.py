@@ -134,8 +134,8 @@ class ScreenLeveler:
         ----------
         timer : dmrt.gl.GpuTimer, the passes are timed as ``leveling``
         hits, colors : moderngl.Buffer, the frame's ``Hit`` records and packed RGBA8 colours
-        photos : moderngl.Buffer, the ``Photo`` records (``dmrt.renderer.photo_params``)
-        images : dmrt.texturing.ImageCache
+        photos : moderngl.Buffer, the ``Photo`` records (``dmrt.runtime.renderer.photo_params``)
+        images : dmrt.runtime.texturing.ImageCache
         depthmaps : moderngl.TextureArray, the photos' depth maps (as ``photos`` describes them)
         cam_uniforms : dict, ``u_R, u_t, u_K, u_size`` of the frame
         counts : (n_photos,) int, pixels per label in the frame

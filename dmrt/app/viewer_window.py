@@ -1,5 +1,5 @@
 """The viewer's window (``dmrt view``): moderngl-window forwards keys, mouse and resizes to a
-:class:`dmrt.viewer.Viewer` and shows its frames.
+:class:`dmrt.app.viewer.Viewer` and shows its frames.
 
 Window backends are moderngl-window's: ``pyglet`` (default, installed with it), ``glfw`` /
 ``sdl2`` / ``pyside2`` (``pip install`` the package of that name), and ``headless`` - an off-screen
@@ -21,7 +21,7 @@ with warnings.catch_warnings():  # moderngl-window 3.1 imports PyGLM by its soon
 
 from dmrt.errors import InputError
 from dmrt.gl.context import get_context
-from dmrt.viewer import Viewer
+from dmrt.app.viewer import Viewer
 
 # moderngl-window key constants (BaseKeys attribute names) -> Viewer.key names
 KEY_NAMES = {
@@ -142,7 +142,7 @@ def open_window(width: int, height: int, window: str = "pyglet"):
 
 def create_app(bundle, config=None, render_config=None, window: str = "pyglet") -> ViewerApp:
     """Open a window and a :class:`Viewer` of ``bundle`` rendering on its context."""
-    from dmrt.viewer import ViewerConfig
+    from dmrt.app.viewer import ViewerConfig
 
     config = config or ViewerConfig()
     wnd = open_window(config.width, config.height, window)

@@ -19,10 +19,10 @@ from typing import Iterator
 
 import numpy as np
 
-from dmrt import colmap, pointcloud
+from dmrt.io import colmap, pointcloud
 from dmrt.camera import Camera
 from dmrt.errors import InputError
-from dmrt.pointcloud import PointCloud
+from dmrt.io.pointcloud import PointCloud
 
 _POINT_FILES = ("points.ply", "points.las", "points.laz")
 _MODEL_FILES = ("cameras.bin", "cameras.txt", "images.bin", "images.txt")

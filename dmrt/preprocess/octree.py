@@ -75,6 +75,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from dmrt.errors import InputError
+from dmrt.morton import MAX_BITS_PER_AXIS, morton_encode
 
 try:  # progress bars are optional
     from tqdm.auto import tqdm as _tqdm
@@ -83,7 +84,6 @@ except ImportError:  # pragma: no cover
 
 FORMAT = "dmrt-octree"
 VERSION = 1
-MAX_BITS_PER_AXIS = 21  # 3 * 21 = 63 bits: Morton keys fit a non-negative int64
 
 
 # ---------------------------------------------------------------------------------------------
@@ -134,36 +134,9 @@ class _NullBar:
         return False
 
 
-def _part1by2(v: np.ndarray) -> np.ndarray:
-    """Spread the low 21 bits of ``v`` (uint64) to every third bit."""
-    v = v & np.uint64(0x1FFFFF)
-    v = (v | (v << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
-    v = (v | (v << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
-    v = (v | (v << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
-    v = (v | (v << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
-    v = (v | (v << np.uint64(2))) & np.uint64(0x1249249249249249)
-    return v
-
-
-def morton_encode(q: np.ndarray) -> np.ndarray:
-    """Morton (z-order) keys of integer cell coordinates.
-
-    Parameters
-    ----------
-    q : (n, 3) int64, each in ``[0, 2**21)``
-
-    Returns
-    -------
-    (n,) int64 keys; the key of the parent cell (coordinates ``q >> 1``) is ``key >> 3``.
-    """
-    q = q.astype(np.uint64, copy=False)
-    k = _part1by2(q[:, 0]) | (_part1by2(q[:, 1]) << np.uint64(1)) | (_part1by2(q[:, 2]) << np.uint64(2))
-    return k.view(np.int64)
-
-
 def _normalize_chunk(item, where="chunk") -> tuple[np.ndarray, dict]:
     """Accept ``(positions, attrs)``, a dict with ``'positions'``, or an object with ``.positions``
-    (e.g. ``dmrt.pointcloud.PointCloud``; attributes that are ``None`` are skipped)."""
+    (e.g. ``dmrt.io.pointcloud.PointCloud``; attributes that are ``None`` are skipped)."""
     if isinstance(item, (tuple, list)) and len(item) == 2:
         pos, attrs = item
         attrs = dict(attrs or {})

@@ -2,7 +2,7 @@
 
 Per frame, each stage its own shader and GPU timer section:
 
-1. ``visibility`` - the proxy splats in k label layers, depth peeling (:mod:`dmrt.visibility`);
+1. ``visibility`` - the proxy splats in k label layers, depth peeling (:mod:`dmrt.runtime.visibility`);
 2. ``raytracing`` - per pixel, the depth map of each layer's label is raytraced from the layer's
    splat depth (adaptive-step search, bisection, discontinuity test), first valid layer wins
    (``shaders/dmrt_raytrace.glsl`` documents the surface and the step formula);
@@ -11,12 +11,12 @@ Per frame, each stage its own shader and GPU timer section:
 4. ``image_management`` - final labels (``shaders/dmrt_label_finalize.glsl``), the label
    histogram on the GPU (``shaders/dmrt_label_histogram.glsl``), read back (CPU time, reported in
    ``frame["cpu_ms"]``, not in the GPU timings), and the most frequent photos streamed into the
-   full-resolution cache (:mod:`dmrt.texturing`);
+   full-resolution cache (:mod:`dmrt.runtime.texturing`);
 5. ``texturing`` - colour from the label's photo at the projection of the raytraced point.
 
 6. ``leveling`` (``RenderConfig.leveling``) - screen-space leveling (paper 5.2.3, last step): the
    colour offsets between photos measured along the frame's seams, one gain per photo solved on
-   the CPU, applied to every pixel (:mod:`dmrt.leveling`).
+   the CPU, applied to every pixel (:mod:`dmrt.runtime.leveling`).
 
 Ablations and statistics: ``RenderConfig.raytrace=False`` takes the first splat layer as the
 surface (the paper's coarse splats, Fig. 8a), ``labeling=False`` keeps each layer's splat label
@@ -39,16 +39,16 @@ from dataclasses import dataclass
 import moderngl
 import numpy as np
 
-from dmrt.bundle import Bundle
+from dmrt.io.bundle import Bundle
 from dmrt.camera import Camera
 from dmrt.errors import InputError
-from dmrt.frames import empty_frame
+from dmrt.io.frames import empty_frame
 from dmrt.gl.context import check_gl, get_context
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
-from dmrt.leveling import ScreenLeveler
-from dmrt.texturing import ImageCache, texture_frame
-from dmrt.visibility import EMPTY_BITS, EMPTY_LABEL, ProxySplats, VisibilityStage, groups
+from dmrt.runtime.leveling import ScreenLeveler
+from dmrt.runtime.texturing import ImageCache, texture_frame
+from dmrt.runtime.visibility import EMPTY_BITS, EMPTY_LABEL, ProxySplats, VisibilityStage, groups
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 HIT_DTYPE = np.dtype([("depth", "<f4"), ("label", "<i4"), ("layer", "<i4"), ("iters", "<i4"),
@@ -63,7 +63,7 @@ def read_frame(hits_buffer: moderngl.Buffer, colors_buffer: moderngl.Buffer, w: 
 
     Returns
     -------
-    frame : dict, the contract of :mod:`dmrt.frames` (``depth``, ``label``, ``color``, ``normal``)
+    frame : dict, the contract of :mod:`dmrt.io.frames` (``depth``, ``label``, ``color``, ``normal``)
     hits : (h, w) HIT_DTYPE records, for the renderer's own extra buffers
     """
     hits = np.frombuffer(hits_buffer.read(), HIT_DTYPE).reshape(h, w)
@@ -101,7 +101,7 @@ class RenderConfig:
     # Visibility stage: "kbuffer" (all layers from one splat pass: a per-pixel list of the nearest
     # fragments; 4x faster than peeling for 5 layers on an H200), "compute" (depth peeling by
     # atomicMin splatting, one pass per layer) or "raster" (the paper's GL_POINTS with depth
-    # peeling); the same layers (dmrt.visibility).
+    # peeling); the same layers (dmrt.runtime.visibility).
     method: str = "kbuffer"
     # k-buffer: fragments kept per pixel (0 = 6 per layer + 2: >= 99.9 % of the peeled layers'
     # pixels on the small preset, 4 per layer + 2: 99.5 %). Fewer cost less memory and time; a
@@ -114,7 +114,7 @@ class RenderConfig:
     atomics: str = "auto"
     # GPU memory for the full-resolution photo cache, MiB (paper: 1 GB); 0 = low-res only.
     cache_mb: float = 1024.0
-    # Photo streaming (dmrt.texturing): decode photos on background threads so that no frame waits
+    # Photo streaming (dmrt.runtime.texturing): decode photos on background threads so that no frame waits
     # for a disk read (the low-res copy stands in until the upload), and upload at most this many
     # photos per frame (0 = no bound). False / 0 make every frame's cache exactly its most frequent
     # labels (deterministic colours: use for quality measurements, or call flush_photos()).
@@ -130,7 +130,7 @@ class RenderConfig:
     label_check: bool = True
     label_check_tolerance: float = 0.05
     # Screen-space leveling (paper 5.2.3): per-photo colour gains solved each frame from the seams
-    # on screen (dmrt.leveling); off by default so that colours are the photos' own.
+    # on screen (dmrt.runtime.leveling); off by default so that colours are the photos' own.
     leveling: bool = False
     # Leveling: seam samples a photo pair needs to count, and the bound on a gain (and its inverse).
     leveling_min_samples: int = 16
@@ -188,7 +188,7 @@ class Renderer:
     Parameters
     ----------
     bundle : Bundle
-        From :func:`dmrt.bundle.read_bundle`. Every depth map, the low-resolution photos, the
+        From :func:`dmrt.io.bundle.read_bundle`. Every depth map, the low-resolution photos, the
         proxies and the photos' cameras are uploaded here, once.
     config : RenderConfig, optional
     ctx : moderngl.Context, optional
@@ -224,7 +224,7 @@ class Renderer:
             m = bundle.depth_map(i)
             self.depth_sizes.append((m.shape[1], m.shape[0]))
             if i == 0:
-                # maps share one width; heights follow each photo's aspect (dmrt.depthmaps rule)
+                # maps share one width; heights follow each photo's aspect (dmrt.preprocess.depthmaps rule)
                 w0 = m.shape[1]
                 h0 = max([m.shape[0]] + [int(round(w0 * c.height / c.width)) for c in self.cameras])
                 dims = self._depth_dims = (w0, h0)
@@ -297,7 +297,7 @@ class Renderer:
         Returns
         -------
         dict
-            The frame contract of :mod:`dmrt.frames` - ``depth`` (h, w) float32 camera z (0 =
+            The frame contract of :mod:`dmrt.io.frames` - ``depth`` (h, w) float32 camera z (0 =
             background), ``label`` (h, w) int32 (-1 = none), ``color`` (h, w, 3) uint8, ``normal``
             (h, w, 3) float32 unit world normal - plus ``label_raw`` (h, w) int32 (the label of
             the layer whose depth map was hit, before the labeling pass), ``layer_used`` (h, w)

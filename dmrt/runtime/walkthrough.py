@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from dmrt.bundle import camera_from_json, camera_to_json
+from dmrt.io.bundle import camera_from_json, camera_to_json
 from dmrt.camera import Camera
 from dmrt.errors import InputError
 
