@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dmrt.io.atomic import write_text
+
 VERSION = 1
 
 
@@ -174,10 +176,7 @@ def main(argv=None) -> None:
     result = run(args.bundle, args.resolutions, args.frames, args.width, args.height, args.labeler, args.layers,
                  args.warmup, args.path, args.reuse_labels, args.epsilon, not args.no_dmrt, not args.quiet)
     print_table(result)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_name(f".{args.out.name}.tmp")
-    tmp.write_text(json.dumps(result, indent=1))
-    os.replace(tmp, args.out)
+    write_text(args.out, json.dumps(result, indent=1))
     print(f"wrote {args.out}")
 
 

@@ -1,8 +1,8 @@
 """The experiments of the paper's Section 6, one function and one parameters dataclass each.
 
 An experiment is ``run(ws, params, out_dir) -> measurements``: ``ws`` the
-:class:`bench.harness.Workspace` (scene, bundles, walkthrough, Embree reference frames), ``params``
-its dataclass (made from a :class:`bench.harness.BenchPreset` by its ``params`` function),
+:class:`bench.workspace.Workspace` (scene, bundles, walkthrough, Embree reference frames), ``params``
+its dataclass (made from a :class:`bench.workspace.BenchPreset` by its ``params`` function),
 ``out_dir`` the result set's folder for side files (image maps as ``.npz``). The harness wraps
 the measurements with machine, commit, preset and parameters into ``<experiment>.json``;
 :mod:`bench.report` reads only those files.
@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from bench.harness import BenchPreset, Workspace
+from bench.workspace import BenchPreset, Workspace
 
 
 # ----------------------------------------------------------------------------------------------
@@ -150,7 +150,7 @@ def hole_counts(layer_used: np.ndarray, mask: np.ndarray, max_layers: int) -> np
 
 class HoleTally:
     """Holes per layer count summed over views, among all reference surface pixels (``all``) and
-    among those some depth map can show (``representable``, :func:`bench.harness.representable_mask`)."""
+    among those some depth map can show (``representable``, :func:`bench.workspace.representable_mask`)."""
 
     KINDS = ("all", "representable")
 
@@ -616,19 +616,25 @@ def run_memory(ws: Workspace, p: MemoryParams, out: Path) -> dict:
 # ----------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Experiment:
-    """One experiment: what the harness needs to run it and label its result file."""
+    """One experiment: what the harness needs to run it, label its result file and require it."""
 
     title: str
     # bump when the measurement changes meaning (asv's benchmark version)
     version: int
     run: Callable
     params: Callable[[BenchPreset], object]
+    # a complete report needs it (the CI and nightly completeness check)
+    required: bool = True
+    # run after the others: a failure there must not cost the others their GPU time
+    run_last: bool = False
 
 
 def _q(preset: BenchPreset) -> dict:
     return {"photo_cameras": preset.photo_cameras, "quality_width": preset.quality_width}
 
 
+# The one list of experiments, in the report's order (``dmrt bench --only``, the report's sections,
+# its completeness check and bench/paper_run.sh all read it).
 EXPERIMENTS: dict[str, Experiment] = {
     "table1": Experiment("Table 1: scene characteristics and preprocessing", 1, run_table1,
                          lambda pr: Table1Params()),
@@ -643,13 +649,28 @@ EXPERIMENTS: dict[str, Experiment] = {
                                              fps_layers=tuple(pr.fig7_fps_layers), walk=walk_of(pr), **_q(pr))),
     "fig8": Experiment("Fig. 8: depth and colour error vs Embree at a photo camera", 1, run_fig8,
                        lambda pr: Fig8Params(camera_index=-1, quality_width=pr.quality_width)),
+    # its statistics pass once stopped an H200's GL context, which fails every later experiment of
+    # the same process
+    "fig9_10": Experiment("Figs. 9/10: step sizes, iterations, radii x2.5 worst case", 1, run_fig9_10,
+                          lambda pr: Fig9Params((("baseline", 1.0, 4), ("radii x2.5", 2.5, 4),
+                                                 ("radii x2.5", 2.5, 11)), walk_of(pr), **_q(pr)),
+                          run_last=True),
     "fig13": Experiment("Fig. 13: 1, 2, 3 layers, hole maps", 2, run_fig13,
                         lambda pr: Fig13Params((1, 2, 3), **_q(pr))),
     "memory": Experiment("Section 6.2: GPU memory per resource", 1, run_memory,
                          lambda pr: MemoryParams(tuple(pr.frame_size))),
-    # last: its statistics pass once stopped an H200's GL context, which fails every later experiment
-    # of the same process
-    "fig9_10": Experiment("Figs. 9/10: step sizes, iterations, radii x2.5 worst case", 1, run_fig9_10,
-                          lambda pr: Fig9Params((("baseline", 1.0, 4), ("radii x2.5", 2.5, 4),
-                                                 ("radii x2.5", 2.5, 11)), walk_of(pr), **_q(pr))),
 }
+
+
+def run_order() -> list[str]:
+    """Every experiment's name in the order ``dmrt bench`` runs them (``run_last`` ones last)."""
+    return sorted(EXPERIMENTS, key=lambda name: EXPERIMENTS[name].run_last)
+
+
+def required_experiments() -> list[str]:
+    """The experiments a complete report needs."""
+    return [name for name, e in EXPERIMENTS.items() if e.required]
+
+
+if __name__ == "__main__":
+    print(*run_order())  # bench/paper_run.sh's default list

@@ -13,7 +13,7 @@ set -u
 out=${1:?usage: bench/paper_run.sh OUT_DIR [EXPERIMENT ...]}
 shift
 experiments=("$@")
-[ ${#experiments[@]} -gt 0 ] || experiments=(table1 table2 table3_fig12 fig7 fig13 fig8 memory fig9_10)
+[ ${#experiments[@]} -gt 0 ] || read -ra experiments <<<"$(python3 -m bench.experiments)"  # every experiment, in run order
 mkdir -p "$out"
 for e in "${experiments[@]}"; do
     t0=$(date +%s)

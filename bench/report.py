@@ -21,7 +21,6 @@ import html
 import re
 import json
 import math
-import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,13 +34,14 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from bench import paper  # noqa: E402
+from bench.experiments import EXPERIMENTS, required_experiments  # noqa: E402
 from dmrt.errors import InputError  # noqa: E402
+from dmrt.io.atomic import atomic_dir  # noqa: E402
 
-# The experiments a complete report needs (the CI and nightly completeness check).
-REQUIRED_EXPERIMENTS = ["table1", "table2", "table3_fig12", "fig7", "fig8", "fig9_10", "fig13", "memory"]
-
-# Every experiment the report has a section for, in the report's order.
-SECTIONS = ["table1", "table2", "table3_fig12", "fig7", "fig8", "fig9_10", "fig13", "memory"]
+# The experiments a complete report needs (the CI and nightly completeness check), and every
+# experiment the report has a section for, in the report's order: both from the one registry.
+REQUIRED_EXPERIMENTS = required_experiments()
+SECTIONS = list(EXPERIMENTS)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -744,12 +744,9 @@ def build_report(results_dir, out, preset: str | None = None, machine: str | Non
     rs = select(sets, preset, machine)
     history = [s for s in sets if s.machine == rs.machine and s.preset == rs.preset]
     out = Path(out)
-    tmp = out.with_name(out.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    (tmp / "figures").mkdir(parents=True)
-    (tmp / "csv").mkdir()
-    (tmp / "results").mkdir()
-    try:
+    with atomic_dir(out, what="report") as tmp:
+        for sub in ("figures", "csv", "results"):
+            (tmp / sub).mkdir()
         sections = []
         for key in SECTIONS:
             try:
@@ -777,15 +774,6 @@ def build_report(results_dir, out, preset: str | None = None, machine: str | Non
         mfile = rs.dir.parent / "machine.json"
         if mfile.is_file():
             shutil.copy2(mfile, tmp / "results" / "machine.json")
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    old = out.with_name(out.name + ".old")
-    shutil.rmtree(old, ignore_errors=True)
-    if out.exists():
-        os.replace(out, old)
-    os.replace(tmp, out)
-    shutil.rmtree(old, ignore_errors=True)
     return ReportResult(out, rs, missing, failed)
 
 

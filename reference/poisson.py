@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from dmrt.io.atomic import atomic_file
+
 from reference.raycast import write_mesh_ply
 
 
@@ -74,7 +76,6 @@ def build_scene_mesh(scene, out: Path | None = None, depth: int = 9, normals_k: 
         normals = estimate_normals(cloud.positions - scene.origin, k=normals_k, viewpoints=nearest - scene.origin)
     vertices, faces = reconstruct_mesh(cloud.positions, normals, depth=depth)
     out = Path(out) if out is not None else scene.root / "mesh.ply"
-    tmp = out.with_name(out.name + ".partial")
-    write_mesh_ply(tmp, vertices, faces)
-    tmp.replace(out)
+    with atomic_file(out) as tmp:
+        write_mesh_ply(tmp, vertices, faces)
     return out

@@ -15,34 +15,11 @@ import numpy as np
 
 from dmrt.camera import Camera
 from dmrt.io.frames import empty_frame
+from dmrt.preprocess.candidates import sample_bilinear
 from reference.raycast import MeshRaycaster
 
 # Grazing views (|cos theta| below this) texture badly and are not chosen.
 MIN_COS = 0.05
-
-
-def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of pixel-corner-origin coordinates.
-
-    Parameters
-    ----------
-    image : (h, w, c) uint8 or float
-    uv : (n, 2) float64, pixel coordinates (centre of pixel (i, j) at (j + 0.5, i + 0.5)).
-
-    Returns
-    -------
-    (n, c) float32 in the image's value range, edge-clamped.
-    """
-    h, w = image.shape[:2]
-    x = np.clip(uv[:, 0] - 0.5, 0, w - 1)
-    y = np.clip(uv[:, 1] - 0.5, 0, h - 1)
-    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    img = image.astype(np.float32)
-    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
-    bottom = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
-    return top * (1 - fy) + bottom * fy
 
 
 def best_photos(raycaster: MeshRaycaster, points: np.ndarray, normals: np.ndarray,

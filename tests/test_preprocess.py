@@ -11,12 +11,13 @@ import pytest
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from dmrt.bundle import read_bundle
-from dmrt.cli import main
+from dmrt.io.bundle import read_bundle
+from dmrt.app.cli import main
 from dmrt.errors import InputError
-from dmrt.labeling import LabelingConfig, energy, icm, knn_edges, winner_take_all
-from dmrt.preprocess import PreprocessConfig, find_candidates
-from dmrt.scene import load_scene
+from dmrt.preprocess.labeling import LabelingConfig, energy, icm, knn_edges, winner_take_all
+from dmrt.preprocess.candidates import find_candidates
+from dmrt.preprocess.pipeline import PreprocessConfig
+from dmrt.io.scene import load_scene
 from reference.raycast import MeshRaycaster
 
 
@@ -72,7 +73,7 @@ def test_depth_maps_match_embree(tiny_bundle, tiny_scene):
 
 
 def test_proxy_level_choice():
-    from dmrt.preprocess import choose_proxy_levels
+    from dmrt.preprocess.proxies import choose_proxy_levels
 
     lods = [1_000, 4_000, 16_000, 64_000]
     assert choose_proxy_levels(lods, 64_000, PreprocessConfig(proxy_factor=40)) == 1  # 64x nearer 40x than 16x
@@ -100,7 +101,7 @@ def test_labels_are_candidates_and_graph_cut_beats_wta_and_icm(tiny_bundle, tiny
     _, found = cands.lookup(np.flatnonzero(has), labels[has])
     assert found.all()  # every label is one of its point's candidates: 100 %
     # Energies on the same graph and costs as label_points used.
-    from dmrt.labeling import candidate_data_costs
+    from dmrt.preprocess.labeling import candidate_data_costs
     cfg = LabelingConfig()
     centers = np.array([c.center for c in cams])
     focal = np.array([np.sqrt(c.fx * c.fy) for c in cams])
@@ -190,7 +191,7 @@ def test_broken_bundles_name_file_and_field(tiny_bundle, tmp_path):
 
 def test_interrupted_preprocess_leaves_no_bundle(tiny_scene, tmp_path):
     out = tmp_path / "b"
-    proc = subprocess.Popen([sys.executable, "-m", "dmrt.cli", "preprocess", str(tiny_scene), "--out", str(out),
+    proc = subprocess.Popen([sys.executable, "-m", "dmrt.app.cli", "preprocess", str(tiny_scene), "--out", str(out),
                              "--quiet", "--depthmap-width", "256"])
     deadline = time.time() + 120
     while not list((tmp_path / "b.partial" / "depthmaps").glob("*.exr")):  # mid depth maps

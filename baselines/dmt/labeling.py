@@ -2,7 +2,7 @@
 
 DMT textures each depth map on its own: every non-empty texel of photo ``i``'s depth map (at the
 DMT resolution, :mod:`baselines.dmt.geometry`) is a 3D point; its candidates are the photos that see
-it, by the same occlusion test as DMRT's proxies (:func:`dmrt.preprocess.pipeline.find_candidates`, with the
+it, by the same occlusion test as DMRT's proxies (:func:`dmrt.preprocess.candidates.find_candidates`, with the
 bundle's own tolerances, against the bundle's stored depth maps); data costs are DMRT's
 (:func:`dmrt.preprocess.labeling.candidate_data_costs`, normals from the depth-map grid) and so is the seam
 term; the graph is the texel grid's 4-neighbourhood without edges to empty texels or across depth
@@ -30,8 +30,6 @@ inconsistent one is an error naming the file (delete the folder to recompute).
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import time
 import zipfile
 from collections import OrderedDict
@@ -43,8 +41,10 @@ import numpy as np
 from baselines.dmt.geometry import (bounding_box, dmt_size, frustum_culled, grid_edges, grid_normals,
                                     load_depth_map, orient_normals, texel_points)
 from dmrt.errors import InputError
+from dmrt.io.atomic import atomic_dir
 from dmrt.preprocess.labeling import Candidates, LabelingConfig, alpha_expansion, candidate_data_costs, winner_take_all
-from dmrt.preprocess.pipeline import PreprocessConfig, find_candidates
+from dmrt.preprocess.candidates import find_candidates
+from dmrt.preprocess.config import PreprocessConfig
 
 SCHEMA = "dmrt-dmt-labels"
 SCHEMA_VERSION = 1
@@ -244,18 +244,9 @@ def read_cache(bundle, width: int, labeler: str = "graphcut") -> tuple[list[np.n
 
 
 def _write_cache(folder: Path, labels: list[np.ndarray], meta: dict) -> None:
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = folder.with_name(f".{folder.name}.partial-{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    try:
+    with atomic_dir(folder, what="DMT label cache") as tmp:
         np.savez(tmp / "labels.npz", **{f"map_{i:05d}": a for i, a in enumerate(labels)})
         (tmp / "dmt.json").write_text(json.dumps(meta, indent=1))
-        if folder.exists():
-            shutil.rmtree(folder)
-        os.replace(tmp, folder)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def dmt_labels(bundle, width: int, config: DMTLabelingConfig | None = None, progress: bool = True,

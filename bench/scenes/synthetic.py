@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -27,6 +26,7 @@ import trimesh
 from tqdm import tqdm
 
 from dmrt.camera import Camera
+from dmrt.io.atomic import atomic_dir
 from reference.raycast import MeshRaycaster, write_mesh_ply
 
 
@@ -496,15 +496,11 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
     from dmrt.io.pointcloud import PointCloud, PointWriter
 
     out = Path(out)
-    if out.exists() and not force:
-        raise FileExistsError(f"{out}: already exists (use --force to replace it)")
-    tmp = out.with_name(out.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    (tmp / "images").mkdir(parents=True)
     rng = np.random.default_rng(config.seed + 1)
     workers = workers if workers is not None else (os.cpu_count() or 1)
     offset = np.asarray(config.offset, np.float64)
-    try:
+    with atomic_dir(out, force=force, what="scene") as tmp:
+        (tmp / "images").mkdir()
         geom = build_geometry(config)
         materials = make_materials()
         raycaster = MeshRaycaster(geom.vertices, geom.faces, origin=np.zeros(3))
@@ -536,10 +532,4 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
                 "photo_gains": [g.tolist() for g in gains],
                 "materials": [m.name for m in materials]}
         (tmp / "synthetic.json").write_text(json.dumps(meta, indent=1))
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out

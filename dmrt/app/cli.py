@@ -340,7 +340,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_args(view, RenderConfig, skip=[f.name for f in dataclasses.fields(ViewerConfig)] + ["method", "raytrace"])
     view.set_defaults(func=cmd_view)
 
-    from bench.harness import PRESETS as BENCH_PRESETS
+    from bench.experiments import EXPERIMENTS
+    from bench.workspace import PRESETS as BENCH_PRESETS
 
     bench = sub.add_parser("bench", help="run the paper's experiments on a preset: one JSON per experiment")
     bench.add_argument("--preset", choices=list(BENCH_PRESETS), default="ci",
@@ -348,8 +349,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", type=Path, required=True, help="results folder (RESULTS_DIR/<machine>/<commit>-<preset>/)")
     bench.add_argument("--work", type=Path, help="scene, bundles, reference frames; reused by later runs "
                        "(default: $TMPDIR/dmrt-bench/<preset>)")
-    bench.add_argument("--only", nargs="+", metavar="EXPERIMENT", help="run only these experiments "
-                       "(table1 table2 table3_fig12 fig7 fig8 fig9_10 fig13 memory)")
+    bench.add_argument("--only", nargs="+", metavar="EXPERIMENT", choices=list(EXPERIMENTS),
+                       help=f"run only these experiments ({' '.join(EXPERIMENTS)})")
     bench.add_argument("--scene", type=Path, help="benchmark this scene instead of the preset's synthetic one")
     bench.add_argument("--machine", help="machine name of the results folder (default: from the GL renderer)")
     bench.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -426,14 +426,14 @@ class Viewer:
         as preprocessing computes them (a sparser set needs larger discs), their labels stay."""
         k = self.proxy_levels
         if k not in self._proxy_bundles:
-            from dmrt.preprocess.normals import splat_radii
-            from dmrt.preprocess.pipeline import PreprocessConfig
+            from dmrt.preprocess.config import PreprocessConfig
+            from dmrt.preprocess.proxies import label_proxies, proxy_prefix
 
             n = int(sum(self.bundle.meta["counts"]["octree_level_counts"][:k]))
             pre = {**dataclasses.asdict(PreprocessConfig()), **self.bundle.meta.get("parameters", {}).get("preprocess", {})}
-            proxy = {name: np.asarray(a)[:n] for name, a in self.bundle.proxy.items()}
-            proxy["radii"] = splat_radii(proxy["positions"], k=pre["radius_k"], scale=pre["radius_scale"])
-            self._proxy_bundles[k] = dataclasses.replace(self.bundle, _proxy=proxy)
+            config = PreprocessConfig(**{f: pre[f] for f in ("radius_k", "radius_scale")})
+            proxies = label_proxies(proxy_prefix(self.bundle.proxy, n), None, None, None, config, relabel=False)
+            self._proxy_bundles[k] = dataclasses.replace(self.bundle, _proxy=proxies.proxy)
         return self._proxy_bundles[k]
 
     def set_layers(self, k: int) -> None:

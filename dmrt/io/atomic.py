@@ -78,7 +78,7 @@ def atomic_dir(path, force: bool = True, what: str = "output") -> Iterator[Path]
     """
     path = Path(path)
     if path.exists() and not force:
-        raise InputError(path, f"{what} exists (use --force to replace it)")
+        raise InputError(path, f"{what} already exists (use --force to replace it)")
     tmp = path.with_name(path.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)

@@ -29,6 +29,7 @@ import numpy as np
 from dmrt.camera import Camera
 from dmrt.errors import InputError
 from dmrt.io.atomic import atomic_dir
+from dmrt.io.exr import read_depth_exr
 
 SCHEMA = "dmrt-bundle"
 SCHEMA_VERSION = 1
@@ -70,8 +71,6 @@ class Bundle:
 
     def depth_map(self, i: int) -> np.ndarray:
         """(h, w) float32 camera z of photo ``i``'s depth map, 0 = empty."""
-        from dmrt.preprocess.depthmaps import read_depth_exr
-
         return read_depth_exr(self.path("depthmaps", i))
 
     def image(self, i: int, low: bool = False) -> np.ndarray:

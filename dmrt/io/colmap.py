@@ -8,7 +8,6 @@ pinhole models are accepted, since every renderer here projects with a plain pin
 
 from __future__ import annotations
 
-import os
 import struct
 from pathlib import Path
 
@@ -16,6 +15,7 @@ import numpy as np
 
 from dmrt.camera import Camera
 from dmrt.errors import InputError
+from dmrt.io.atomic import write_bytes
 
 # model id -> (name, number of params); the counts are needed to skip cameras we cannot use
 _MODELS = {
@@ -217,13 +217,7 @@ def read_model(sparse_dir) -> list[Camera]:
 
 
 # -- writing --------------------------------------------------------------------------------------
-def _replace_atomically(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_bytes(data)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+
 
 
 def write_model(sparse_dir, cameras: list[Camera], binary: bool = False,
@@ -289,5 +283,5 @@ def write_model(sparse_dir, cameras: list[Camera], binary: bool = False,
                  for n, lines in (("cameras", cam), ("images", img), ("points3D", p3d))}
 
     for name, data in files.items():
-        _replace_atomically(d / (name + ext), data)
+        write_bytes(d / (name + ext), data)
         (d / (name + other)).unlink(missing_ok=True)

@@ -14,13 +14,12 @@ and ``timings`` (dict stage -> GPU ms). As OpenEXR it has float32 channels ``Z``
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from dmrt.errors import InputError
+from dmrt.io.atomic import atomic_file
 
 FRAME_KEYS = ("depth", "label", "color", "normal")
 
@@ -35,22 +34,15 @@ def empty_frame(height: int, width: int) -> dict:
     }
 
 
-def _atomic_target(path: Path):
-    """A temporary file beside ``path`` (same suffix, so writers pick the format from it)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    return Path(tmp)
-
-
 def write_frame(path, frame: dict) -> None:
     """Write ``frame`` as ``.exr`` (all channels) or ``.png`` (colour only), atomically."""
     import OpenEXR
     from PIL import Image
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _atomic_target(path)
-    try:
+    if path.suffix.lower() not in (".exr", ".png"):
+        raise InputError(path, "frame files are .exr or .png")
+    with atomic_file(path) as tmp:
         if path.suffix.lower() == ".exr":
             rgb = frame["color"].astype(np.float32) / 255.0
             n = frame["normal"].astype(np.float32)
@@ -64,13 +56,8 @@ def write_frame(path, frame: dict) -> None:
             }
             header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
             OpenEXR.File(header, channels).write(str(tmp))
-        elif path.suffix.lower() == ".png":
-            Image.fromarray(frame["color"]).save(tmp)
         else:
-            raise ValueError(f"{path}: frame files are .exr or .png")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+            Image.fromarray(frame["color"]).save(tmp)
 
 
 def read_frame(path) -> dict:
@@ -196,11 +183,7 @@ def write_stage_images(folder, frame: dict, splat_labels: np.ndarray | None = No
     paths = []
     for name, img in stage_images(frame, splat_labels).items():
         path = folder / f"{name}.png"
-        tmp = _atomic_target(path)
-        try:
+        with atomic_file(path) as tmp:
             Image.fromarray(np.ascontiguousarray(img)).save(tmp)
-            os.replace(tmp, path)
-        finally:
-            tmp.unlink(missing_ok=True)
         paths.append(path)
     return paths

@@ -1,4 +1,5 @@
-"""Point clouds on disk: PLY (ascii / binary, either byte order) and LAS/LAZ, read whole or streamed.
+"""Point clouds on disk: PLY (ascii / binary, either byte order), LAS/LAZ and E57 (``dmrt.io.e57``),
+read whole or streamed.
 
 Positions stay float64 from disk to caller: real scans carry UTM-sized coordinates (~5e6 m) where
 float32 keeps only half a metre. Every read path validates as it goes and raises ``InputError``
@@ -40,11 +41,17 @@ class PointCloud:
         Unit normals as stored in the file.
     colors : (n, 3) uint8 or None
         RGB colours.
+    intensity : (n,) float32 or None
+        Return intensity as the file stores it (E57 only; NaN where flagged invalid).
+    scan_index : (n,) int32 or None
+        The scan each point comes from, an index into the scene's scanner positions (E57 only).
     """
 
     positions: np.ndarray
     normals: np.ndarray | None = None
     colors: np.ndarray | None = None
+    intensity: np.ndarray | None = None
+    scan_index: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -61,8 +68,8 @@ class _PlyHeader:
 
 def _kind(path: Path) -> str:
     ext = path.suffix.lower()
-    if ext not in (".ply", ".las", ".laz"):
-        raise InputError(path, f"unsupported point cloud extension {ext!r} (use .ply, .las or .laz)")
+    if ext not in (".ply", ".las", ".laz", ".e57"):
+        raise InputError(path, f"unsupported point cloud extension {ext!r} (use .ply, .las, .laz or .e57)")
     if not path.is_file():
         raise InputError(path, "point cloud file does not exist")
     return ext[1:]
@@ -263,10 +270,18 @@ def _las_chunks(path: Path, chunk_size: int) -> Iterator[PointCloud]:
 
 
 def count_points(path) -> int:
-    """Number of points the file's header declares (0 for an empty cloud; no body read)."""
+    """Number of points the file's header declares (0 for an empty cloud; no body read).
+
+    For E57 these are all scans' records, including those flagged invalid, which reading drops.
+    """
     path = Path(path)
-    if _kind(path) == "ply":
+    kind = _kind(path)
+    if kind == "ply":
         return _read_ply_header(path).n
+    if kind == "e57":
+        from dmrt.io import e57
+
+        return e57.count_points(path)
     import laspy
 
     try:
@@ -285,8 +300,13 @@ def iter_point_chunks(path, chunk_size: int = 1_000_000) -> Iterator[PointCloud]
     path = Path(path)
     if chunk_size < 1:
         raise ValueError("chunk_size must be >= 1")
-    if _kind(path) == "ply":
+    kind = _kind(path)
+    if kind == "ply":
         yield from _ply_chunks(path, chunk_size)
+    elif kind == "e57":
+        from dmrt.io import e57  # imports this module: bound late to avoid the cycle
+
+        yield from e57.iter_chunks(path, chunk_size)
     else:
         yield from _las_chunks(path, chunk_size)
 
@@ -300,7 +320,8 @@ def read_points(path) -> PointCloud:
         return chunks[0]
     cat = lambda xs: None if xs[0] is None else np.concatenate(xs)  # noqa: E731
     return PointCloud(cat([c.positions for c in chunks]), cat([c.normals for c in chunks]),
-                      cat([c.colors for c in chunks]))
+                      cat([c.colors for c in chunks]), cat([c.intensity for c in chunks]),
+                      cat([c.scan_index for c in chunks]))
 
 
 def bounds(path, chunk_size: int = 1_000_000) -> tuple[np.ndarray, np.ndarray]:

@@ -2,7 +2,7 @@
 
 Layout::
 
-    SCENE/points.ply | points.las | points.laz   point cloud (first found, in that order)
+    SCENE/points.ply | .las | .laz | .e57        point cloud (first found, in that order)
     SCENE/sparse/  (or sparse/0/)                 COLMAP model, PINHOLE / SIMPLE_PINHOLE
     SCENE/images/<name>                           one photo per registered image
     SCENE/mesh.ply                                optional reference mesh (Embree ground truth)
@@ -19,12 +19,12 @@ from typing import Iterator
 
 import numpy as np
 
-from dmrt.io import colmap, pointcloud
+from dmrt.io import colmap, e57, pointcloud
 from dmrt.camera import Camera
 from dmrt.errors import InputError
 from dmrt.io.pointcloud import PointCloud
 
-_POINT_FILES = ("points.ply", "points.las", "points.laz")
+_POINT_FILES = ("points.ply", "points.las", "points.laz", "points.e57")
 _MODEL_FILES = ("cameras.bin", "cameras.txt", "images.bin", "images.txt")
 
 
@@ -49,7 +49,10 @@ class Scene:
         works in ``x - origin`` so float32 keeps millimetres on UTM-sized coordinates; rounding
         keeps the offset a short, exactly representable number in reports and bundles.
     n_points : int
-        Number of points in the cloud.
+        Number of points in the cloud (for E57: valid points, records flagged invalid left out).
+    scanner_positions : (n_scans, 3) float64 or None
+        World positions of the scanners, metres, indexed by ``PointCloud.scan_index``; what
+        normals should face. Given for E57 (one per scan), None for formats without them.
     """
 
     root: Path
@@ -59,6 +62,7 @@ class Scene:
     mesh_path: Path | None
     origin: np.ndarray
     n_points: int
+    scanner_positions: np.ndarray | None = None
 
     def iter_points(self, chunk_size: int = 1_000_000) -> Iterator[PointCloud]:
         """Stream the cloud (world coordinates, float64) in chunks of at most ``chunk_size``."""
@@ -174,7 +178,15 @@ def load_scene(root, check_images: bool = True, chunk_size: int = 1_000_000) -> 
     n_points = pointcloud.count_points(points_path)
     if n_points == 0:
         raise InputError(points_path, "empty point cloud (0 points)")
-    # also validates every point (finite, not truncated); chunk_size bounds the memory it takes
-    lo, hi = pointcloud.bounds(points_path, chunk_size)
+    # also validates every point (finite, not truncated); chunk_size bounds the memory it takes.
+    # Counted here, not taken from the header: E57 readers drop records flagged invalid.
+    lo, hi, n_points = np.full(3, np.inf), np.full(3, -np.inf), 0
+    for c in pointcloud.iter_point_chunks(points_path, chunk_size):
+        lo = np.minimum(lo, c.positions.min(axis=0))
+        hi = np.maximum(hi, c.positions.max(axis=0))
+        n_points += len(c)
     origin = np.round((lo + hi) / 2.0)
-    return Scene(root, points_path, cameras, image_paths, mesh_path, origin, n_points)
+    scanners = None
+    if points_path.suffix.lower() == ".e57":
+        scanners = e57.scanner_positions(points_path)
+    return Scene(root, points_path, cameras, image_paths, mesh_path, origin, n_points, scanners)

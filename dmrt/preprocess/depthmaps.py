@@ -28,21 +28,18 @@ The module also reads and writes depth maps as OpenEXR files with one float32 ch
 from __future__ import annotations
 
 import itertools
-import os
-import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass
-from pathlib import Path
 
 import moderngl
 import numpy as np
 
 from dmrt.camera import Camera
-from dmrt.errors import InputError
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
+from dmrt.io.exr import read_depth_exr, write_depth_exr  # noqa: F401  (the maps it renders are stored so)
 
 _EMPTY_BITS = 0xFFFFFFFF  # compute path: an untouched pixel (above every positive float's bits)
 _EMPTY_Z = float(np.finfo(np.float32).max)  # raster path: the colour target's clear value
@@ -502,64 +499,3 @@ def _checked(positions, normals, radii):
 
 
 # -- OpenEXR ----------------------------------------------------------------------------------
-def write_depth_exr(path, depth: np.ndarray) -> None:
-    """Write a depth map as OpenEXR, one float32 channel ``Z`` (ZIP compressed, scanlines).
-
-    Written to a temporary file beside ``path`` and renamed, so an interrupted write never leaves
-    a truncated map under the final name.
-
-    Parameters
-    ----------
-    path : str or Path
-    depth : (height, width) float32
-        Camera z in metres, 0.0 = no surface.
-    """
-    import OpenEXR
-
-    path = Path(path)
-    depth = np.ascontiguousarray(depth, dtype=np.float32)
-    if depth.ndim != 2:
-        raise ValueError(f"a depth map is (height, width), got shape {depth.shape}")
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".exr", dir=path.parent)
-    os.close(fd)
-    try:
-        OpenEXR.File(header, {"Z": depth}).write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def read_depth_exr(path) -> np.ndarray:
-    """Read a depth map written by :func:`write_depth_exr`.
-
-    Returns
-    -------
-    depth : (height, width) float32
-        Camera z in metres, 0.0 = no surface.
-
-    Raises
-    ------
-    InputError
-        The file is missing, not OpenEXR, has no ``Z`` channel, or holds non-depth values
-        (non-float, non-finite or negative); the message names the file.
-    """
-    import OpenEXR
-
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "depth map not found")
-    try:
-        channels = OpenEXR.File(str(path)).channels()
-    except Exception as exc:  # OpenEXR raises RuntimeError with the library's message
-        raise InputError(path, f"not a readable OpenEXR file ({exc})") from None
-    if "Z" not in channels:
-        raise InputError(path, f"no 'Z' channel (channels: {', '.join(sorted(channels)) or 'none'})")
-    z = np.asarray(channels["Z"].pixels)
-    if z.ndim != 2 or z.dtype.kind != "f":
-        raise InputError(path, f"channel 'Z' must be one float per pixel, got {z.dtype} {z.shape}")
-    z = z.astype(np.float32, copy=False)
-    if not np.isfinite(z).all() or (z < 0).any():
-        raise InputError(path, "channel 'Z' holds non-finite or negative depths (0 = no surface)")
-    return z

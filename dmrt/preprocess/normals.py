@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 
 from dmrt.preprocess.octree import (_Appender, _chunk_source, _iter_normalized, _merge_counts, _progress,
                          _in_sorted, _read_records, _unique_counts, compute_bbox)
+from dmrt.io.atomic import atomic_file
 from dmrt.morton import morton_encode
 
 __all__ = ["estimate_normals", "splat_radii", "orient_normals", "process_chunked", "ChunkedResult",
@@ -499,17 +500,9 @@ def _process_in_memory(src, n, work, normals, radii, k_normals, k_radii, scale, 
         results["normals"] = estimate_normals(pos, k_normals, viewpoints, per_point=False, tree=tree)
     if radii:
         results["radii"] = splat_radii(pos, k_radii, scale, tree=tree)
-    tmp = {name: work / f".{name}.npy.tmp-{os.getpid()}" for name in results}
-    try:
-        for name, a in results.items():
-            with open(tmp[name], "wb") as fh:
-                np.save(fh, a, allow_pickle=False)
-        for name in results:
-            os.replace(tmp[name], work / f"{name}.npy")
-    except BaseException:
-        for p in tmp.values():
-            p.unlink(missing_ok=True)
-        raise
+    for name, a in results.items():
+        with atomic_file(work / f"{name}.npy") as tmp, open(tmp, "wb") as fh:
+            np.save(fh, a, allow_pickle=False)
     done = {name: np.load(work / f"{name}.npy", mmap_mode="r") for name in results}
     return ChunkedResult(normals=done.get("normals"), radii=done.get("radii"), n_points=n,
                          margin=float("inf"), n_unverified=0, n_buckets=1, max_bucket_points=n,

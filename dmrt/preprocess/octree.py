@@ -52,7 +52,7 @@ top. Measured (``bench/bench_octree.py``, 20M points of 39 bytes = 744 MB, ``M``
 RSS 174,724 kB (``/usr/bin/time -v``) including that baseline.
 
 An interrupted build (exception, Ctrl-C) removes its temporary folder; a killed one leaves only
-``.<name>.tmp-<pid>`` without ``octree.json``, which :meth:`Octree.open` refuses.
+``<name>.partial`` without ``octree.json``, which :meth:`Octree.open` refuses.
 
 On disk (written to a temporary sibling folder and renamed when complete)::
 
@@ -65,7 +65,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import shutil
 import time
 from dataclasses import dataclass
@@ -75,6 +74,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from dmrt.errors import InputError
+from dmrt.io.atomic import atomic_dir
 from dmrt.morton import MAX_BITS_PER_AXIS, morton_encode
 
 try:  # progress bars are optional
@@ -542,7 +542,7 @@ class Octree:
             first chunk once more for the attribute schema; every pass must yield the same points
             in the same order. Attributes travel with the points.
         out_dir : path
-            Written atomically: built in ``<out_dir>.tmp-<pid>`` beside it and renamed when
+            Written atomically: built in ``<out_dir>.partial`` beside it and renamed when
             complete. An existing octree there is replaced; any other non-empty folder is an error.
         config : OctreeConfig
         bbox : ((3,), (3,)) float64, optional
@@ -556,23 +556,9 @@ class Octree:
         if out_dir.exists() and not (out_dir / "octree.json").exists() and any(out_dir.iterdir()):
             raise InputError(out_dir, "exists and is not an octree; refusing to overwrite it")
         out_dir.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}"
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        tmp.mkdir()
-        try:
+        with atomic_dir(out_dir, what="octree") as tmp:
             meta = _Builder(src, tmp, config, bbox, progress).run()
             (tmp / "octree.json").write_text(json.dumps(meta, indent=1))
-            if out_dir.exists():
-                old = out_dir.parent / f".{out_dir.name}.old-{os.getpid()}"
-                out_dir.rename(old)
-                tmp.rename(out_dir)
-                shutil.rmtree(old, ignore_errors=True)
-            else:
-                tmp.rename(out_dir)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
         return cls.open(out_dir)
 
 
