@@ -68,6 +68,7 @@ class EmbreeReference:
     """
 
     name = "embree"
+    gpu_bytes: dict = {}  # Embree runs on the CPU
 
     def __init__(self, raycaster: MeshRaycaster, cameras: list[Camera], images):
         self.raycaster = raycaster
@@ -89,8 +90,10 @@ class EmbreeReference:
             self._cache[i] = self._images(i) if callable(self._images) else self._images[i]
         return self._cache[i]
 
-    def render(self, camera: Camera, width: int | None = None, height: int | None = None) -> dict:
-        """Frame outputs (see :mod:`dmrt.io.frames`) for ``camera`` at ``width`` x ``height``.
+    def render(self, camera: Camera, width: int | None = None, height: int | None = None,
+               readback: bool = True) -> dict:
+        """Frame outputs (see :mod:`dmrt.io.frames`) for ``camera`` at ``width`` x ``height``
+        (:class:`dmrt.runtime.protocol.FrameRenderer`; ``readback`` is moot on the CPU).
 
         ``timings`` holds wall-clock ms of the CPU stages (Embree runs on the CPU).
         """
@@ -114,3 +117,10 @@ class EmbreeReference:
         frame["timings"] = {"raycast": (t1 - t0) * 1e3, "labels": (t2 - t1) * 1e3,
                             "texturing": (time.perf_counter() - t2) * 1e3}
         return frame
+
+    def flush_photos(self) -> int:
+        """Photos are read whole on first use: nothing is ever pending."""
+        return 0
+
+    def release(self) -> None:
+        self._cache.clear()

@@ -4,26 +4,26 @@ Each twin computes what one shader pass computes, written independently of the G
 pixel against every disc, no bounding boxes, no tiling), so that each GPU wrapper can be tested
 against its twin (gsplat's ``cuda/_torch_impl.py`` style). Tests in ``tests/`` compare them.
 
-=========================  =======================================  ===========================================
-twin                       shader (``shaders/``)                    GPU wrapper (``dmrt/``)
-=========================  =======================================  ===========================================
-:func:`splat_depth_map`    ``splat_depth_compute.glsl``,            ``preprocess.depthmaps.DepthMapRenderer``
-                           ``splat_depth_raster.glsl`` (+ ``_large``,
-                           ``splat_depth_common.glsl``)
-:func:`disc_hits`          ``dmrt_splat_common.glsl``               (the primitive of the two passes below)
-                           (``splat_depth_at``)
-:func:`visibility_layers`  ``dmrt_visibility.glsl``,                ``runtime.visibility`` (``Renderer.layers``)
-                           ``dmrt_visibility_fragment.glsl``,
-                           ``dmrt_visibility_kbuffer.glsl``
-:func:`surface_depth`      ``dmrt_photos.glsl`` (``surface_depth``) (used by the raytracing pass)
-:func:`raytrace`           ``dmrt_raytrace.glsl``                   ``runtime.renderer.Renderer`` (raytracing)
-:func:`labeling_pass`      ``dmrt_labeling.glsl``                   ``runtime.renderer.Renderer`` (labeling)
-:func:`visible_in_depth_map`  ``dmrt_label_finalize.glsl``          ``runtime.renderer.Renderer`` (label check);
-                           (``sees``; own tolerance)                ``preprocess.pipeline.find_candidates``
-:func:`texturing_pass`     ``dmrt_texturing.glsl``,                 ``runtime.texturing``
-                           ``dmrt_photo_color.glsl``
-:func:`grid_mesh_depth`    ``dmt_mesh.glsl``                        ``baselines.dmt.DMTRenderer`` (one map)
-=========================  =======================================  ===========================================
+Twin -> shader(s) in ``shaders/`` -> GPU wrapper in ``dmrt/``:
+
+* :func:`splat_depth_map` -> ``splat_depth_compute.glsl``, ``splat_depth_raster.glsl`` (and their
+  ``_large`` programs; ``splat_depth_common.glsl``) -> ``dmrt.preprocess.depthmaps.DepthMapRenderer``
+* :func:`disc_hits` -> ``dmrt_splat_common.glsl`` (``splat_depth_at``, the primitive of the
+  visibility and labeling passes) -> used by the two twins below
+* :func:`visibility_layers` -> ``dmrt_visibility.glsl``, ``dmrt_visibility_fragment.glsl``,
+  ``dmrt_visibility_kbuffer.glsl`` -> ``dmrt.runtime.visibility`` (``Renderer.layers()``)
+* :func:`surface_depth` -> ``dmrt_photos.glsl`` (``surface_depth``) -> used by the raytracing pass
+* :func:`raytrace` -> ``dmrt_raytrace.glsl`` -> ``dmrt.runtime.renderer.Renderer`` (``depth``,
+  ``layer_used``, ``step_stats``)
+* :func:`labeling_pass` -> ``dmrt_labeling.glsl`` -> ``dmrt.runtime.renderer.Renderer`` (``label``
+  with ``label_check=False``)
+* :func:`visible_in_depth_map` -> ``dmrt_label_finalize.glsl`` (``sees``, the label check; with
+  its own tolerance) -> ``dmrt.runtime.renderer.Renderer``; also the candidate test of
+  ``dmrt.preprocess.candidates.find_candidates``
+* :func:`texturing_pass` -> ``dmrt_texturing.glsl``, ``dmrt_photo_color.glsl`` ->
+  ``dmrt.runtime.texturing`` (``color``)
+* :func:`grid_mesh_depth` -> ``dmt_mesh.glsl`` -> ``baselines.dmt.DMTRenderer`` (one map from its
+  own camera)
 
 Conventions are the suite's (``DESIGN.md``, Contracts): metres, OpenCV camera axes, depth = camera
 z with 0 = none, labels int with -1 = none, pixel and texel positions with the corner origin (the
@@ -439,7 +439,7 @@ def visible_in_depth_map(cam: Camera, depth: np.ndarray, points: np.ndarray, nor
                          radii=None, slack: float = 0.03) -> np.ndarray:
     """The points that a photo's depth map sees (the label check's question, ``sees`` in
     ``shaders/dmrt_label_finalize.glsl``, and the candidate test of
-    ``dmrt.preprocess.pipeline.find_candidates``; with its own nearest-texel tolerance).
+    ``dmrt.preprocess.candidates.find_candidates``; with its own nearest-texel tolerance).
 
     A point is seen when the depth of its nearest texel is within ``slack`` plus two texel
     footprints of its own camera z; the footprints are divided by the cosine of the viewing angle

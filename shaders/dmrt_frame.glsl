@@ -10,7 +10,7 @@ struct Hit {
     int final_label;   // per-pixel label after the labeling pass; -1 = none
 };
 
-layout(std430, binding = 4) buffer Hits { Hit hits[]; };
+layout(std430, binding = B_HITS) buffer Hits { Hit hits[]; };
 
 // The ray of the render camera through pixel centre uv (pixels, corner origin) in camera space,
 // scaled so that the point at parameter s has camera z = s (uses u_K of splat_depth_common.glsl).

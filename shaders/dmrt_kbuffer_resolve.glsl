@@ -15,15 +15,14 @@
 
 layout(local_size_x = 8, local_size_y = 8) in;
 
-layout(std430, binding = 1) buffer KBuffer { uint kbuf[]; };
-layout(std430, binding = 2) writeonly buffer LayerDepth { uint layer_depth[]; };
-layout(std430, binding = 3) writeonly buffer LayerLabel { int layer_label[]; };
-layout(std430, binding = 4) buffer Overflow { uint overflow; };
+layout(std430, binding = B_KBUFFER) buffer KBuffer { uint kbuf[]; };
+layout(std430, binding = B_LAYER_DEPTH) writeonly buffer LayerDepth { uint layer_depth[]; };
+layout(std430, binding = B_LAYER_LABEL) writeonly buffer LayerLabel { int layer_label[]; };
+layout(std430, binding = B_OVERFLOW) buffer Overflow { uint overflow; };
 
 uniform ivec2 u_size;
 uniform int u_layers;
 
-const uint EMPTY_BITS = 0xFFFFFFFFu;
 const uint LABEL_MASK = (1u << LABEL_BITS) - 1u;
 
 void main() {
@@ -48,7 +47,7 @@ void main() {
     if (n < u_layers && kbuf[base + uint(SLOTS - 1)] != EMPTY_BITS) atomicAdd(overflow, 1u);
     for (int i = n; i < u_layers; ++i) {
         layer_depth[uint(i) * npix + pix] = EMPTY_BITS;
-        layer_label[uint(i) * npix + pix] = 0x7FFFFFFF;
+        layer_label[uint(i) * npix + pix] = EMPTY_LABEL;
     }
 }
 

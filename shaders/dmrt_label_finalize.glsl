@@ -19,16 +19,15 @@ layout(local_size_x = 8, local_size_y = 8) in;
 #define PACKED_LABELS 0
 #endif
 #if PACKED_LABELS  // the labeling pass's 64-bit keys, read as (label, distance bits) pairs
-layout(std430, binding = 1) readonly buffer Key { uvec2 key[]; };
+layout(std430, binding = B_KEY) readonly buffer Key { uvec2 key[]; };
 #else
-layout(std430, binding = 2) readonly buffer Label { int vlabel[]; };
+layout(std430, binding = B_VLABEL) readonly buffer Label { int vlabel[]; };
 #endif
 
 uniform int u_use_labeling;
 uniform int u_label_check;
 uniform float u_visibility_tol;  // metres
 
-const int EMPTY_LABEL = 0x7FFFFFFF;
 
 bool sees(int l, vec3 q) {
     Photo ph = photos[l];
@@ -53,7 +52,7 @@ void finalize(ivec2 p) {
     if (hit.depth > 0.0) {
         label = hit.label;
 #if PACKED_LABELS
-        int v = key[pix].y == 0xFFFFFFFFu ? EMPTY_LABEL : int(key[pix].x);
+        int v = key[pix].y == EMPTY_BITS ? EMPTY_LABEL : int(key[pix].x);
 #else
         int v = vlabel[pix];
 #endif

@@ -18,7 +18,7 @@
 
 layout(local_size_x = 64) in;
 
-layout(std430, binding = 6) buffer Counts { uint counts[]; };
+layout(std430, binding = B_COUNTS) buffer Counts { uint counts[]; };
 
 uniform uint u_count;  // pixels
 

@@ -19,10 +19,10 @@
 #if defined COMPUTE_SHADER
 
 #if INT64
-layout(std430, binding = 1) buffer Key { uint64_t key[]; };
+layout(std430, binding = B_KEY) buffer Key { uint64_t key[]; };
 #else
-layout(std430, binding = 1) buffer Key { uint key[]; };
-layout(std430, binding = 2) buffer Label { int vlabel[]; };
+layout(std430, binding = B_KEY) buffer Key { uint key[]; };
+layout(std430, binding = B_VLABEL) buffer Label { int vlabel[]; };
 #endif
 
 void visit(Splat s, int label, int col, int row) {

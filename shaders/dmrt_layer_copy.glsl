@@ -5,15 +5,14 @@
 
 layout(local_size_x = 8, local_size_y = 8) in;
 
-layout(std430, binding = 1) buffer LayerDepth { uint layer_depth[]; };
-layout(std430, binding = 2) buffer LayerLabel { int layer_label[]; };
+layout(std430, binding = B_LAYER_DEPTH) buffer LayerDepth { uint layer_depth[]; };
+layout(std430, binding = B_LAYER_LABEL) buffer LayerLabel { int layer_label[]; };
 
 uniform sampler2D u_src;
 uniform ivec2 u_size;
 uniform int u_layer;
 uniform int u_resolve;
 
-const float EMPTY_Z = 3.4028234663852886e38;  // the targets' clear value (FLT_MAX)
 
 void main() {
     ivec2 p = ivec2(gl_GlobalInvocationID.xy);
@@ -21,9 +20,9 @@ void main() {
     uint i = uint(u_layer) * uint(u_size.x * u_size.y) + uint(p.y * u_size.x + p.x);
     float v = texelFetch(u_src, p, 0).r;
     if (u_resolve != 0)
-        layer_label[i] = v >= EMPTY_Z ? 0x7FFFFFFF : int(v);
+        layer_label[i] = v >= EMPTY_Z ? EMPTY_LABEL : int(v);
     else
-        layer_depth[i] = v >= EMPTY_Z ? 0xFFFFFFFFu : floatBitsToUint(v);
+        layer_depth[i] = v >= EMPTY_Z ? EMPTY_BITS : floatBitsToUint(v);
 }
 
 #endif

@@ -5,9 +5,9 @@
 
 layout(local_size_x = 8, local_size_y = 8) in;
 
-layout(std430, binding = 1) writeonly buffer LayerDepth { uint layer_depth[]; };
-layout(std430, binding = 2) writeonly buffer LayerLabel { int layer_label[]; };
-layout(std430, binding = 4) buffer VisKey { uvec2 vkey[]; };
+layout(std430, binding = B_LAYER_DEPTH) writeonly buffer LayerDepth { uint layer_depth[]; };
+layout(std430, binding = B_LAYER_LABEL) writeonly buffer LayerLabel { int layer_label[]; };
+layout(std430, binding = B_VKEY) buffer VisKey { uvec2 vkey[]; };
 
 uniform ivec2 u_size;
 uniform int u_layer;
@@ -18,10 +18,10 @@ void main() {
     uint pix = uint(p.y * u_size.x + p.x);
     uint i = uint(u_layer) * uint(u_size.x * u_size.y) + pix;
     uvec2 v = vkey[pix];
-    bool empty = v.y == 0xFFFFFFFFu;
-    layer_depth[i] = empty ? 0xFFFFFFFFu : v.y;
-    layer_label[i] = empty ? 0x7FFFFFFF : int(v.x);
-    vkey[pix] = uvec2(0xFFFFFFFFu);
+    bool empty = v.y == EMPTY_BITS;
+    layer_depth[i] = empty ? EMPTY_BITS : v.y;
+    layer_label[i] = empty ? EMPTY_LABEL : int(v.x);
+    vkey[pix] = uvec2(EMPTY_BITS);
 }
 
 #endif

@@ -7,8 +7,8 @@
 
 layout(local_size_x = 64) in;
 
-layout(std430, binding = 7) buffer Colors { uint colors[]; };
-layout(std430, binding = 10) readonly buffer Gains { vec4 gains[]; };  // per photo: RGB gain, unused
+layout(std430, binding = B_COLORS) buffer Colors { uint colors[]; };
+layout(std430, binding = B_GAINS) readonly buffer Gains { vec4 gains[]; };  // per photo: RGB gain, unused
 
 uniform int u_count;
 

@@ -17,7 +17,7 @@
 
 layout(local_size_x = 8, local_size_y = 8) in;
 
-layout(std430, binding = 9) buffer Pairs { int pairs[]; };
+layout(std430, binding = B_PAIRS) buffer Pairs { int pairs[]; };
 
 uniform int u_photos;
 uniform float u_threshold;       // metres: neighbours further apart in depth are another surface

@@ -2,7 +2,7 @@
 // that photo there, else from the always-resident low-resolution copy (bilinear both). Included
 // after dmrt_photos.glsl; no #version.
 
-layout(std430, binding = 6) readonly buffer Slots { int slots[]; };  // photo -> cache layer, -1
+layout(std430, binding = B_SLOTS) readonly buffer Slots { int slots[]; };  // photo -> cache layer, -1
 
 uniform sampler2DArray u_low;   // low-resolution photos, layer = photo index
 uniform sampler2DArray u_high;  // full-resolution cache, layer = slot

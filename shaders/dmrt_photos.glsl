@@ -8,7 +8,7 @@ struct Photo {
     vec4 full;        // full-resolution image width, height; unused, unused
 };
 
-layout(std430, binding = 5) readonly buffer Photos { Photo photos[]; };
+layout(std430, binding = B_PHOTOS) readonly buffer Photos { Photo photos[]; };
 
 // All depth maps, one layer per photo (R32F camera z, 0 = empty; row 0 = the photo's top row);
 // a map smaller than the array only fills its top-left corner: lookups use texelFetch.

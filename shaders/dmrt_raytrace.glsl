@@ -39,8 +39,8 @@
 
 layout(local_size_x = 8, local_size_y = 8) in;
 
-layout(std430, binding = 1) readonly buffer LayerDepth { uint layer_depth[]; };
-layout(std430, binding = 2) readonly buffer LayerLabel { int layer_label[]; };
+layout(std430, binding = B_LAYER_DEPTH) readonly buffer LayerDepth { uint layer_depth[]; };
+layout(std430, binding = B_LAYER_LABEL) readonly buffer LayerLabel { int layer_label[]; };
 
 uniform int u_layers;
 uniform int u_max_steps;
@@ -78,13 +78,10 @@ uniform float u_threshold;  // metres
 #endif
 
 #if STATISTICS
-#define STEP_BINS 32
-#ifndef STAT_LAYERS
-#define STAT_LAYERS 16  // RenderConfig refuses statistics with more layers
-#endif
+// STEP_BINS, STAT_LAYERS: dmrt/gl/abi.py (RenderConfig refuses statistics with more layers)
 // per (layer, step index) four words: count, sum of lengths in 10 um units (low word, high word), 0;
 // step indices >= STEP_BINS - 1 share the last bin
-layout(std430, binding = 8) buffer StepStats { uint step_stats[]; };
+layout(std430, binding = B_STEP_STATS) buffer StepStats { uint step_stats[]; };
 
 // Each workgroup sums its steps in shared memory and adds the sums to StepStats once, at the end,
 // instead of 2-3 global atomics per step on these few hundred words (30M steps a frame with splat
@@ -126,7 +123,6 @@ void flush_steps() {
 }
 #endif
 
-const uint EMPTY_BITS = 0xFFFFFFFFu;
 const float CONVERGED = 1e-5;  // |h| / camera z below which the search has landed on the surface
 
 // h(q) of the header; ok = false where it is undefined.

@@ -15,10 +15,10 @@
 
 // n proxies x 8 floats: position xyz (metres, scene-origin-relative), radius (metres),
 // normal xyz, label (int bits). Plain floats: std430 would pad vec3 arrays.
-layout(std430, binding = 0) readonly buffer Proxies { float proxies[]; };
+layout(std430, binding = B_PROXIES) readonly buffer Proxies { float proxies[]; };
 
 // Dispatch-indirect arguments of the LARGE pass, the list length, then proxy indices.
-layout(std430, binding = 3) buffer Large { uint groups_x; uint groups_y; uint groups_z; uint n_large; uint large[]; };
+layout(std430, binding = B_LARGE) buffer Large { uint groups_x; uint groups_y; uint groups_z; uint n_large; uint large[]; };
 
 #ifndef LARGE
 #define LARGE 0
@@ -36,8 +36,8 @@ layout(std430, binding = 3) buffer Large { uint groups_x; uint groups_y; uint gr
 uniform uint u_count;     // number of proxies
 uniform int u_build_list; // 1: append large discs to the list in this pass
 
-const uint EMPTY_BITS = 0xFFFFFFFFu;  // an untouched key (above every positive float's bits)
-const int EMPTY_LABEL = 0x7FFFFFFF;   // an untouched label (atomicMin keeps the smallest)
+// EMPTY_BITS (an untouched key, above every positive float's bits) and EMPTY_LABEL (an untouched
+// label: atomicMin keeps the smallest) come from dmrt/gl/abi.py
 
 Splat load_proxy(uint k, out int label) {
     uint o = 8u * k;

@@ -10,7 +10,7 @@
 
 layout(local_size_x = 8, local_size_y = 8) in;
 
-layout(std430, binding = 7) writeonly buffer Colors { uint colors[]; };
+layout(std430, binding = B_COLORS) writeonly buffer Colors { uint colors[]; };
 
 void main() {
     ivec2 p = ivec2(gl_GlobalInvocationID.xy);

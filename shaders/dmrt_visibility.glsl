@@ -22,11 +22,11 @@
 #if defined COMPUTE_SHADER
 
 // k layers x (height x width), row-major from the top-left pixel, layer after layer.
-layout(std430, binding = 1) buffer LayerDepth { uint layer_depth[]; };
-layout(std430, binding = 2) buffer LayerLabel { int layer_label[]; };
+layout(std430, binding = B_LAYER_DEPTH) buffer LayerDepth { uint layer_depth[]; };
+layout(std430, binding = B_LAYER_LABEL) buffer LayerLabel { int layer_label[]; };
 
 #if INT64
-layout(std430, binding = 4) buffer VisKey { uint64_t vkey[]; };  // h x w, this layer
+layout(std430, binding = B_VKEY) buffer VisKey { uint64_t vkey[]; };  // h x w, this layer
 #endif
 
 uniform int u_layer;

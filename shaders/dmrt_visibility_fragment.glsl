@@ -11,8 +11,8 @@ flat in vec3 f_nc;
 flat in float f_r;
 flat in int f_label;
 
-layout(std430, binding = 1) readonly buffer LayerDepth { uint layer_depth[]; };
-layout(std430, binding = 2) readonly buffer LayerLabel { int layer_label[]; };
+layout(std430, binding = B_LAYER_DEPTH) readonly buffer LayerDepth { uint layer_depth[]; };
+layout(std430, binding = B_LAYER_LABEL) readonly buffer LayerLabel { int layer_label[]; };
 
 uniform int u_layer;
 uniform int u_resolve;
@@ -30,7 +30,7 @@ void main() {
     if (u_layer > 0) {
         uint prev = uint(u_layer - 1) * npix + pix;
         uint pb = layer_depth[prev];
-        if (pb == 0xFFFFFFFFu || bits <= pb || f_label == layer_label[prev]) discard;
+        if (pb == EMPTY_BITS || bits <= pb || f_label == layer_label[prev]) discard;
     }
     if (u_resolve != 0) {
         if (bits != layer_depth[uint(u_layer) * npix + pix]) discard;

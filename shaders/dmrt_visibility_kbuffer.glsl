@@ -20,7 +20,7 @@
 #endif
 
 // h x w pixels x SLOTS keys, a pixel's slots contiguous; 0xFFFFFFFF = empty
-layout(std430, binding = 1) buffer KBuffer { uint kbuf[]; };
+layout(std430, binding = B_KBUFFER) buffer KBuffer { uint kbuf[]; };
 
 void visit(Splat s, int label, int col, int row) {
     float z = splat_depth_at(s, vec2(col, row) + 0.5);

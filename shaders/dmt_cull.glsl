@@ -10,11 +10,11 @@
 layout(local_size_x = 64) in;
 
 // per map: (min.xyz, 1 = has surface), (max.xyz, 0); origin-relative metres
-layout(std430, binding = 0) readonly buffer Boxes { vec4 boxes[]; };
+layout(std430, binding = B_DMT_BOXES) readonly buffer Boxes { vec4 boxes[]; };
 // DrawArraysIndirectCommand padded to moderngl's 20-byte stride
 struct Command { uint count; uint instances; uint first; uint base_instance; uint pad; };
-layout(std430, binding = 1) writeonly buffer Commands { Command commands[]; };
-layout(std430, binding = 2) buffer Stats { uint culled; uint triangles; };
+layout(std430, binding = B_DMT_COMMANDS) writeonly buffer Commands { Command commands[]; };
+layout(std430, binding = B_DMT_STATS) buffer Stats { uint culled; uint triangles; };
 
 uniform mat4 u_vp;
 uniform int u_count;           // depth maps

@@ -5,7 +5,7 @@
 
 layout(local_size_x = 256) in;
 
-layout(std430, binding = 0) writeonly buffer Data { uint data[]; };
+layout(std430, binding = B_FILL) writeonly buffer Data { uint data[]; };
 
 uniform uint u_value;
 uniform uint u_count;  // number of uints to fill from the start of the buffer

@@ -2,15 +2,15 @@
 
 // n splats x 7 floats: position xyz (metres, scene-origin-relative), normal xyz, radius (metres).
 // Plain floats, not vec3: std430 would pad a vec3 array to 16 bytes per element.
-layout(std430, binding = 0) readonly buffer Splats { float splats[]; };
+layout(std430, binding = B_SPLATS) readonly buffer Splats { float splats[]; };
 
 // One uint per pixel, row-major from the top-left: the bits of the nearest camera z. Positive IEEE
 // floats order like their bit patterns read as uints, so atomicMin on the bits is a z-buffer;
 // 0xFFFFFFFF (a NaN pattern, above every finite float) marks an empty pixel.
-layout(std430, binding = 1) buffer Depth { uint depth_bits[]; };
+layout(std430, binding = B_DEPTH_BITS) buffer Depth { uint depth_bits[]; };
 
 // Splats too big for one thread, deferred to splat_depth_compute_large: count, then splat indices.
-layout(std430, binding = 2) buffer Large { uint n_large; uint large[]; };
+layout(std430, binding = B_DEPTH_LARGE) buffer Large { uint n_large; uint large[]; };
 
 #ifndef CHECK_BEFORE_ATOMIC
 #define CHECK_BEFORE_ATOMIC 1

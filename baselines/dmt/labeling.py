@@ -30,11 +30,13 @@ inconsistent one is an error naming the file (delete the folder to recompute).
 from __future__ import annotations
 
 import json
+import typing
 import time
 import zipfile
 from collections import OrderedDict
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -42,36 +44,36 @@ from baselines.dmt.geometry import (bounding_box, dmt_size, frustum_culled, grid
                                     load_depth_map, orient_normals, texel_points)
 from dmrt.errors import InputError
 from dmrt.io.atomic import atomic_dir
+from dmrt.options import option, validate
 from dmrt.preprocess.labeling import Candidates, LabelingConfig, alpha_expansion, candidate_data_costs, winner_take_all
 from dmrt.preprocess.candidates import find_candidates
 from dmrt.preprocess.config import PreprocessConfig
 
 SCHEMA = "dmrt-dmt-labels"
 SCHEMA_VERSION = 1
-LABELERS = ("graphcut", "wta", "own")
+Labeler = Literal["graphcut", "wta", "own"]
+LABELERS = typing.get_args(Labeler)
 
 
 @dataclass
 class DMTLabelingConfig:
     """How DMT labels its depth maps (lengths in metres)."""
 
-    # "graphcut": alpha-expansion per depth map (DMT's; the default and what timing comparisons
-    # use). "wta": winner-take-all on the same data costs; "own": each map's own photo (both for
-    # frame-rate runs only).
-    labeler: str = "graphcut"
-    # Texel pairs whose depths differ by more than this are no graph edge (paper: 20 cm, as at runtime).
-    discontinuity_threshold: float = 0.20
-    # Energy and solver. None = the bundle's own (bundle.json parameters.labeling), i.e. DMRT's.
-    energy: LabelingConfig | None = None
-    # Occlusion test (occlusion_tolerance, occlusion_texels, candidate_min_cos). None = the bundle's
-    # preprocessing parameters, i.e. the very test DMRT's proxies were given.
-    occlusion: PreprocessConfig | None = None
-    # Decoded photos and stored depth maps kept in memory while labeling, MiB.
-    cache_mb: float = 2048.0
+    labeler: Labeler = option("graphcut", "graphcut: alpha-expansion per depth map (DMT's; what timing comparisons "
+                                          "use); wta: winner-take-all on the same data costs; own: each map's own "
+                                          "photo (both for frame-rate runs only)")
+    discontinuity_threshold: float = option(0.20, "texel pairs whose depths differ by more than this are no graph "
+                                                  "edge, metres (paper: 0.20, as at runtime)", minimum=0.0)
+    energy: LabelingConfig | None = option(None, "energy and solver; None = the bundle's own (bundle.json "
+                                                 "parameters.labeling), i.e. DMRT's")
+    occlusion: PreprocessConfig | None = option(None, "occlusion test (occlusion_tolerance, occlusion_texels, "
+                                                      "candidate_min_cos); None = the bundle's preprocessing "
+                                                      "parameters, the very test DMRT's proxies were given")
+    cache_mb: float = option(2048.0, "decoded photos and stored depth maps kept in memory while labeling, MiB",
+                             minimum=0.0)
 
     def __post_init__(self):
-        if self.labeler not in LABELERS:
-            raise ValueError(f"DMTLabelingConfig.labeler must be one of {LABELERS}, not {self.labeler!r}")
+        validate(self)
 
 
 @dataclass

@@ -42,67 +42,57 @@ import moderngl
 import numpy as np
 
 from baselines.dmt.geometry import bounding_box, box_corners, dmt_size, load_depth_map, texel_points
-from baselines.dmt.labeling import DMTLabelingConfig, dmt_labels
+from baselines.dmt.labeling import DMTLabelingConfig, Labeler, dmt_labels
 from dmrt.io.bundle import Bundle
 from dmrt.camera import Camera
-from dmrt.gl.context import check_gl, get_context
+from dmrt.gl.context import get_context
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
-from dmrt.runtime.leveling import ScreenLeveler
-from dmrt.runtime.renderer import HIT_DTYPE, photo_params, read_frame
-from dmrt.runtime.texturing import ImageCache, texture_frame
+from dmrt.options import option, validate
+from dmrt.gl import abi
+from dmrt.gl.abi import HIT_DTYPE
+from dmrt.gl.kernels import fill_u32, groups
+from dmrt.runtime.shading import FrameShading
 
 STAGES = ("culling", "rasterization", "stitching", "image_management", "texturing", "leveling")
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 _MAX_VERTEX_ID = 2 ** 31 - 1
 
 
-def _groups(n: int, size: int) -> int:
-    return max(1, -(-n // size))
-
-
 @dataclass
 class DMTConfig:
-    """Parameters of the DMT runtime (lengths in metres)."""
+    """Parameters of the DMT runtime (lengths in metres); each field is a ``dmrt render --method dmt``
+    option (``--dmt-*`` for those whose names RenderConfig uses otherwise)."""
 
-    # Depth-map width in texels (paper: 256, 512, 1024; heights follow each photo's aspect). None =
-    # the bundle's stored depth maps' width; at most that (coarser maps are resampled from them).
-    width: int | None = None
-    # Stitching threshold ε: fragments within ε behind the nearest surface are the same surface
-    # (best-resolved map wins). Two maps of one surface disagree by their triangulation error
-    # (under a texel footprint: 8 mm at 5 m for a 1024-wide map of an 80-degree photo, 3.3 cm at 256)
-    # plus scan noise and splat bias (a few mm); real features (door jambs, steps, furniture) stand
-    # out by more than 5 cm. Smaller ε shows low-resolution surfaces, larger hides thin features
-    # (paper Fig. 11); 5 cm also stays well under the 20 cm discontinuity threshold.
-    epsilon: float = 0.05
-    # Triangles whose texels' depths span more than this are dropped (paper: 20 cm).
-    discontinuity_threshold: float = 0.20
-    # "graphcut" (DMT's labeling, cached in the bundle) or "wta" (winner-take-all; frame-rate runs).
-    labeler: str = "graphcut"
-    # Near clipping plane of the rasterization; the far plane follows the depth maps' boxes.
-    near: float = 0.05
-    # Clamp of |cos θ| in the quality key (a grazing view's footprint is at most 20x its frontal one).
-    min_cos: float = 0.05
-    # Photo cache and streaming, as RenderConfig (dmrt.runtime.renderer): GPU MiB for full-resolution photos
-    # (paper: 1 GB), background decoding, uploads per frame (0 = no bound), CPU MiB of decoded photos.
-    cache_mb: float = 1024.0
-    async_photos: bool = True
-    max_uploads_per_frame: int = 4
-    cpu_cache_mb: float = 1024.0
-    # Progress bar when the labels must be computed.
-    progress: bool = True
-
-    # Screen-space leveling, as RenderConfig's (dmrt.runtime.leveling).
-    leveling: bool = False
-    leveling_min_samples: int = 16
-    leveling_max_gain: float = 2.0
+    width: int | None = option(None, "depth-map width in texels (paper: 256, 512, 1024; heights follow each "
+                                     "photo's aspect); default and at most the bundle's maps' width (coarser maps "
+                                     "are resampled from them)", minimum=2)
+    # Two maps of one surface disagree by their triangulation error (under a texel footprint: 8 mm
+    # at 5 m for a 1024-wide map of an 80-degree photo, 3.3 cm at 256) plus scan noise and splat
+    # bias (a few mm); real features (door jambs, steps, furniture) stand out by more than 5 cm.
+    # Smaller hides less (shows low-resolution surfaces), larger hides thin features (paper
+    # Fig. 11); 5 cm also stays well under the 20 cm discontinuity threshold.
+    epsilon: float = option(0.05, "stitching threshold: fragments within this behind the nearest surface are the "
+                                  "same surface (the best-resolved map wins), metres", minimum=0.0)
+    discontinuity_threshold: float = option(0.20, "triangles whose texels' depths span more than this are dropped, "
+                                                  "metres (paper: 0.20)", minimum=1e-6)
+    labeler: Labeler = option("graphcut", "graphcut (DMT's labeling, cached in the bundle), wta (winner-take-all) "
+                                          "or own (each map's own photo); the last two for frame-rate runs")
+    near: float = option(0.05, "near clipping plane of the rasterization, metres; the far plane follows the depth "
+                               "maps' boxes", minimum=1e-6)
+    min_cos: float = option(0.05, "clamp of |cos theta| in the quality key (a grazing view's footprint is at most "
+                                  "20x its frontal one)", minimum=1e-6, maximum=1.0)
+    cache_mb: float = option(1024.0, "as RenderConfig's: GPU MiB for full-resolution photos", minimum=0.0)
+    async_photos: bool = option(True, "as RenderConfig's: decode photos on background threads")
+    max_uploads_per_frame: int = option(4, "as RenderConfig's: photo uploads per frame (0 = no bound)", minimum=0)
+    cpu_cache_mb: float = option(1024.0, "as RenderConfig's: CPU MiB of decoded photos", minimum=0.0)
+    progress: bool = option(True, "a progress bar when the labels must be computed")
+    leveling: bool = option(False, "screen-space leveling, as RenderConfig's")
+    leveling_min_samples: int = option(16, "leveling: seam samples a photo pair needs to count", minimum=1)
+    leveling_max_gain: float = option(2.0, "leveling: the bound on a gain and its inverse", minimum=1.0)
 
     def __post_init__(self):
-        if self.epsilon < 0 or self.discontinuity_threshold <= 0 or self.near <= 0:
-            raise ValueError("DMTConfig: epsilon >= 0, discontinuity_threshold > 0 and near > 0 required")
-        if self.width is not None and self.width < 2:
-            raise ValueError(f"DMTConfig.width must be at least 2 texels, not {self.width}")
-        DMTLabelingConfig(labeler=self.labeler)  # validates the name
+        validate(self)
 
 
 class DMTRenderer:
@@ -171,9 +161,9 @@ class DMTRenderer:
             cam = self.cameras[i].relative_to(self.origin).scaled(w, h)
             boxes[i] = bounding_box(texel_points(d, cam))
         self.boxes = boxes
-        self.images = ImageCache(ctx, bundle, cfg.cache_mb, cfg.max_uploads_per_frame, cfg.async_photos,
-                                 cfg.cpu_cache_mb)
-        self.photos = ctx.buffer(photo_params(self.cameras, self.origin, self.sizes, self.images.low_sizes).tobytes())
+        # seam visibility tolerance: within a few DMT texels (a coarse map's surface is further off)
+        self.shading = FrameShading(ctx, bundle, self.timer, self.sizes, cfg, cfg.epsilon)
+        self.images, self.photos, self.leveler = self.shading.images, self.shading.photos, self.shading.leveler
         gpu_boxes = np.zeros((n, 2, 4), np.float32)
         ok = np.isfinite(boxes).all(axis=(1, 2))
         gpu_boxes[ok, :, :3] = boxes[ok]
@@ -181,7 +171,6 @@ class DMTRenderer:
         self._boxes_buf = ctx.buffer(gpu_boxes.tobytes())
         self._commands = ctx.buffer(reserve=20 * n)
         self._stats = ctx.buffer(reserve=8)
-        self.counts = ctx.buffer(reserve=4 * n)
         # gl_VertexID is an int: maps are drawn in groups whose vertex ranges stay below 2^31
         self.verts_per_map = 6 * (dims[0] - 1) * (dims[1] - 1)
         self.maps_per_draw = max(1, _MAX_VERTEX_ID // max(self.verts_per_map, 1))
@@ -189,19 +178,11 @@ class DMTRenderer:
         self._pass = {k: load_program(ctx, "dmt_mesh", {"PASS": k}) for k in (1, 2)}
         self._vao = {k: ctx.vertex_array(p, []) for k, p in self._pass.items()}
         self._resolve = load_program(ctx, "dmt_resolve")
-        self._fill = load_program(ctx, "fill_u32")
-        self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
-        # seam visibility tolerance: within a few DMT texels (a coarse map's surface is further off)
-        self.leveler = ScreenLeveler(ctx, n, cfg.leveling_min_samples, cfg.leveling_max_gain,
-                                     cfg.discontinuity_threshold, cfg.epsilon) if cfg.leveling else None
         self._size: tuple[int, int] | None = None
         self._fb: dict = {}
         self.gpu_bytes = {"depthmaps": dims[0] * dims[1] * n * 4,
                           "labels": dims[0] * dims[1] * n * (2 if ldtype == "i2" else 4),
-                          **self.images.nbytes, "photos": self.photos.size,
-                          "draw": self._boxes_buf.size + self._commands.size + self._stats.size}
-        if self.leveler is not None:
-            self.gpu_bytes["leveling"] = self.leveler.nbytes
+                          **self.shading.nbytes, "draw": self._boxes_buf.size + self._commands.size + self._stats.size}
 
     @property
     def config(self) -> DMTConfig:
@@ -253,14 +234,14 @@ class DMTRenderer:
         timer.reset()
 
         with timer.section("culling"):
-            self._run_fill(self._stats, 0, 2)
-            self._boxes_buf.bind_to_storage_buffer(0)
-            self._commands.bind_to_storage_buffer(1)
-            self._stats.bind_to_storage_buffer(2)
-            self.photos.bind_to_storage_buffer(5)
+            fill_u32(ctx, self._stats, 0, 2)
+            self._boxes_buf.bind_to_storage_buffer(abi.B_DMT_BOXES)
+            self._commands.bind_to_storage_buffer(abi.B_DMT_COMMANDS)
+            self._stats.bind_to_storage_buffer(abi.B_DMT_STATS)
+            self.photos.bind_to_storage_buffer(abi.B_PHOTOS)
             set_uniforms(self._cull, u_vp=vp_bytes, u_count=n, u_maps_per_draw=self.maps_per_draw,
                          u_verts_per_map=self.verts_per_map)
-            self._cull.run(_groups(n, 64))
+            self._cull.run(groups(n, 64))
             ctx.memory_barrier(_BARRIER)
             if maps is not None:  # restrict on the CPU: zero the other maps' vertex counts
                 keep = np.zeros(n, bool)
@@ -291,54 +272,33 @@ class DMTRenderer:
                 self._draw(2, mesh_uniforms)
             fb["surface"].use(3)
             fb["ids"].use(4)
-            fb["hits"].bind_to_storage_buffer(4)
+            fb["hits"].bind_to_storage_buffer(abi.B_HITS)
             set_uniforms(self._resolve, u_surface=3, u_ids=4, **cam_uniforms)
-            self._resolve.run(_groups(w, 8), _groups(h, 8))
+            self._resolve.run(groups(w, 8), groups(h, 8))
             ctx.memory_barrier(_BARRIER)
 
-        # image management and texturing: DMRT's passes on the DMT hits (dmrt.runtime.renderer)
-        with timer.section("image_management"):
-            self._run_fill(self.counts, 0, n)
-            fb["hits"].bind_to_storage_buffer(4)
-            self.counts.bind_to_storage_buffer(6)
-            set_uniforms(self._histogram, u_count=w * h)
-            self._histogram.run(_groups(w * h, 64 * 64))
-            ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        counts, cpu_ms = texture_frame(ctx, timer, self.images, self.counts, fb["hits"], fb["colors"], self.photos,
-                                       cam_uniforms)
-        self.label_counts = counts
-        if self.leveler is not None:
-            cpu_ms["leveling"] = self.leveler.run(timer, fb["hits"], fb["colors"], self.photos, self.images,
-                                                  self.depthmaps, cam_uniforms, counts)
-
-        check_gl(ctx, "rendering a DMT frame")
+        # the end of the frame: DMRT's (dmrt.runtime.shading) on the DMT hits
+        frame, hits = self.shading.finish(fb["hits"], fb["colors"], self.depthmaps, cam_uniforms, STAGES,
+                                          "rendering a DMT frame", readback)
+        self.label_counts = self.shading.label_counts
         stats = np.frombuffer(self._stats.read(), np.uint32)
-        frame = {}
         if readback:
-            frame, hits = read_frame(fb["hits"], fb["colors"], w, h)
             frame["depth_map"] = hits["label"].copy()
-        timer.check_executed("rendering a DMT frame")
-        ms = timer.ms
-        frame["timings"] = {stage: ms.get(stage, 0.0) for stage in STAGES}
-        frame["cpu_ms"] = cpu_ms
-        if self.leveler is not None:
-            frame["leveling_gains"] = self.leveler.gains.copy()
         frame["stats"] = {"maps": n, "maps_culled": int(stats[0]), "maps_drawn": n - int(stats[0]),
                           "triangles_drawn": int(stats[1])}
         return frame
 
     def flush_photos(self) -> int:
         """Wait for streamed photos and upload all the last frame wanted (as DMRT's Renderer)."""
-        return self.images.flush()
+        return self.shading.flush_photos()
 
     def release(self) -> None:
         """Free this renderer's GPU resources (cached programs stay with the context)."""
         self._release_frame()
         for vao in self._vao.values():
             vao.release()
-        self.images.release()
-        for obj in (self.depthmaps, self.labels, self.photos, self._boxes_buf, self._commands, self._stats,
-                    self.counts, self.leveler):
+        self.shading.release()
+        for obj in (self.depthmaps, self.labels, self._boxes_buf, self._commands, self._stats):
             if obj is not None:
                 obj.release()
 
@@ -354,17 +314,12 @@ class DMTRenderer:
     # -- internals ----------------------------------------------------------------------------
     def _draw(self, k: int, uniforms: dict) -> None:
         prog, vao, n = self._pass[k], self._vao[k], len(self.cameras)
-        self.photos.bind_to_storage_buffer(5)
+        self.photos.bind_to_storage_buffer(abi.B_PHOTOS)
         for base in range(0, n, self.maps_per_draw):
             set_uniforms(prog, u_map_base=base, **uniforms)
             vao.render_indirect(self._commands, moderngl.TRIANGLES, count=min(self.maps_per_draw, n - base),
                                 first=base)
 
-    def _run_fill(self, buf, value: int, count: int) -> None:
-        buf.bind_to_storage_buffer(0)
-        set_uniforms(self._fill, u_value=value, u_count=count)
-        self._fill.run(_groups(count, 256))
-        self.ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
 
     def _allocate(self, w: int, h: int) -> None:
         if self._size == (w, h):

@@ -26,48 +26,52 @@ import trimesh
 from tqdm import tqdm
 
 from dmrt.camera import Camera
+from dmrt.errors import ConfigError
 from dmrt.io.atomic import atomic_dir
+from dmrt.options import option, validate
 from reference.raycast import MeshRaycaster, write_mesh_ply
 
 
 @dataclass
 class SynthConfig:
-    """One synthetic scene. Lengths in metres, angles in degrees."""
+    """One synthetic scene (lengths in metres, angles in degrees); each field is a ``dmrt scene
+    synth`` option."""
 
-    name: str = "tiny"
-    seed: int = 0
-    rooms: tuple[int, int] = (2, 1)          # grid of rooms (x, y)
-    room_size: tuple[float, float] = (4.0, 6.0)  # random interior width range of each grid row/column
-    wall_height: float = 3.0
-    wall_thickness: float = 0.4
-    ceiling: bool = True                     # a protective roof, as over the excavation houses
-    # Large real-world coordinates (UTM-like) added to everything, so every consumer proves it
-    # keeps a scene origin instead of pushing 10^6 m through float32.
-    offset: tuple[float, float, float] = (512300.0, 5312700.0, 210.0)
-    # Laser scanner
-    points: int = 200_000                    # target |P_HD|; sets the angular step
-    stations_per_room: int = 1
-    scan_elevation: tuple[float, float] = (-70.0, 90.0)  # below -70 deg the tripod hides the floor
-    range_noise: float = 0.002               # 1-sigma range noise, a typical phase-based TLS
-    write_normals: bool = False              # real scans often lack normals: preprocessing estimates them
-    # Photographs
-    photos: int = 12
-    photo_size: tuple[int, int] = (256, 171)  # the paper's 1024x684 aspect
-    fov_x: float = 80.0
-    supersample: int = 2                     # s x s rays per pixel, box-filtered (anti-aliasing)
-    lighting_variation: bool = True          # per-photo exposure and white balance
-    exposure_range: tuple[float, float] = (0.75, 1.25)
-    white_balance_range: tuple[float, float] = (0.92, 1.08)
-    chunk_rays: int = 2_000_000              # rays per Embree batch: bounds memory on big presets
+    name: str = option("tiny", "scene name")
+    seed: int = option(0, "random seed: the same seed gives the same files")
+    rooms: tuple[int, int] = option((2, 1), "grid of rooms (x, y)", minimum=1)
+    # rooms must hold a doorway (<= 1.3 m plus 0.4 m jambs) and cameras 1.5 m from a wall
+    room_size: tuple[float, float] = option((4.0, 6.0), "random interior width range of each grid row and column, "
+                                                        "metres", minimum=2.5)
+    wall_height: float = option(3.0, "wall height, metres", minimum=0.5)
+    wall_thickness: float = option(0.4, "wall thickness, metres", minimum=0.05)
+    ceiling: bool = option(True, "a protective roof, as over excavation houses")
+    # every consumer must prove it keeps a scene origin instead of pushing 10^6 m through float32
+    offset: tuple[float, float, float] = option((512300.0, 5312700.0, 210.0), "large real-world (UTM-like) "
+                                                "coordinates added to everything, metres")
+    points: int = option(200_000, "laser scanner: target |P_HD|; sets the angular step", minimum=1)
+    stations_per_room: int = option(1, "scanner stations per room", minimum=1)
+    scan_elevation: tuple[float, float] = option((-70.0, 90.0), "scanned elevation range, degrees (below -70 "
+                                                                "the tripod hides the floor)",
+                                                 minimum=-90.0, maximum=90.0)
+    range_noise: float = option(0.002, "1-sigma range noise, metres (a typical phase-based scanner)", minimum=0.0)
+    write_normals: bool = option(False, "write normals with the points (real scans often lack them: "
+                                        "preprocessing estimates them)")
+    photos: int = option(12, "photographs", minimum=1)
+    photo_size: tuple[int, int] = option((256, 171), "photo width and height, pixels (the paper's 1024x684 "
+                                                     "aspect)", minimum=8)
+    fov_x: float = option(80.0, "horizontal field of view of the photos, degrees", minimum=1.0, maximum=179.0)
+    supersample: int = option(2, "s x s rays per pixel, box-filtered (anti-aliasing)", minimum=1)
+    lighting_variation: bool = option(True, "per-photo exposure and white balance")
+    exposure_range: tuple[float, float] = option((0.75, 1.25), "range of the per-photo exposure gain", minimum=0.0)
+    white_balance_range: tuple[float, float] = option((0.92, 1.08), "range of the per-channel white-balance gain",
+                                                      minimum=0.0)
+    chunk_rays: int = option(2_000_000, "rays per Embree batch: bounds memory on big presets", minimum=1)
 
     def __post_init__(self):
-        # Rooms must hold a doorway (<= 1.3 m plus 0.4 m jambs) and cameras 1.5 m from a wall.
-        if min(self.room_size) < 2.5 or self.room_size[0] > self.room_size[1]:
-            raise ValueError(f"room_size {self.room_size}: need 2.5 m <= min <= max")
-        if min(self.rooms) < 1 or self.points < 1 or self.photos < 1 or self.supersample < 1:
-            raise ValueError("rooms, points, photos and supersample must be at least 1")
-        if min(self.photo_size) < 8:
-            raise ValueError(f"photo_size {self.photo_size}: at least 8x8 pixels")
+        validate(self)
+        if self.room_size[0] > self.room_size[1]:
+            raise ConfigError("room_size", f"the range {self.room_size} must be (min, max)")
 
 
 PRESETS = {

@@ -10,29 +10,40 @@ import sys
 import typing
 from pathlib import Path
 
-from dmrt.errors import InputError
+from dmrt.errors import ConfigError, DMRTError, InputError, require
 
 
 # ----------------------------------------------------------------------------------------------
 # Dataclass <-> argparse
 # ----------------------------------------------------------------------------------------------
 def add_config_args(parser: argparse.ArgumentParser, cls, skip=()) -> None:
-    """Add one ``--option`` per field of dataclass ``cls`` (defaults left to the dataclass)."""
+    """Add one ``--option`` per field of dataclass ``cls``, with the help text, choices and default
+    the field declares (:func:`dmrt.options.option`); defaults stay the dataclass's own."""
+    from dmrt.options import choices
+
     hints = typing.get_type_hints(cls)
+    defaults = cls()
     for f in dataclasses.fields(cls):
         if f.name in skip:
             continue
         opt = "--" + f.name.replace("_", "-")
         tp = hints[f.name]
+        default = getattr(defaults, f.name)
+        # argparse formats help with %: a literal % must be doubled
+        text = (f.metadata.get("help", "") + ("" if default is None else f" (default: {default})")).replace("%", "%%")
         origin = typing.get_origin(tp)
+        allowed = choices(tp)
         if tp is bool:
-            parser.add_argument(opt, dest=f.name, default=None, action=argparse.BooleanOptionalAction)
+            parser.add_argument(opt, dest=f.name, default=None, action=argparse.BooleanOptionalAction, help=text)
+        elif allowed is not None:
+            parser.add_argument(opt, dest=f.name, default=None, choices=allowed, help=text)
         elif origin is tuple:
             args = typing.get_args(tp)
-            parser.add_argument(opt, dest=f.name, default=None, nargs=len(args), type=args[0], metavar=f.name.upper())
+            parser.add_argument(opt, dest=f.name, default=None, nargs=len(args), type=args[0],
+                                metavar=f.name.upper(), help=text)
         else:
             base = next((a for a in typing.get_args(tp) if a is not type(None)), tp) if origin else tp
-            parser.add_argument(opt, dest=f.name, default=None, type=base)
+            parser.add_argument(opt, dest=f.name, default=None, type=base, help=text)
 
 
 def config_from_args(cls, args: argparse.Namespace, base=None):
@@ -45,14 +56,140 @@ def config_from_args(cls, args: argparse.Namespace, base=None):
 
 
 # ----------------------------------------------------------------------------------------------
+# Checks made before any work: bad input fails at once and leaves nothing behind
+# ----------------------------------------------------------------------------------------------
+FRAME_SUFFIXES = (".png", ".exr")
+# Reference frames are ray cast on the CPU: no GL limit applies, but frames are compared with GPU
+# frames, whose sides GL 4.5 guarantees up to 16384 pixels; larger only exhausts memory.
+REFERENCE_MAX_SIDE = 16384
+
+
+def check_positive(args, *names) -> None:
+    """:class:`ConfigError` naming the first of ``--<names>`` that was given and is below 1."""
+    for name in names:
+        v = getattr(args, name, None)
+        if v is not None and v < 1:
+            raise ConfigError(name, f"must be >= 1, not {v}")
+
+
+def check_output(path, option: str = "out", suffixes=None, folder: bool = False, what: str = "output") -> Path:
+    """Refuse, before any work, an output that cannot be written as asked.
+
+    Parameters
+    ----------
+    path : the file (or with ``folder``, the folder) the command will write.
+    option : the option that named it, for the message.
+    suffixes : the file suffixes allowed (lower case), or None.
+    folder : the output is a folder, not a file.
+    what : what it is (``"frame file"``), for the message.
+
+    Raises
+    ------
+    ConfigError
+        A suffix not in ``suffixes``; a folder where a file is asked for, or the reverse.
+    InputError
+        A parent of ``path`` is a file, or the nearest existing parent is not writable.
+    """
+    import os
+
+    path = Path(path)
+    if suffixes is not None and path.suffix.lower() not in suffixes:
+        raise ConfigError(option, f"{path}: a {what} ends in {' or '.join(suffixes)}, not "
+                                  f"{path.suffix or 'no suffix'!r}".replace("'no suffix'", "no suffix"))
+    if folder and path.exists() and not path.is_dir():
+        raise ConfigError(option, f"{path} is a file; --{option} names a folder here")
+    if not folder and path.is_dir():
+        raise ConfigError(option, f"{path} is a folder; --{option} names a {what}")
+    for parent in path.absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise InputError(parent, f"is a file, so --{option} {path} cannot be written in it")
+            if not os.access(parent, os.W_OK | os.X_OK):
+                raise InputError(parent, f"folder not writable (for --{option} {path})")
+            break
+    return path
+
+
+def frame_limits(ctx=None) -> dict:
+    """What frames this GL context can render: ``side`` (largest width or height, pixels; the
+    smallest of GL_MAX_TEXTURE_SIZE, GL_MAX_VIEWPORT_DIMS and the framebuffer limits) and
+    ``buffer_bytes`` (largest per-pixel buffer, bytes; GL_MAX_SHADER_STORAGE_BLOCK_SIZE, the
+    renderer binding each frame buffer whole)."""
+    if ctx is None:
+        from dmrt.gl import get_context
+
+        ctx = get_context()
+    info = ctx.info
+    side = min(int(info["GL_MAX_TEXTURE_SIZE"]), *(int(v) for v in info["GL_MAX_VIEWPORT_DIMS"]),
+               int(info.get("GL_MAX_FRAMEBUFFER_WIDTH", 1 << 30)), int(info.get("GL_MAX_FRAMEBUFFER_HEIGHT", 1 << 30)),
+               int(info.get("GL_MAX_RENDERBUFFER_SIZE", 1 << 30)))
+    return {"side": side, "buffer_bytes": int(info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE", 1 << 31))}
+
+
+def check_frame_size(width: int, height: int, bytes_per_pixel: int = 4, what: str = "", ctx=None) -> None:
+    """:class:`ConfigError` naming ``--width``/``--height`` when a ``width`` x ``height`` frame is
+    more than the GL context can hold (:func:`frame_limits`), before anything is allocated.
+
+    ``bytes_per_pixel`` is the largest per-pixel buffer's record (``4 * layers`` for DMRT's layer
+    buffers), ``what`` says whose it is for the message.
+    """
+    lim = frame_limits(ctx)
+    for option, v in (("width", width), ("height", height)):
+        if v > lim["side"]:
+            raise ConfigError(option, f"a {width}x{height} frame is larger than this GPU renders: at most "
+                                      f"{lim['side']} pixels a side (GL_MAX_TEXTURE_SIZE, GL_MAX_VIEWPORT_DIMS)")
+    need = width * height * bytes_per_pixel
+    if need > lim["buffer_bytes"] or width * height * (bytes_per_pixel // 4) >= 1 << 32:
+        raise ConfigError("width", f"a {width}x{height} frame{what} needs a {need / 2**20:.0f} MiB buffer; this "
+                                   f"GPU binds at most {lim['buffer_bytes'] / 2**20:.0f} MiB "
+                                   f"(GL_MAX_SHADER_STORAGE_BLOCK_SIZE): give a smaller --width/--height")
+
+
+def check_reference_size(width: int, height: int) -> None:
+    """:class:`ConfigError` for a reference frame above :data:`REFERENCE_MAX_SIDE` a side."""
+    for option, v in (("width", width), ("height", height)):
+        if v > REFERENCE_MAX_SIDE:
+            raise ConfigError(option, f"a {width}x{height} reference frame: at most {REFERENCE_MAX_SIDE} "
+                                      f"pixels a side")
+
+
+def check_render_size(width: int, height: int, args) -> None:
+    """:func:`check_frame_size` for what ``dmrt render``'s options ask of the GPU: DMRT's k label
+    layers (and with ``--visibility kbuffer`` its fragment slots) per pixel, or DMT's hit records."""
+    from dmrt.gl.abi import HIT_DTYPE
+
+    if args.renderer == "dmt":
+        return check_frame_size(width, height, HIT_DTYPE.itemsize)
+    from dmrt.runtime.renderer import RenderConfig
+
+    config = config_from_args(RenderConfig, args)
+    if args.visibility:
+        config = dataclasses.replace(config, method=args.visibility)
+    per_pixel, what = 4 * config.layers, f" with {config.layers} layers"
+    if config.method == "kbuffer":
+        slots = config.kbuffer_slots or 6 * config.layers + 2
+        per_pixel, what = max(per_pixel, 4 * slots), f" with {slots} k-buffer slots"
+    check_frame_size(width, height, max(per_pixel, HIT_DTYPE.itemsize, 8), what)
+
+
+# ----------------------------------------------------------------------------------------------
 # Commands
 # ----------------------------------------------------------------------------------------------
 def cmd_scene_synth(args) -> None:
     from bench.scenes.synthetic import PRESETS, SynthConfig, generate_scene
 
+    check_positive(args, "workers")
     config = config_from_args(SynthConfig, args, PRESETS[args.preset])
+    require("skimage", "dmrt scene synth (the synthetic scenes' textures)", "bench")
     out = generate_scene(config, args.out, force=args.force, progress=not args.quiet, workers=args.workers)
     print(f"wrote {out}")
+
+
+def cmd_demo(args) -> None:
+    from dmrt.app.demo import run_demo
+
+    page = run_demo(args.out, width=args.width, progress=not args.quiet)
+    print(f"open {page}  (DMRT vs DMT vs Embree: frames, depth-error and hole maps, metrics)")
 
 
 def cmd_reference(args) -> None:
@@ -60,8 +197,12 @@ def cmd_reference(args) -> None:
     from dmrt.io.scene import load_scene
     from reference.render import EmbreeReference
 
+    check_positive(args, "width", "height")
+    check_output(args.out, suffixes=FRAME_SUFFIXES, what="frame file")
     scene = load_scene(args.scene)
     camera = scene.cameras[scene.camera_index(args.camera)]
+    size = camera.resized(args.width, args.height)
+    check_reference_size(size.width, size.height)
     frame = EmbreeReference.from_scene(scene).render(camera, args.width, args.height)
     write_frame(args.out, frame)
     print(f"wrote {args.out} ({frame['depth'].shape[1]}x{frame['depth'].shape[0]}, "
@@ -81,6 +222,10 @@ def cmd_scene_mesh(args) -> None:
     from dmrt.io.scene import load_scene
     from reference.poisson import build_scene_mesh
 
+    check_positive(args, "depth")
+    if args.out is not None:
+        check_output(args.out, suffixes=(".ply",), what="mesh file")
+    require("pymeshlab", "dmrt scene mesh (screened Poisson reconstruction)", "poisson")
     out = build_scene_mesh(load_scene(args.scene, check_images=False), args.out, depth=args.depth)
     print(f"wrote {out}")
 
@@ -93,12 +238,16 @@ def load_pose(path) -> "Camera":
     from dmrt.io.bundle import camera_from_json
 
     path = Path(path)
+    if path.is_dir():
+        raise InputError(path, "is a folder, not a camera pose file (JSON with name, width, height, fx, fy, "
+                               "cx, cy, R, t)")
     try:
-        return camera_from_json(json.loads(path.read_text()))
-    except FileNotFoundError as exc:
-        raise InputError(path, "pose file not found") from exc
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise InputError(path, f"not a camera pose (JSON with name, width, height, fx, fy, cx, cy, R, t): {exc}") from exc
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(path, "pose file not found") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(path, f"not a camera pose: not valid JSON ({exc})") from None
+    return camera_from_json(doc, path)
 
 
 def make_renderer(bundle, args):
@@ -126,22 +275,38 @@ def cmd_render(args) -> None:
 
     import numpy as np
 
+    from dmrt.io.atomic import write_text
     from dmrt.io.bundle import read_bundle
     from dmrt.io.frames import write_frame
 
+    # everything the user gave is checked before the bundle is read and long before anything is
+    # rendered or written
+    given = [o for o in ("camera", "pose", "path") if getattr(args, o) is not None]
+    if len(given) != 1:
+        raise ConfigError(given[1] if given else "camera", "give exactly one of --camera IMAGE_NAME, --pose FILE "
+                          "or --path FILE" + (f", not {' and '.join('--' + o for o in given)}" if given else ""))
+    check_positive(args, "width", "height")
+    if args.path is not None:
+        check_output(args.out, folder=True)
+    else:
+        check_output(args.out, suffixes=FRAME_SUFFIXES, what="frame file")
+    if args.stats is not None:
+        check_output(args.stats, "stats", suffixes=(".json",), what="statistics file")
+    if args.dump_stages is not None:
+        check_output(args.dump_stages, "dump-stages", folder=True)
     bundle = read_bundle(args.bundle)
-    if sum(x is not None for x in (args.camera, args.pose, args.path)) != 1:
-        raise InputError(args.bundle, "give exactly one of --camera IMAGE_NAME, --pose FILE or --path FILE")
     if args.path is not None:
         return render_walkthrough(bundle, args)
     if args.camera is not None:
         names = [c.name for c in bundle.cameras]
         if args.camera not in names:
-            raise InputError(args.bundle / "bundle.json", f"no photo named {args.camera!r} "
-                                                          f"(e.g. {', '.join(names[:3])})")
+            raise ConfigError("camera", f"no photo named {args.camera!r} in {args.bundle / 'bundle.json'} "
+                                        f"(e.g. {', '.join(names[:3])})")
         camera = bundle.cameras[names.index(args.camera)]
     else:
         camera = load_pose(args.pose)
+    size = camera.resized(args.width, args.height)
+    check_render_size(size.width, size.height, args)
     renderer, config = make_renderer(bundle, args)
     # A still frame: the first render tells which photos the view needs, then they are made
     # resident at full resolution and the frame is rendered again with them.
@@ -152,7 +317,9 @@ def cmd_render(args) -> None:
     if args.dump_stages:
         from dmrt.io.frames import write_stage_images
 
-        splats = renderer.layers()["label"][0] if hasattr(renderer, "layers") else None
+        from dmrt.runtime.protocol import LayeredRenderer
+
+        splats = renderer.layers()["label"][0] if isinstance(renderer, LayeredRenderer) else None
         write_stage_images(args.dump_stages, frame, splats)
     if args.stats:
         hit = frame["depth"] > 0
@@ -165,7 +332,7 @@ def cmd_render(args) -> None:
                                                         minlength=config.layers).tolist()
         if "stats" in frame:  # DMT's culling counts
             stats["dmt"] = frame["stats"]
-        Path(args.stats).write_text(json.dumps(stats, indent=1))
+        write_text(args.stats, json.dumps(stats, indent=1))
     t = frame["timings"]
     print(f"wrote {args.out}: " + ", ".join(f"{k} {v:.2f} ms" for k, v in t.items()))
 
@@ -174,24 +341,32 @@ def render_walkthrough(bundle, args) -> None:
     """Render a camera path into ``--out`` (a folder): one PNG per frame and ``timings.json``."""
     import json
 
+    from dmrt.io.atomic import atomic_dir
     from dmrt.runtime.walkthrough import load_path
 
     cameras = load_path(args.path)
-    renderer, config = make_renderer(bundle, args)
+    sizes = [c.resized(args.width, args.height) for c in cameras]
+    check_render_size(max(c.width for c in sizes), max(c.height for c in sizes), args)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    # the frames are rendered into OUT.partial, renamed to OUT when all are written: an earlier
+    # walkthrough there is replaced, any other folder with files in it is refused
+    if out.is_dir() and any(out.iterdir()) and not (out / "timings.json").is_file():
+        raise InputError(out, "folder exists and holds files that are not a walkthrough (no timings.json): "
+                              "give a new or empty --out folder")
+    renderer, config = make_renderer(bundle, args)
     from tqdm import tqdm
 
     from dmrt.io.frames import write_frame
 
     per_frame = []
-    for n, cam in enumerate(tqdm(cameras, desc="walkthrough", unit="frame")):
-        frame = renderer.render(cam, args.width, args.height)
-        write_frame(out / f"frame_{n:05d}.png", frame)
-        per_frame.append(frame["timings"])
-    totals = [sum(t.values()) for t in per_frame]
-    (out / "timings.json").write_text(json.dumps(
-        {"frames": per_frame, "total_ms": totals, "config": dataclasses.asdict(config)}, indent=1))
+    with atomic_dir(out, force=True, what="walkthrough") as tmp:
+        for n, cam in enumerate(tqdm(cameras, desc="walkthrough", unit="frame")):
+            frame = renderer.render(cam, args.width, args.height)
+            write_frame(tmp / f"frame_{n:05d}.png", frame)
+            per_frame.append(frame["timings"])
+        totals = [sum(t.values()) for t in per_frame]
+        (tmp / "timings.json").write_text(json.dumps(
+            {"frames": per_frame, "total_ms": totals, "config": dataclasses.asdict(config)}, indent=1))
     print(f"wrote {len(cameras)} frames to {out}: median {sorted(totals)[len(totals) // 2]:.2f} GPU ms per frame")
 
 
@@ -199,19 +374,33 @@ def cmd_path(args) -> None:
     from dmrt.io.bundle import read_bundle
     from dmrt.runtime.walkthrough import camera_path, save_path
 
+    check_positive(args, "frames", "every", "width", "height")
+    if not 0 < args.fov < 180:
+        raise ConfigError("fov", f"must be between 0 and 180 degrees, not {args.fov}")
+    check_output(args.out, suffixes=(".json",), what="camera path file")
     bundle = read_bundle(args.bundle)
-    keys = bundle.cameras[:: max(1, args.every)]
+    keys = bundle.cameras[:: args.every]
+    if len(keys) < 2:
+        if len(bundle.cameras) >= 2:
+            raise ConfigError("every", f"every {args.every}th of the bundle's {len(bundle.cameras)} photo cameras "
+                                       f"leaves {len(keys)}; a path needs at least 2 key cameras")
+        raise InputError(Path(args.bundle) / "bundle.json", "a camera path needs at least 2 photo cameras; "
+                                                            f"the bundle has {len(bundle.cameras)}")
     save_path(args.out, camera_path(keys, args.frames, args.width, args.height, args.fov))
     print(f"wrote {args.out}: {args.frames} cameras through {len(keys)} photo cameras")
 
 
 def cmd_view(args) -> None:
     from dmrt.io.bundle import read_bundle
+
+    check_positive(args, "frames")
+    if args.screenshot is not None:
+        check_output(args.screenshot, "screenshot", suffixes=(".png",), what="screenshot")
+    bundle = read_bundle(args.bundle)
     from dmrt.runtime.renderer import RenderConfig
     from dmrt.app.viewer import ViewerConfig, available_methods
     from dmrt.app.viewer_window import run_viewer
 
-    bundle = read_bundle(args.bundle)
     try:
         config = config_from_args(ViewerConfig, args)
     except ValueError as exc:
@@ -256,10 +445,16 @@ def build_parser() -> argparse.ArgumentParser:
     from bench.scenes.synthetic import PRESETS, SynthConfig
     from dmrt.preprocess.labeling import LabelingConfig
     from dmrt.preprocess.pipeline import PreprocessConfig
-    from dmrt.runtime.renderer import RenderConfig
+    from dmrt.runtime.renderer import RenderConfig, Visibility
 
     p = argparse.ArgumentParser(prog="dmrt", description="Multi-Depth-Map Raytracing suite")
     sub = p.add_subparsers(dest="command", required=True)
+
+    demo = sub.add_parser("demo", help="the main job on the built-in scene: a page comparing DMRT, DMT and Embree")
+    demo.add_argument("--out", type=Path, default=Path("out/demo"), help="folder to write (default: out/demo)")
+    demo.add_argument("--width", type=int, default=480, help="frame width in pixels (default: 480)")
+    demo.add_argument("--quiet", action="store_true", help="no progress output")
+    demo.set_defaults(func=cmd_demo)
 
     scene = sub.add_parser("scene", help="scene tools").add_subparsers(dest="scene_command", required=True)
     synth = scene.add_parser("synth", help="generate a synthetic laser-scan scene")
@@ -293,7 +488,8 @@ def build_parser() -> argparse.ArgumentParser:
     ren.add_argument("--path", type=Path, help="camera path JSON (dmrt path): --out is then a folder")
     ren.add_argument("--width", type=int, help="frame width (default: the camera's)")
     ren.add_argument("--height", type=int, help="frame height (default: keeps the camera's aspect)")
-    ren.add_argument("--visibility", choices=["compute", "kbuffer", "raster"], help="visibility-stage path")
+    method = next(f for f in dataclasses.fields(RenderConfig) if f.name == "method")
+    ren.add_argument("--visibility", choices=typing.get_args(Visibility), help=method.metadata["help"])
     ren.add_argument("--method", dest="renderer", choices=["dmrt", "dmt"], default="dmrt",
                      help="renderer: DMRT, or the DMT baseline (depth-map triangulation + stitching)")
     ren.add_argument("--dmt-resolution", type=int, metavar="W",
@@ -366,12 +562,20 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def error_line(exc: BaseException) -> str:
+    """``exc``'s message on one line (a message spanning lines is joined with "; ")."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    return "; ".join(lines) or type(exc).__name__
+
+
 def main(argv=None) -> int:
+    """The ``dmrt`` command: 0 on success; bad input (any :class:`DMRTError`) is printed as one
+    line ``dmrt: error: <message>`` on stderr and answered with 2, as argparse answers bad usage."""
     args = build_parser().parse_args(argv)
     try:
         args.func(args)
-    except (InputError, FileExistsError) as exc:
-        print(f"dmrt: error: {exc}", file=sys.stderr)
+    except (DMRTError, FileExistsError) as exc:
+        print(f"dmrt: error: {error_line(exc)}", file=sys.stderr)
         return 2
     return 0
 

@@ -27,10 +27,11 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import typing
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Literal
 
 import moderngl
 import numpy as np
@@ -40,6 +41,8 @@ from dmrt.io.bundle import Bundle
 from dmrt.camera import Camera
 from dmrt.gl.context import get_context
 from dmrt.gl.shaders import load_program, set_uniforms
+from dmrt.options import option, validate
+from dmrt.runtime.protocol import LayeredRenderer
 from dmrt.runtime.renderer import RenderConfig, Renderer
 from dmrt.runtime.walkthrough import save_path
 
@@ -64,49 +67,42 @@ _STAGE_ABBREV = {"visibility": "vis", "raytracing": "ray", "labeling": "lab", "i
                  "texturing": "tex", "leveling": "lev"}
 
 
+Buffer = Literal["color", "depth", "label", "splat_label", "iterations", "holes"]
+assert set(typing.get_args(Buffer)) == set(BUFFERS)
+
+
 @dataclass
 class ViewerConfig:
     """What ``dmrt view`` starts with; every field is a ``--option`` of the command."""
 
-    # Size of the rendered frame in pixels; the window opens at this size and the frame follows
-    # the window when it is resized.
-    width: int = 960
-    height: int = 640
-    # Method shown first: "dmrt", "splats" (coarse splats: the first splat layer textured, no
-    # raytracing) or "dmt" (when baselines.dmt provides a renderer). `m` switches.
-    method: str = "dmrt"
-    # Label layers k, 1..11 (paper Fig. 13: 3-5 suffice). `[` and `]` switch.
-    layers: int = 5
-    # Buffer shown first, one of BUFFERS. `b` switches.
-    buffer: str = "color"
-    # Screen-space leveling (where the renderer implements it). `l` switches.
-    leveling: bool = False
-    # Photo camera to start at (0-based index into the bundle's cameras).
-    photo: int = 0
-    # Horizontal field of view, degrees; None = the start photo's.
-    fov: float | None = None
-    # Flying speed, metres per second; None = a tenth of the proxies' bounding-box diagonal, so
-    # that a room and a city block take the same number of seconds to cross.
-    speed: float | None = None
-    # Turning: degrees per pixel of mouse drag, and degrees per second while an arrow key is held.
-    drag_degrees: float = 0.2
-    turn_rate: float = 60.0
-    # Overlay with method, layers, buffer, per-stage GPU ms and fps (`h` toggles).
-    overlay: bool = True
-    # Renderers kept alive at once: each switch of method / layers / leveling builds one, and each
-    # holds its own copy of the bundle on the GPU, so only the most recently used few are kept.
-    max_renderers: int = 3
-    # Where `r` writes camera paths and F12 screenshots (numbered when the file exists).
-    path_file: Path = Path("viewer_path.json")
-    screenshot_file: Path = Path("viewer.png")
+    width: int = option(960, "frame width in pixels; the window opens at this size and the frame follows the "
+                             "window when it is resized", minimum=1)
+    height: int = option(640, "frame height in pixels", minimum=1)
+    method: str = option("dmrt", "method shown first: dmrt, splats (coarse splats: the first splat layer "
+                                 "textured, no raytracing) or dmt; m switches")
+    layers: int = option(5, "label layers k (paper Fig. 13: 3-5 suffice); [ and ] switch", minimum=1,
+                         maximum=MAX_LAYERS)
+    buffer: Buffer = option("color", "buffer shown first; b switches")
+    leveling: bool = option(False, "screen-space leveling (where the renderer implements it); l switches")
+    photo: int = option(0, "photo camera to start at (0-based index into the bundle's cameras)", minimum=0)
+    fov: float | None = option(None, "horizontal field of view, degrees; default the start photo's", minimum=1.0,
+                               maximum=179.0)
+    speed: float | None = option(None, "flying speed, metres per second; default a tenth of the proxies' "
+                                       "bounding-box diagonal (a room and a city block take as many seconds to "
+                                       "cross)", minimum=0.0)
+    drag_degrees: float = option(0.2, "turning: degrees per pixel of mouse drag", minimum=0.0)
+    turn_rate: float = option(60.0, "turning: degrees per second while an arrow key is held", minimum=0.0)
+    overlay: bool = option(True, "overlay with method, layers, buffer, per-stage GPU ms and fps; h toggles")
+    # each renderer holds its own copy of the bundle on the GPU
+    max_renderers: int = option(3, "renderers kept alive at once (each switch of method, layers or leveling "
+                                   "builds one)", minimum=1)
+    path_file: Path = option(Path("viewer_path.json"), "where r writes camera paths (numbered when the file "
+                                                        "exists)")
+    screenshot_file: Path = option(Path("viewer.png"), "where F12 writes screenshots (numbered when the file "
+                                                        "exists)")
 
     def __post_init__(self):
-        if self.buffer not in BUFFERS:
-            raise ValueError(f"ViewerConfig.buffer must be one of {', '.join(BUFFERS)}, not {self.buffer!r}")
-        if not 1 <= self.layers <= MAX_LAYERS:
-            raise ValueError(f"ViewerConfig.layers must be 1..{MAX_LAYERS}, not {self.layers}")
-        if self.width < 1 or self.height < 1 or self.max_renderers < 1:
-            raise ValueError("ViewerConfig: width, height and max_renderers must be >= 1")
+        validate(self)
         self.path_file, self.screenshot_file = Path(self.path_file), Path(self.screenshot_file)
 
 
@@ -138,8 +134,6 @@ def _make_splats(bundle, config, ctx):
 
 
 def _make_dmt(bundle, config, ctx):
-    import inspect
-
     from baselines.dmt import DMTConfig, DMTRenderer
 
     # Only the settings that mean the same for both methods carry over.
@@ -147,9 +141,7 @@ def _make_dmt(bundle, config, ctx):
               "cpu_cache_mb")
     names = {f.name for f in dataclasses.fields(DMTConfig)}
     dmt_config = DMTConfig(**{k: getattr(config, k) for k in shared if k in names})
-    if "ctx" in inspect.signature(DMTRenderer).parameters:
-        return DMTRenderer(bundle, dmt_config, ctx=ctx)
-    return DMTRenderer(bundle, dmt_config)
+    return DMTRenderer(bundle, dmt_config, ctx=ctx)
 
 
 def available_methods() -> dict[str, Method]:
@@ -456,7 +448,7 @@ class Viewer:
     def buffers(self) -> list[str]:
         """The buffers the current method can show (all but ``splat_label`` come from the frame;
         a renderer without ``layers()`` has no splat labels)."""
-        has_layers = hasattr(self.renderer(), "layers")
+        has_layers = isinstance(self.renderer(), LayeredRenderer)
         keys = self.frame.keys() if self.frame is not None else {"iterations"}
         return [b for b in BUFFERS if (b != "splat_label" or has_layers) and (b != "iterations" or "iterations" in keys)]
 
@@ -471,8 +463,7 @@ class Viewer:
             return self._renderers[key]
         while len(self._renderers) >= self.config.max_renderers:
             _, old = self._renderers.popitem(last=False)
-            if hasattr(old, "release"):
-                old.release()
+            old.release()
         config = dataclasses.replace(self.render_config, layers=self.layers, leveling=self.leveling)
         self._renderers[key] = method.make(self.proxy_bundle() if method.uses_layers else self.bundle, config, self.ctx)
         return self._renderers[key]
@@ -502,9 +493,7 @@ class Viewer:
         free name beside ``config.screenshot_file``."""
         from PIL import Image
 
-        renderer = self.renderer()
-        if hasattr(renderer, "flush_photos"):
-            renderer.flush_photos()
+        self.renderer().flush_photos()
         self.update(record=False)
         path = Path(path) if path is not None else _free_path(self.config.screenshot_file)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -528,7 +517,7 @@ class Viewer:
         cam = self.camera
         t0 = time.perf_counter()
         frame = renderer.render(cam, cam.width, cam.height)
-        if self.buffer == "splat_label" and hasattr(renderer, "layers"):
+        if self.buffer == "splat_label" and isinstance(renderer, LayeredRenderer):
             frame["splat_label"] = renderer.layers()["label"][0]
         now = time.perf_counter()
         self.frame_ms = (now - t0) * 1e3
@@ -603,8 +592,7 @@ class Viewer:
         if self.recording:
             self.toggle_recording()
         for renderer in self._renderers.values():
-            if hasattr(renderer, "release"):
-                renderer.release()
+            renderer.release()
         self._renderers.clear()
         for obj in [*self._textures.values(), self._fbo, self._vao]:
             if obj is not None:

@@ -11,7 +11,7 @@ A program file holds every stage of one program, each guarded the moderngl-windo
 The loader compiles the same text once per stage with that stage's macro defined. It also resolves
 ``#include "file.glsl"`` (relative to ``shaders/``, recursively, each file at most once per program),
 puts ``#version 430`` first (or the file's own ``#version`` line) followed by ``#define KEY VALUE`` for
-each entry of ``defines``, and emits ``#line`` directives so that the driver's error positions read
+each entry of the GPU/Python ABI (:mod:`dmrt.gl.abi`: binding points, sentinels, sizes) and of ``defines``, and emits ``#line`` directives so that the driver's error positions read
 ``<source-string number>:<line>``; compile errors name the ``.glsl`` file and list those numbers.
 A file that mentions ``COMPUTE_SHADER`` becomes a :class:`moderngl.ComputeShader`, any other a
 :class:`moderngl.Program` (vertex + fragment, plus geometry when the file has that stage).
@@ -25,6 +25,7 @@ from pathlib import Path
 
 import moderngl
 
+from dmrt.gl import abi
 from shaders import SHADER_DIR
 
 DEFAULT_VERSION = "#version 430"
@@ -111,7 +112,7 @@ def _build(name: str, defines: dict | None) -> tuple[dict[str, str], list[Path]]
     found = {n for line in _STAGE_TEST.findall(body) for n in _STAGE_NAME.findall(line)}
     stages = ["COMPUTE_SHADER"] if "COMPUTE_SHADER" in found else sorted(found, key=STAGES.index)
     head = [version or DEFAULT_VERSION]
-    head += [_format_define(k, v) for k, v in (defines or {}).items()]
+    head += [_format_define(k, v) for k, v in {**abi.DEFINES, **(defines or {})}.items()]
     sources = {s: "\n".join([head[0], f"#define {s} 1", *head[1:], body]) for s in stages}
     return sources, files
 

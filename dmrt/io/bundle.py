@@ -42,9 +42,65 @@ def camera_to_json(c: Camera) -> dict:
             "cy": c.cy, "R": c.R.tolist(), "t": c.t.tolist()}
 
 
-def camera_from_json(d: dict) -> Camera:
-    return Camera(d["name"], d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"],
-                  np.array(d["R"]), np.array(d["t"]))
+CAMERA_FIELDS = ("name", "width", "height", "fx", "fy", "cx", "cy", "R", "t")
+
+
+def camera_from_json(d: dict, path=None, where: str = "") -> Camera:
+    """A :class:`Camera` from its JSON object (:func:`camera_to_json`), every field checked.
+
+    Parameters
+    ----------
+    d : the parsed JSON object.
+    path : the file it came from, named by the error.
+    where : what it is within that file (e.g. ``"cameras[3]"``), named by the error.
+
+    Raises
+    ------
+    InputError
+        ``"<path>: <where>: field 'R' must be 3x3, got shape (2, 3)"`` and the like: not an
+        object, a field missing, sizes that are not whole numbers >= 1, focal lengths <= 0,
+        non-finite numbers, ``R`` not a rotation.
+    """
+    prefix = f"{where}: " if where else ""
+
+    def bad(message: str) -> InputError:
+        return InputError(path, prefix + message)
+
+    if not isinstance(d, dict):
+        raise bad(f"expected a JSON object with {', '.join(CAMERA_FIELDS)}, got {type(d).__name__}")
+    missing = [k for k in CAMERA_FIELDS if k not in d]
+    if missing:
+        raise bad(f"field{'s' if len(missing) > 1 else ''} {', '.join(repr(k) for k in missing)} missing")
+    if not isinstance(d["name"], str) or not d["name"]:
+        raise bad(f"field 'name' must be a non-empty string, not {d['name']!r}")
+    for key in ("width", "height"):
+        v = d[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not float(v).is_integer() or v < 1:
+            raise bad(f"field '{key}' must be a whole number of pixels >= 1, not {v!r}")
+    for key in ("fx", "fy", "cx", "cy"):
+        v = d[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise bad(f"field '{key}' must be a finite number, not {v!r}")
+        if key in ("fx", "fy") and v <= 0:
+            raise bad(f"field '{key}' must be > 0 (pixels), not {v!r}")
+    arrays = {}
+    for key, shape in (("R", (3, 3)), ("t", (3,))):
+        try:
+            a = np.asarray(d[key], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise bad(f"field '{key}' must be {'a 3x3 array' if key == 'R' else 'an array of 3'} "
+                      f"numbers, not {d[key]!r:.60}") from None
+        if a.shape != shape:
+            raise bad(f"field '{key}' must be {'x'.join(map(str, shape)) if key == 'R' else '3 numbers'}, "
+                      f"got shape {a.shape}")
+        if not np.isfinite(a).all():
+            raise bad(f"field '{key}' holds NaN or infinite values")
+        arrays[key] = a
+    R = arrays["R"]
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    if err > 1e-3 or np.linalg.det(R) < 0:
+        raise bad(f"field 'R' is not a rotation matrix (max |R R^T - I| = {err:.3g}, det {np.linalg.det(R):.3g})")
+    return Camera(d["name"], d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"], R, arrays["t"])
 
 
 @dataclass
@@ -70,14 +126,26 @@ class Bundle:
         return self.root / self.meta[key][i]
 
     def depth_map(self, i: int) -> np.ndarray:
-        """(h, w) float32 camera z of photo ``i``'s depth map, 0 = empty."""
-        return read_depth_exr(self.path("depthmaps", i))
+        """(h, w) float32 camera z of photo ``i``'s depth map, 0 = empty.
+
+        Raises :class:`InputError` naming the file when it is unreadable or not the size
+        ``bundle.json``'s ``depthmap_sizes`` gives.
+        """
+        path = self.path("depthmaps", i)
+        m = read_depth_exr(path)
+        sizes = self.meta.get("depthmap_sizes")
+        if sizes is not None and tuple(m.shape[::-1]) != tuple(sizes[i]):
+            raise InputError(path, f"depth map is {m.shape[1]}x{m.shape[0]} but bundle.json "
+                                   f"'depthmap_sizes' says {sizes[i][0]}x{sizes[i][1]}")
+        return m
 
     def image(self, i: int, low: bool = False) -> np.ndarray:
         """(h, w, 3) uint8 RGB: photo ``i``, or its low-resolution copy."""
         from PIL import Image
 
         p = self.path("images_low" if low else "images", i)
+        if not p.is_file():
+            raise InputError(p, f"listed in bundle.json '{'images_low' if low else 'images'}' but missing")
         try:
             with Image.open(p) as im:
                 return np.asarray(im.convert("RGB"))
@@ -88,20 +156,32 @@ class Bundle:
     def proxy(self) -> dict:
         """The proxy points P_LD: dict of ``positions``, ``normals``, ``radii``, ``labels``."""
         if self._proxy is None:
-            self._proxy = _read_proxy(self.root / "proxy.npz")
+            self._proxy = _read_proxy(self.root / "proxy.npz", len(self.cameras))
         return self._proxy
 
 
-def _read_proxy(path: Path) -> dict:
+def _read_proxy(path: Path, n_photos: int | None = None) -> dict:
+    """The arrays of ``proxy.npz``, checked against :data:`PROXY_ARRAYS` (names, dtypes, shapes,
+    equal lengths, finite values, labels in ``-1..n_photos-1``); an :class:`InputError` naming
+    the file and the array otherwise."""
+    import zlib
+
+    if not path.is_file():
+        raise InputError(path, "missing")
     try:
-        with np.load(path) as z:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):  # a plain .npy array, not an archive
+            raise InputError(path, "cannot read proxy points: a single .npy array, not an .npz archive")
+        with z:
             arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise InputError(path, f"cannot read proxy points ({exc})") from exc
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError, zlib.error) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(path, f"cannot read proxy points: not a complete .npz file ({exc})") from None
     n = None
     for key, (dtype, width) in PROXY_ARRAYS.items():
         if key not in arrays:
-            raise InputError(path, f"missing array '{key}'")
+            raise InputError(path, f"missing array '{key}' (has: {', '.join(sorted(arrays)) or 'none'})")
         a = arrays[key]
         shape_ok = a.ndim == (2 if width else 1) and (width is None or a.shape[1] == width)
         if not shape_ok or a.dtype != dtype:
@@ -109,24 +189,51 @@ def _read_proxy(path: Path) -> dict:
                                    f"{'(n, %d)' % width if width else '(n,)'} {np.dtype(dtype)}")
         if n is not None and len(a) != n:
             raise InputError(path, f"array '{key}' has {len(a)} rows, 'positions' has {n}")
+        if a.dtype.kind == "f" and not np.isfinite(a).all():
+            raise InputError(path, f"array '{key}' holds NaN or infinite values")
         n = len(a)
+    if n == 0:
+        raise InputError(path, "no proxy points (arrays of length 0)")
+    labels = arrays["labels"]
+    top = n_photos if n_photos is not None else np.iinfo(np.int32).max
+    if labels.min() < -1 or labels.max() >= top:
+        bad = int(labels.min() if labels.min() < -1 else labels.max())
+        raise InputError(path, f"array 'labels' holds photo index {bad}; labels are -1 (none) or "
+                               f"0..{top - 1} (the bundle has {n_photos} photos)")
     return arrays
 
 
+def _partial_hint(root: Path) -> str:
+    partial = root.with_name(root.name + ".partial")
+    return (f" ({partial.name} is left from an interrupted preprocessing: run dmrt preprocess again)"
+            if partial.exists() else "")
+
+
 def read_bundle(path) -> Bundle:
-    """Open a bundle, checking the schema and that every listed file exists."""
+    """Open a bundle, checking the schema, the fields and that every listed file exists.
+
+    Raises
+    ------
+    InputError
+        Naming ``bundle.json`` and the field, or the missing file.
+    """
     root = Path(path)
     meta_path = root / "bundle.json"
+    if root.name.endswith(".partial"):
+        raise InputError(root, "an unfinished bundle left by an interrupted preprocessing "
+                               "(.partial): run dmrt preprocess again")
+    if not root.exists():
+        raise InputError(root, "bundle directory not found" + _partial_hint(root))
     if not root.is_dir():
-        raise InputError(root, "bundle directory not found")
+        raise InputError(root, "not a bundle: a file, not a directory")
     if not meta_path.is_file():
-        partial = root.with_name(root.name + ".partial")
-        hint = " (an interrupted preprocessing left a .partial folder)" if partial.exists() else ""
-        raise InputError(meta_path, f"not a bundle: bundle.json missing{hint}")
+        raise InputError(meta_path, "not a bundle: bundle.json missing" + _partial_hint(root))
     try:
         meta = json.loads(meta_path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(meta_path, f"not valid JSON ({exc})") from exc
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(meta_path, f"not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise InputError(meta_path, f"not a bundle description: a JSON {type(meta).__name__}, not an object")
     if meta.get("schema") != SCHEMA:
         raise InputError(meta_path, f"field 'schema' is {meta.get('schema')!r}, expected {SCHEMA!r}")
     if meta.get("version") != SCHEMA_VERSION:
@@ -136,18 +243,31 @@ def read_bundle(path) -> Bundle:
         if key not in meta:
             raise InputError(meta_path, f"field '{key}' missing")
     try:
-        cameras = [camera_from_json(c) for c in meta["cameras"]]
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InputError(meta_path, f"field 'cameras' malformed ({exc})") from exc
+        origin = np.asarray(meta["origin"], np.float64)
+    except (TypeError, ValueError):
+        origin = None
+    if origin is None or origin.shape != (3,) or not np.isfinite(origin).all():
+        raise InputError(meta_path, f"field 'origin' must be 3 finite numbers, not {meta['origin']!r:.60}")
+    if not isinstance(meta["cameras"], list) or not meta["cameras"]:
+        raise InputError(meta_path, "field 'cameras' must be a non-empty list of cameras")
+    cameras = [camera_from_json(c, meta_path, f"cameras[{i}]") for i, c in enumerate(meta["cameras"])]
     for key in ("images", "images_low", "depthmaps"):
-        if len(meta[key]) != len(cameras):
-            raise InputError(meta_path, f"field '{key}' lists {len(meta[key])} files for {len(cameras)} cameras")
-        for rel in meta[key]:
+        files = meta[key]
+        if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
+            raise InputError(meta_path, f"field '{key}' must be a list of file names")
+        if len(files) != len(cameras):
+            raise InputError(meta_path, f"field '{key}' lists {len(files)} files for {len(cameras)} cameras")
+        for rel in files:
             if not (root / rel).is_file():
                 raise InputError(root / rel, f"listed in bundle.json '{key}' but missing")
+    sizes = meta.get("depthmap_sizes")
+    if sizes is not None and (not isinstance(sizes, list) or len(sizes) != len(cameras) or not all(
+            isinstance(s, list) and len(s) == 2 and all(isinstance(v, int) and v > 0 for v in s) for s in sizes)):
+        raise InputError(meta_path, f"field 'depthmap_sizes' must list [width, height] for each of the "
+                                    f"{len(cameras)} cameras")
     if not (root / "proxy.npz").is_file():
         raise InputError(root / "proxy.npz", "missing")
-    return Bundle(root, np.asarray(meta["origin"], np.float64), cameras, meta)
+    return Bundle(root, origin, cameras, meta)
 
 
 class BundleWriter:

@@ -3,30 +3,48 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
+
+from dmrt.options import option, validate
 
 
 @dataclass
 class PreprocessConfig:
     """Preprocessing parameters (lengths in metres)."""
 
-    depthmap_width: int = 1024        # paper: 1024x684 depth maps; height follows each photo's aspect
-    depthmap_method: str = "compute"  # "compute" (fast on GPUs with few raster units) | "raster"
-    octree_levels: int = 8            # levels of detail of P_HD
-    proxy_levels: int | None = None   # P_LD = this many coarsest levels; default from proxy_factor
-    proxy_count: int | None = None    # else: the LOD whose size is nearest this many proxies
-    proxy_factor: float = 32.0        # else: the LOD whose |P_HD| / |P_LD| is nearest this (32M -> ~1M)
-    memory_limit_mb: float = 2048     # point data held at once by the out-of-core phases
-    normals_k: int = 16               # neighbours of the normal plane fit
-    radius_k: int = 8                 # neighbour rank of the density-based splat radius
-    radius_scale: float = 1.5         # random (scan) sampling leaves gaps a grid would not: see normals.py
-    occlusion_tolerance: float = 3.0  # a proxy is visible in photo j if |z - D_j| <= this x its splat
-    occlusion_texels: float = 2.0     # radius + this x the depth map's texel footprint at that depth
-    candidate_min_cos: float = 0.1    # views more grazing than ~84 deg are no candidates
-    # A candidate photo must also see this share of the proxy's disc rim (6 points at 0.8 of its
-    # radius, same test): a photo that sees the centre but not the disc around it cannot show the
-    # pixels the disc covers at runtime (holes along depth edges). Points that would lose every
-    # candidate keep them. 0 = centre test only.
-    candidate_rim_fraction: float = 1.0
-    lowres_width: int = 256           # low-resolution photo copies (paper: 256x171)
-    chunk_points: int = 1_000_000     # points read per chunk
-    resident_mb: float = 4096         # GPU memory for P_HD during depth-map rendering
+    depthmap_width: int = option(1024, "depth-map width in texels (paper: 1024x684); the height follows each "
+                                       "photo's aspect", minimum=2)
+    depthmap_method: Literal["compute", "raster"] = option(
+        "compute", "depth-map splatting: compute (atomicMin; fast on GPUs with few raster units) or raster "
+                   "(GL_POINTS); bit-identical maps")
+    octree_levels: int = option(8, "levels of detail of P_HD", minimum=1)
+    proxy_levels: int | None = option(None, "P_LD = this many coarsest octree levels; default from "
+                                            "--proxy-count or --proxy-factor", minimum=1)
+    proxy_count: int | None = option(None, "else: the level of detail whose size is nearest this many proxies",
+                                     minimum=1)
+    proxy_factor: float = option(32.0, "else: the level of detail whose |P_HD| / |P_LD| is nearest this "
+                                       "(32M points -> ~1M proxies)", minimum=1.0)
+    memory_limit_mb: float = option(2048, "point data held in memory at once by the out-of-core phases, MiB",
+                                    minimum=0.01)
+    normals_k: int = option(16, "neighbours of the normal plane fit", minimum=3)
+    radius_k: int = option(8, "neighbour rank of the density-based splat radius", minimum=1)
+    radius_scale: float = option(1.5, "splat radius = this x the radius_k-th neighbour distance (random scan "
+                                      "sampling leaves gaps a grid would not: see dmrt/preprocess/normals.py)",
+                                 minimum=0.0)
+    occlusion_tolerance: float = option(3.0, "a proxy is visible in photo j if |z - D_j| <= this x its P_HD "
+                                             "splat radius + --occlusion-texels x the depth map's texel "
+                                             "footprint at that depth", minimum=0.0)
+    occlusion_texels: float = option(2.0, "see --occlusion-tolerance", minimum=0.0)
+    candidate_min_cos: float = option(0.1, "views more grazing than this cosine (~84 degrees) are no candidates",
+                                      minimum=0.0, maximum=1.0)
+    candidate_rim_fraction: float = option(
+        1.0, "a candidate photo must also see this share of the proxy's disc rim (6 points at 0.8 of its "
+             "radius): a photo that sees the centre but not the disc around it cannot show the pixels the disc "
+             "covers (holes along depth edges); points that would lose every candidate keep them; 0 = centre "
+             "test only", minimum=0.0, maximum=1.0)
+    lowres_width: int = option(256, "width of the low-resolution photo copies (paper: 256x171)", minimum=1)
+    chunk_points: int = option(1_000_000, "points read per chunk", minimum=1)
+    resident_mb: float = option(4096, "GPU memory for P_HD while the depth maps are rendered, MiB", minimum=1.0)
+
+    def __post_init__(self):
+        validate(self)

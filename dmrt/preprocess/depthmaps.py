@@ -37,13 +37,13 @@ import moderngl
 import numpy as np
 
 from dmrt.camera import Camera
+from dmrt.gl import abi
+from dmrt.gl.abi import EMPTY_BITS, EMPTY_Z, SPLAT_FLOATS
+from dmrt.gl.kernels import fill_u32
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.io.exr import read_depth_exr, write_depth_exr  # noqa: F401  (the maps it renders are stored so)
 
-_EMPTY_BITS = 0xFFFFFFFF  # compute path: an untouched pixel (above every positive float's bits)
-_EMPTY_Z = float(np.finfo(np.float32).max)  # raster path: the colour target's clear value
-_FLOATS_PER_SPLAT = 7  # position xyz, normal xyz, radius: the layout both paths read
 _LARGE_GROUPS = 1024  # workgroups of the large-disc compute pass (they stride over the list)
 
 
@@ -156,7 +156,6 @@ class DepthMapRenderer:
             self._cs = load_program(ctx, "splat_depth_compute", defines)
             self._cs_large = load_program(ctx, "splat_depth_compute_large")
             self._large = ctx.buffer(reserve=4 * (1 + self.config.chunk_points))
-            self._fill = load_program(ctx, "fill_u32")
             self._programs = (self._cs, self._cs_large)
         else:
             self._points = load_program(ctx, "splat_depth_raster")
@@ -165,7 +164,7 @@ class DepthMapRenderer:
             # the implementation's largest sprite (llvmpipe: 255 px; NVIDIA: thousands)
             self.max_point_size = float(ctx.info["GL_POINT_SIZE_RANGE"][1])
         # the batch that render() streams through, rewritten for every batch
-        stream = ctx.buffer(reserve=self.config.chunk_points * _FLOATS_PER_SPLAT * 4, dynamic=True)
+        stream = ctx.buffer(reserve=self.config.chunk_points * SPLAT_FLOATS * 4, dynamic=True)
         self._stream = _Splats(self, stream)
         self._targets: dict[int, _Target] = {}  # reusable maps, by slot (render_many alternates two)
         self._wall = {"upload_s": 0.0, "readback_s": 0.0}  # wall seconds spent, ever (for last_stats)
@@ -254,7 +253,7 @@ class DepthMapRenderer:
                 yield from self._render_resident(cameras, group, bar)
                 return
             room = budget - sum(self.map_bytes(c) for c in cameras)  # left for points beside the maps
-            if room < self.config.chunk_points * _FLOATS_PER_SPLAT * 4:
+            if room < self.config.chunk_points * SPLAT_FLOATS * 4:
                 _release(group)
                 stats.update(mode="streamed", groups=len(cameras))
                 for i, camera in enumerate(cameras):
@@ -378,12 +377,10 @@ class DepthMapRenderer:
         self._set_camera(camera)
         w, h = target.size
         if self.config.method == "compute":
-            target.depth.bind_to_storage_buffer(0)
-            set_uniforms(self._fill, u_value=_EMPTY_BITS, u_count=w * h)
-            self._fill.run(min(-(-w * h // 256), 65535))
+            fill_u32(self.ctx, target.depth, EMPTY_BITS, w * h)
             self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
         else:
-            target.fbo.clear(_EMPTY_Z, 0.0, 0.0, 0.0, depth=1.0)
+            target.fbo.clear(EMPTY_Z, 0.0, 0.0, 0.0, depth=1.0)
         return target
 
     def _timed(self, name: str):
@@ -400,9 +397,9 @@ class DepthMapRenderer:
     def _splat_compute(self, splats: _Splats, target: _Target) -> None:
         n = splats.count
         self._large.write(b"\0\0\0\0")  # empty large-disc list
-        splats.buffer.bind_to_storage_buffer(0)
-        target.depth.bind_to_storage_buffer(1)
-        self._large.bind_to_storage_buffer(2)
+        splats.buffer.bind_to_storage_buffer(abi.B_SPLATS)
+        target.depth.bind_to_storage_buffer(abi.B_DEPTH_BITS)
+        self._large.bind_to_storage_buffer(abi.B_DEPTH_LARGE)
         set_uniforms(self._cs, u_count=n)
         set_uniforms(self._cs_large, u_count=n)
         self._cs.run(min(-(-n // 64), 65535))
@@ -435,12 +432,12 @@ class DepthMapRenderer:
                 bits = np.empty((h, w), dtype=np.uint32)
                 target.depth.read_into(bits)
                 depth = bits.view(np.float32)
-                depth[bits == _EMPTY_BITS] = 0.0
+                depth[bits == EMPTY_BITS] = 0.0
             else:
                 # row 0 of the texture is image row 0 (Camera.gl_view_projection's unflipped clip y)
                 depth = np.empty((h, w), dtype=np.float32)
                 target.color.read_into(depth)
-                depth[depth >= _EMPTY_Z] = 0.0
+                depth[depth >= EMPTY_Z] = 0.0
         self._wall["readback_s"] += time.perf_counter() - t0
         return depth
 
@@ -470,7 +467,7 @@ def _batches(chunks, size: int) -> Iterator[np.ndarray]:
     """Interleave (positions, normals, radii) chunks into (m, 7) float32 rows (position, normal,
     radius), in batches of exactly ``size`` rows (the last one: fewer) whatever the chunks' sizes.
     Each value is copied once, straight into its batch."""
-    batch, n = np.empty((size, _FLOATS_PER_SPLAT), np.float32), 0
+    batch, n = np.empty((size, SPLAT_FLOATS), np.float32), 0
     for chunk in chunks:
         positions, normals, radii = _checked(*chunk)
         start, m = 0, len(positions)
@@ -483,7 +480,7 @@ def _batches(chunks, size: int) -> Iterator[np.ndarray]:
             n, start = n + take, start + take
             if n == size:
                 yield batch
-                batch, n = np.empty((size, _FLOATS_PER_SPLAT), np.float32), 0
+                batch, n = np.empty((size, SPLAT_FLOATS), np.float32), 0
     if n:
         yield batch[:n]
 

@@ -94,6 +94,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dmrt.morton import morton_order
+from dmrt.options import option, validate
 
 __all__ = [
     "LabelingConfig", "LabelingResult", "Candidates", "data_costs", "candidate_data_costs",
@@ -107,34 +108,37 @@ __all__ = [
 # --------------------------------------------------------------------------------------------
 @dataclass
 class LabelingConfig:
-    """Parameters of the labeling energy and of its minimisation (units in the module docstring)."""
+    """Parameters of the labeling energy and of its minimisation (units in the module docstring);
+    each field is a ``dmrt preprocess`` option."""
 
-    #: neighbours per point of the kNN graph (the symmetric union: about 0.6 k edges per point)
-    k_neighbors: int = 6
-    #: λ, octaves of footprint per unit RGB distance (colours 0..1): a seam where the two photos'
-    #: colours differ by 0.1 per channel at both ends (|Δ| = 0.17 each) costs 0.35 octaves per edge
-    smoothness_weight: float = 1.0
-    #: λ0, octaves per kNN edge whose two ends carry different labels
-    label_change_cost: float = 0.1
-    #: w_dist: weight of log2(distance / focal length) in the data term
-    distance_weight: float = 1.0
-    #: w_orth: weight of -log2(cos θ) (obliqueness) in the data term
-    orthogonality_weight: float = 1.0
-    #: clamp of |cos θ| (0.05 = 87°) so grazing views cost log2(20) = 4.3 octaves, not inf
-    min_cos: float = 0.05
-    #: alpha-expansion sweeps over all labels at most
-    max_sweeps: int = 5
-    #: stop when a sweep lowers the energy by less than this fraction of the energy before it
-    tolerance: float = 1e-3
-    #: skip a label whose candidate points and their neighbours have not changed since its last move
-    skip_unchanged_labels: bool = True
-    #: after the first sweep, let only points next to a change since the label's last move switch
-    #: (a restricted, still energy-decreasing move; False = full expansion moves every sweep)
-    local_moves: bool = True
-    #: graph hops around a relabeled point within which local moves may switch points
-    local_hops: int = 3
-    #: process points in Morton (Z-curve) order: better memory locality, identical energy
-    spatial_sort: bool = True
+    k_neighbors: int = option(6, "neighbours per point of the kNN graph (the symmetric union: about 0.6 k edges "
+                                 "per point)", minimum=1)
+    smoothness_weight: float = option(1.0, "lambda, octaves of footprint per unit RGB distance (colours 0..1): a "
+                                           "seam where the two photos' colours differ by 0.1 per channel at both "
+                                           "ends costs 0.35 octaves per edge", minimum=0.0)
+    label_change_cost: float = option(0.1, "lambda0, octaves per kNN edge whose two ends carry different labels",
+                                      minimum=0.0)
+    distance_weight: float = option(1.0, "w_dist: weight of log2(distance / focal length) in the data term",
+                                    minimum=0.0)
+    orthogonality_weight: float = option(1.0, "w_orth: weight of -log2(cos theta) (obliqueness) in the data term",
+                                         minimum=0.0)
+    min_cos: float = option(0.05, "clamp of |cos theta| (0.05 = 87 degrees) so grazing views cost log2(20) = 4.3 "
+                                  "octaves, not infinity", minimum=1e-6, maximum=1.0)
+    max_sweeps: int = option(5, "alpha-expansion sweeps over all labels at most", minimum=0)
+    tolerance: float = option(1e-3, "stop when a sweep lowers the energy by less than this fraction of the energy "
+                                    "before it", minimum=0.0)
+    skip_unchanged_labels: bool = option(True, "skip a label whose candidate points and their neighbours have not "
+                                               "changed since its last move")
+    local_moves: bool = option(True, "after the first sweep, let only points next to a change since the label's "
+                                     "last move switch (a restricted, still energy-decreasing move; off = full "
+                                     "expansion moves every sweep)")
+    local_hops: int = option(3, "graph hops around a relabeled point within which local moves may switch points",
+                             minimum=0)
+    spatial_sort: bool = option(True, "process points in Morton (Z-curve) order: better memory locality, identical "
+                                      "energy")
+
+    def __post_init__(self):
+        validate(self)
 
 
 @dataclass

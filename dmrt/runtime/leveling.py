@@ -24,6 +24,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from dmrt.gl import abi
+from dmrt.gl.kernels import fill_u32
+from dmrt.gl.shaders import load_program, set_uniforms
+
 LOG_SCALE = 1024.0  # fixed point of the seam sums: shaders/dmrt_leveling_seams.glsl
 
 
@@ -111,12 +115,9 @@ class ScreenLeveler:
 
     def __init__(self, ctx, n_photos: int, min_samples: int = 16, max_gain: float = 2.0,
                  threshold: float = 0.20, visibility_tol: float = 0.05):
-        from dmrt.gl.shaders import load_program
-
         self.ctx, self.n = ctx, int(n_photos)
         self.min_samples, self.max_gain = min_samples, max_gain
         self.threshold, self.visibility_tol = float(threshold), float(visibility_tol)
-        self._fill = load_program(ctx, "fill_u32")
         self._seams = load_program(ctx, "dmrt_leveling_seams")
         self._apply = load_program(ctx, "dmrt_leveling_apply")
         self.pairs = ctx.buffer(reserve=16 * self.n * self.n)
@@ -148,20 +149,16 @@ class ScreenLeveler:
 
         import moderngl
 
-        from dmrt.gl.shaders import set_uniforms
-
         barrier = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
         w, h = cam_uniforms["u_size"]
         n, ctx = self.n, self.ctx
         with timer.section("leveling"):
-            self.pairs.bind_to_storage_buffer(0)
-            set_uniforms(self._fill, u_value=0, u_count=4 * n * n)
-            self._fill.run(max(1, min(-(-4 * n * n // 256), 65535)))
+            fill_u32(ctx, self.pairs, 0, 4 * n * n)
             ctx.memory_barrier(barrier)
-            hits.bind_to_storage_buffer(4)
-            photos.bind_to_storage_buffer(5)
-            images.slots.bind_to_storage_buffer(6)
-            self.pairs.bind_to_storage_buffer(9)
+            hits.bind_to_storage_buffer(abi.B_HITS)
+            photos.bind_to_storage_buffer(abi.B_PHOTOS)
+            images.slots.bind_to_storage_buffer(abi.B_SLOTS)
+            self.pairs.bind_to_storage_buffer(abi.B_PAIRS)
             depthmaps.use(0)
             images.low.use(1)
             images.high.use(2)
@@ -178,9 +175,9 @@ class ScreenLeveler:
         self.gains_buffer.write(np.concatenate([self.gains, np.ones((n, 1), np.float32)], axis=1).tobytes())
         cpu_ms = (time.perf_counter() - t0) * 1e3
         with timer.section("leveling"):
-            hits.bind_to_storage_buffer(4)
-            colors.bind_to_storage_buffer(7)
-            self.gains_buffer.bind_to_storage_buffer(10)
+            hits.bind_to_storage_buffer(abi.B_HITS)
+            colors.bind_to_storage_buffer(abi.B_COLORS)
+            self.gains_buffer.bind_to_storage_buffer(abi.B_GAINS)
             set_uniforms(self._apply, u_count=w * h)
             self._apply.run(max(1, min(-(-w * h // 64), 65535)))
             ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)

@@ -35,151 +35,95 @@ Everything on the GPU is relative to the bundle's scene origin (float32 keeps mi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import moderngl
 import numpy as np
 
+from dmrt.options import option, validate
+
 from dmrt.io.bundle import Bundle
 from dmrt.camera import Camera
-from dmrt.errors import InputError
-from dmrt.io.frames import empty_frame
-from dmrt.gl.context import check_gl, get_context
+from dmrt.errors import ConfigError, InputError
+from dmrt.gl import abi
+from dmrt.gl.abi import EMPTY_BITS, EMPTY_LABEL, HIT_DTYPE, STAT_LAYERS, STEP_BINS
+from dmrt.gl.context import get_context
+from dmrt.gl.kernels import fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
-from dmrt.runtime.leveling import ScreenLeveler
-from dmrt.runtime.texturing import ImageCache, texture_frame
-from dmrt.runtime.visibility import EMPTY_BITS, EMPTY_LABEL, ProxySplats, VisibilityStage, groups
+from dmrt.runtime.shading import FrameShading
+from dmrt.runtime.visibility import ProxySplats, VisibilityStage
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
-HIT_DTYPE = np.dtype([("depth", "<f4"), ("label", "<i4"), ("layer", "<i4"), ("iters", "<i4"),
-                      ("normal", "<f4", 3), ("final_label", "<i4")])  # shaders/dmrt_frame.glsl
 STAGES = ("visibility", "raytracing", "labeling", "image_management", "texturing", "leveling")
-STEP_BINS = 32  # shaders/dmrt_raytrace.glsl
-MAX_STATISTICS_LAYERS = 16  # STAT_LAYERS there: the per-workgroup step sums in shared memory
 
 
-def read_frame(hits_buffer: moderngl.Buffer, colors_buffer: moderngl.Buffer, w: int, h: int) -> tuple[dict, np.ndarray]:
-    """Read a frame's ``Hit`` records and packed RGBA8 colours back (shared by DMRT and DMT).
-
-    Returns
-    -------
-    frame : dict, the contract of :mod:`dmrt.io.frames` (``depth``, ``label``, ``color``, ``normal``)
-    hits : (h, w) HIT_DTYPE records, for the renderer's own extra buffers
-    """
-    hits = np.frombuffer(hits_buffer.read(), HIT_DTYPE).reshape(h, w)
-    colors = np.frombuffer(colors_buffer.read(), np.uint8).reshape(h, w, 4)
-    frame = empty_frame(h, w)
-    frame["depth"] = hits["depth"].copy()
-    frame["label"] = hits["final_label"].copy()
-    frame["color"] = colors[..., :3].copy()
-    frame["normal"] = hits["normal"].copy()
-    return frame, hits
+Visibility = Literal["kbuffer", "compute", "raster"]
 
 
 @dataclass
 class RenderConfig:
-    """Parameters of the DMRT runtime (defaults: the paper's)."""
+    """Parameters of the DMRT runtime (defaults: the paper's, with the additions marked); each
+    field is a ``dmrt render`` / ``dmrt view`` option."""
 
-    # Number of label layers k (paper: 3-5 give high quality, Fig. 13; 11 for the worst case).
-    layers: int = 5
-    # Iterative-search steps per layer (paper: <= 100) and bisection steps (paper: 20).
-    max_steps: int = 100
-    binary_steps: int = 20
-    # Depth disparity (metres) between texels of a depth-map quad that marks a discontinuity
-    # (paper: 20 cm).
-    discontinuity_threshold: float = 0.20
-    # Which texels the discontinuity test checks: "quad" (paper: both triangles of the four texels
-    # around the hit) or "triangle" (only the triangle containing the hit; loses half as wide a band
-    # along each depth edge of a depth map). See shaders/dmrt_raytrace.glsl.
-    discontinuity_test: str = "quad"
-    # Iterative search: "adaptive" (paper: every step is h, the signed distance along the line to
-    # the photo's centre) or "secant" (h first, then secant steps along the pixel ray).
-    search: str = "secant"
-    # Addition to the paper: passes in which a pixel the layers left without a surface searches
-    # the depth maps of its neighbours' hits (shaders/dmrt_raytrace.glsl, FILL); 0 = the paper.
-    fill_passes: int = 2
-    # Visibility stage: "kbuffer" (all layers from one splat pass: a per-pixel list of the nearest
-    # fragments; 4x faster than peeling for 5 layers on an H200), "compute" (depth peeling by
-    # atomicMin splatting, one pass per layer) or "raster" (the paper's GL_POINTS with depth
-    # peeling); the same layers (dmrt.runtime.visibility).
-    method: str = "kbuffer"
-    # k-buffer: fragments kept per pixel (0 = 6 per layer + 2: >= 99.9 % of the peeled layers'
-    # pixels on the small preset, 4 per layer + 2: 99.5 %). Fewer cost less memory and time; a
-    # pixel with more fragments in front of its k-th layer loses its deepest layers.
-    kbuffer_slots: int = 0
-    # Compute splatting (visibility and labeling passes): "int64" = one pass with 64-bit atomicMin
-    # on (depth bits, label) (NVIDIA GL_NV_shader_atomic_int64), "portable" = an atomicMin pass on
-    # the depth then a label-resolve pass (any GL 4.3, e.g. Mesa llvmpipe); "auto" = int64 where
-    # the driver has it. Same results.
-    atomics: str = "auto"
-    # GPU memory for the full-resolution photo cache, MiB (paper: 1 GB); 0 = low-res only.
-    cache_mb: float = 1024.0
-    # Photo streaming (dmrt.runtime.texturing): decode photos on background threads so that no frame waits
-    # for a disk read (the low-res copy stands in until the upload), and upload at most this many
-    # photos per frame (0 = no bound). False / 0 make every frame's cache exactly its most frequent
-    # labels (deterministic colours: use for quality measurements, or call flush_photos()).
-    async_photos: bool = True
-    max_uploads_per_frame: int = 4
-    # Decoded photos kept in CPU memory, MiB.
-    cpu_cache_mb: float = 1024.0
-    # The per-pixel labeling pass (paper 5.2.1); False keeps the raytraced layer's label (ablation).
-    labeling: bool = True
-    # Addition to the paper: a labeling-pass label whose depth map does not see the pixel's point
-    # (|depth difference| > label_check_tolerance) falls back to the raytraced layer's label, so
-    # that no pixel is textured from a photo in which it is occluded.
-    label_check: bool = True
-    label_check_tolerance: float = 0.05
-    # Screen-space leveling (paper 5.2.3): per-photo colour gains solved each frame from the seams
-    # on screen (dmrt.runtime.leveling); off by default so that colours are the photos' own.
-    leveling: bool = False
-    # Leveling: seam samples a photo pair needs to count, and the bound on a gain (and its inverse).
-    leveling_min_samples: int = 16
-    leveling_max_gain: float = 2.0
-    # The raytracing pass; False = the first splat layer is the surface (ablation: coarse splats).
-    raytrace: bool = True
-    # Record the iterative search's step lengths per layer and step (frame["step_stats"]); costs
-    # atomics in the raytracing pass, so off for timing runs.
-    statistics: bool = False
-    # Frame size; None = the camera's own (render() arguments override these).
-    width: int | None = None
-    height: int | None = None
-    # Compute splatting: discs with a larger pixel box are splatted by a whole workgroup each.
-    max_thread_pixels: int = 256
+    layers: int = option(5, "label layers k (paper: 3-5 give high quality, Fig. 13; 11 for the worst case)",
+                         minimum=1)
+    max_steps: int = option(100, "iterative-search steps per layer (paper: <= 100)", minimum=1)
+    binary_steps: int = option(20, "bisection steps refining a hit (paper: 20)", minimum=0)
+    discontinuity_threshold: float = option(0.20, "depth disparity between the texels of a depth-map quad that "
+                                                  "marks a discontinuity, metres (paper: 0.20)", minimum=0.0)
+    discontinuity_test: Literal["quad", "triangle"] = option(
+        "quad", "texels the discontinuity test checks: quad (paper: both triangles of the four texels around "
+                "the hit) or triangle (only the one holding the hit: half as wide a band lost along depth edges)")
+    search: Literal["adaptive", "secant"] = option(
+        "secant", "iterative search: adaptive (paper: every step is the signed distance along the line to the "
+                  "photo's centre) or secant (that step first, then secant steps along the pixel ray)")
+    fill_passes: int = option(2, "addition to the paper: passes in which a covered pixel that no layer gave a "
+                                 "surface searches its neighbours' depth maps near their depths; 0 = the paper",
+                              minimum=0)
+    method: Visibility = option(
+        "kbuffer", "visibility stage: kbuffer (all layers from one splat pass into a per-pixel list of the nearest "
+                   "fragments), compute (depth peeling by atomicMin splatting, a pass per layer) or raster (the "
+                   "paper's GL_POINTS depth peeling); the same layers (dmrt/runtime/visibility.py)")
+    kbuffer_slots: int = option(0, "k-buffer fragments kept per pixel; 0 = 6 per layer + 2 (>= 99.9 % of the "
+                                   "peeled layers' pixels); a pixel with more fragments in front of its k-th layer "
+                                   "loses its deepest layers", minimum=0)
+    atomics: Literal["auto", "int64", "portable"] = option(
+        "auto", "compute splatting: int64 (one pass with 64-bit atomicMin on depth and label, "
+                "GL_NV_shader_atomic_int64), portable (a depth pass, then a label pass: any GL 4.3) or auto "
+                "(int64 where the driver has it); the same results")
+    cache_mb: float = option(1024.0, "GPU memory for the full-resolution photo cache, MiB (paper: 1 GB); 0 = "
+                                     "low-resolution copies only", minimum=0.0)
+    async_photos: bool = option(True, "decode photos on background threads so that no frame waits for a disk read "
+                                      "(the low-resolution copy stands in until the upload); off, every frame's "
+                                      "cache holds exactly its most frequent labels (deterministic colours)")
+    max_uploads_per_frame: int = option(4, "photos uploaded to the cache per frame at most; 0 = no bound",
+                                        minimum=0)
+    cpu_cache_mb: float = option(1024.0, "decoded photos kept in CPU memory, MiB", minimum=0.0)
+    labeling: bool = option(True, "the per-pixel labeling pass (paper 5.2.1); off keeps the raytraced layer's "
+                                  "label (ablation)")
+    label_check: bool = option(True, "addition to the paper: a labeling-pass label whose depth map does not see the "
+                                     "pixel's point falls back to the raytraced layer's label (no pixel textured "
+                                     "from a photo in which it is occluded)")
+    label_check_tolerance: float = option(0.05, "depth difference, metres, beyond which a depth map does not see "
+                                                "a pixel's point (the label check)", minimum=0.0)
+    leveling: bool = option(False, "screen-space leveling (paper 5.2.3): per-photo colour gains solved each frame "
+                                   "from the seams on screen; off by default so that colours are the photos' own")
+    leveling_min_samples: int = option(16, "leveling: seam samples a photo pair needs to count", minimum=1)
+    leveling_max_gain: float = option(2.0, "leveling: the bound on a gain and its inverse", minimum=1.0)
+    raytrace: bool = option(True, "the raytracing pass; off, the first splat layer is the surface (ablation: "
+                                  "coarse splats, paper Fig. 8a)")
+    statistics: bool = option(False, "record the iterative search's step lengths per layer and step "
+                                     "(frame['step_stats'], Figs. 9/10); costs time, so off for timing runs")
+    width: int | None = option(None, "frame width in pixels; default the camera's", minimum=1)
+    height: int | None = option(None, "frame height in pixels; default the camera's aspect", minimum=1)
+    max_thread_pixels: int = option(256, "compute splatting: discs with a larger pixel box are splatted by a whole "
+                                         "workgroup each", minimum=1)
 
     def __post_init__(self):
-        if self.layers < 1 or self.max_steps < 1 or self.binary_steps < 0 or self.fill_passes < 0:
-            raise ValueError("RenderConfig: layers and max_steps must be >= 1, binary_steps and fill_passes >= 0")
-        if self.discontinuity_test not in ("quad", "triangle"):
-            raise ValueError(f"RenderConfig.discontinuity_test must be 'quad' or 'triangle', "
-                             f"not {self.discontinuity_test!r}")
-        if self.atomics not in ("auto", "int64", "portable"):
-            raise ValueError(f"RenderConfig.atomics must be 'auto', 'int64' or 'portable', not {self.atomics!r}")
-        if self.search not in ("adaptive", "secant"):
-            raise ValueError(f"RenderConfig.search must be 'adaptive' or 'secant', not {self.search!r}")
-        if self.method not in ("compute", "kbuffer", "raster"):
-            raise ValueError(f"RenderConfig.method must be 'compute', 'kbuffer' or 'raster', not {self.method!r}")
-        if self.statistics and self.layers > MAX_STATISTICS_LAYERS:
-            raise ValueError(f"RenderConfig.statistics records at most {MAX_STATISTICS_LAYERS} layers, "
-                             f"not {self.layers}")
-        if self.kbuffer_slots < 0:
-            raise ValueError("RenderConfig.kbuffer_slots must be >= 0")
-        if self.leveling_max_gain < 1.0:
-            raise ValueError("RenderConfig.leveling_max_gain must be >= 1")
-
-
-def photo_params(cameras: list[Camera], origin, depth_sizes, low_sizes) -> np.ndarray:
-    """(n, 24) float32 rows of the ``Photo`` struct of ``shaders/dmrt_photos.glsl``.
-
-    ``cameras`` in world coordinates; intrinsics are scaled to each depth map's resolution.
-    """
-    out = np.zeros((len(cameras), 24), np.float32)
-    for j, (cam, (dw, dh), (lw, lh)) in enumerate(zip(cameras, depth_sizes, low_sizes)):
-        c = cam.relative_to(origin).scaled(dw, dh)
-        out[j, 0:12] = np.concatenate([c.R, c.t[:, None]], axis=1).ravel()
-        out[j, 12:16] = (c.fx, c.fy, c.cx, c.cy)
-        out[j, 16:20] = (dw, dh, lw, lh)
-        out[j, 20:22] = (cam.width, cam.height)
-    return out
+        validate(self)
+        if self.statistics and self.layers > STAT_LAYERS:
+            raise ConfigError("layers", f"the step statistics record at most {STAT_LAYERS} layers, not {self.layers}")
 
 
 class Renderer:
@@ -235,10 +179,10 @@ class Renderer:
                                  f"larger than the first one's {dims[0]}x{dims[1]}")
             self.depthmaps.write(np.ascontiguousarray(m, np.float32).tobytes(),
                                  viewport=(0, 0, i, m.shape[1], m.shape[0], 1))
-        self.images = ImageCache(self.ctx, bundle, self.config.cache_mb, self.config.max_uploads_per_frame,
-                                 self.config.async_photos, self.config.cpu_cache_mb)
-        self.photos = self.ctx.buffer(photo_params(self.cameras, self.origin, self.depth_sizes,
-                                                   self.images.low_sizes).tobytes())
+        # the end of the frame (histogram, photo cache, texturing, leveling) is DMT's too
+        self.shading = FrameShading(self.ctx, bundle, self.timer, self.depth_sizes, self.config,
+                                    self.config.label_check_tolerance)
+        self.images, self.photos, self.leveler = self.shading.images, self.shading.photos, self.shading.leveler
         labels = np.asarray(bundle.proxy["labels"])
         if len(labels) and labels.max() >= n:
             raise InputError(bundle.root / "proxy.npz", f"array 'labels' holds photo index {labels.max()} "
@@ -252,18 +196,11 @@ class Renderer:
         self._raytrace = load_program(self.ctx, "dmrt_raytrace", defines)
         self._fill = load_program(self.ctx, "dmrt_raytrace", {**defines, "FILL": 1})
         self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
-        self._histogram = load_program(self.ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
-        self.counts = self.ctx.buffer(reserve=4 * n)
         self.step_stats = self.ctx.buffer(reserve=16 * self.config.layers * STEP_BINS) if self.config.statistics else None
-        c = self.config
-        self.leveler = ScreenLeveler(self.ctx, n, c.leveling_min_samples, c.leveling_max_gain,
-                                     c.discontinuity_threshold, c.label_check_tolerance) if c.leveling else None
         self._size: tuple[int, int] | None = None
         self._buffers: dict = {}
-        self.gpu_bytes = {"depthmaps": self._depth_dims[0] * self._depth_dims[1] * n * 4, **self.images.nbytes,
-                          "proxies": self.splats.nbytes, "photos": self.photos.size}
-        if self.leveler is not None:
-            self.gpu_bytes["leveling"] = self.leveler.nbytes
+        self.gpu_bytes = {"depthmaps": self._depth_dims[0] * self._depth_dims[1] * n * 4, **self.shading.nbytes,
+                          "proxies": self.splats.nbytes}
 
     @property
     def config(self) -> RenderConfig:
@@ -329,13 +266,13 @@ class Renderer:
 
         with timer.section("raytracing"):
             if self.step_stats is not None:
-                self.visibility.fill(self.step_stats, 0, 4 * cfg.layers * STEP_BINS)
+                fill_u32(ctx, self.step_stats, 0, 4 * cfg.layers * STEP_BINS)
                 ctx.memory_barrier(_BARRIER)
-                self.step_stats.bind_to_storage_buffer(8)
-            b["layer_depth"].bind_to_storage_buffer(1)
-            b["layer_label"].bind_to_storage_buffer(2)
-            b["hits"].bind_to_storage_buffer(4)
-            self.photos.bind_to_storage_buffer(5)
+                self.step_stats.bind_to_storage_buffer(abi.B_STEP_STATS)
+            b["layer_depth"].bind_to_storage_buffer(abi.B_LAYER_DEPTH)
+            b["layer_label"].bind_to_storage_buffer(abi.B_LAYER_LABEL)
+            b["hits"].bind_to_storage_buffer(abi.B_HITS)
+            self.photos.bind_to_storage_buffer(abi.B_PHOTOS)
             self.depthmaps.use(0)
             set_uniforms(self._raytrace, u_layers=cfg.layers, u_max_steps=cfg.max_steps,
                          u_binary_steps=cfg.binary_steps, u_threshold=float(cfg.discontinuity_threshold),
@@ -350,55 +287,37 @@ class Renderer:
                 ctx.memory_barrier(_BARRIER)
 
         with timer.section("labeling"):
-            self.visibility.fill(b["key"], EMPTY_BITS, 2 * npix if self.int64 else npix)
+            fill_u32(ctx, b["key"], EMPTY_BITS, 2 * npix if self.int64 else npix)
             if not self.int64:
-                self.visibility.fill(b["vlabel"], EMPTY_LABEL, npix)
+                fill_u32(ctx, b["vlabel"], EMPTY_LABEL, npix)
             ctx.memory_barrier(_BARRIER)
             if cfg.labeling and self.int64:
-                self.splats.run("dmrt_labeling", {"INT64": 1}, cam_uniforms, {1: b["key"], 4: b["hits"]})
+                self.splats.run("dmrt_labeling", {"INT64": 1}, cam_uniforms,
+                                {abi.B_KEY: b["key"], abi.B_HITS: b["hits"]})
             elif cfg.labeling:
                 for resolve in (0, 1):
                     self.splats.run("dmrt_labeling", {"RESOLVE": resolve}, cam_uniforms,
-                                    {1: b["key"], 2: b["vlabel"], 4: b["hits"]})
+                                    {abi.B_KEY: b["key"], abi.B_VLABEL: b["vlabel"], abi.B_HITS: b["hits"]})
 
-        # image management: the histogram pass and the uploads are timed on the GPU; the readback
-        # between them waits for the frame so far and is CPU time (frame["cpu_ms"])
+        # image management: the final labels here, then the histogram pass and the uploads (timed on
+        # the GPU); the readback between them waits for the frame so far and is CPU time
         with timer.section("image_management"):
-            self.visibility.fill(self.counts, 0, len(self.cameras))
-            ctx.memory_barrier(_BARRIER)
-            b["key"].bind_to_storage_buffer(1)
-            b["vlabel"].bind_to_storage_buffer(2)
-            b["hits"].bind_to_storage_buffer(4)
-            self.counts.bind_to_storage_buffer(6)
-            self.photos.bind_to_storage_buffer(5)
+            b["key"].bind_to_storage_buffer(abi.B_KEY)
+            b["vlabel"].bind_to_storage_buffer(abi.B_VLABEL)
+            b["hits"].bind_to_storage_buffer(abi.B_HITS)
+            self.photos.bind_to_storage_buffer(abi.B_PHOTOS)
             self.depthmaps.use(0)
             set_uniforms(self._finalize, u_use_labeling=int(cfg.labeling), u_label_check=int(cfg.label_check),
                          u_visibility_tol=float(cfg.label_check_tolerance), u_depthmaps=0, **cam_uniforms)
             self._finalize.run(*grid)
             ctx.memory_barrier(_BARRIER)
-            set_uniforms(self._histogram, u_count=npix)
-            self._histogram.run(groups(npix, 64 * 64))
-            ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        counts, cpu_ms = texture_frame(ctx, timer, self.images, self.counts, b["hits"], b["colors"], self.photos,
-                                       cam_uniforms)
-        self.label_counts = counts
-        if self.leveler is not None:
-            cpu_ms["leveling"] = self.leveler.run(timer, b["hits"], b["colors"], self.photos, self.images,
-                                                  self.depthmaps, cam_uniforms, counts)
-
-        check_gl(ctx, "rendering a DMRT frame")
-        frame = {}
+        frame, hits = self.shading.finish(b["hits"], b["colors"], self.depthmaps, cam_uniforms, STAGES,
+                                          "rendering a DMRT frame", readback)
+        self.label_counts = self.shading.label_counts
         if readback:
-            frame, hits = read_frame(b["hits"], b["colors"], w, h)
             frame["label_raw"] = hits["label"].copy()
             frame["layer_used"] = hits["layer"].copy()
             frame["iterations"] = hits["iters"].copy()
-        self.timer.check_executed("rendering a DMRT frame")
-        ms = self.timer.ms
-        frame["timings"] = {stage: ms.get(stage, 0.0) for stage in STAGES}
-        frame["cpu_ms"] = cpu_ms
-        if self.leveler is not None:
-            frame["leveling_gains"] = self.leveler.gains.copy()
         if self.step_stats is not None:
             frame["step_stats"] = self._read_step_stats()
         return frame
@@ -416,7 +335,7 @@ class Renderer:
     def flush_photos(self) -> int:
         """Wait for the photos being streamed and upload all that the last frame wanted; the next
         frame of the same view is then textured as with synchronous, unbounded streaming."""
-        return self.images.flush()
+        return self.shading.flush_photos()
 
     def layers(self) -> dict:
         """The last frame's label layers.
@@ -441,8 +360,8 @@ class Renderer:
         self._release_frame()
         self.visibility.release()
         self.splats.release()
-        self.images.release()
-        for obj in (self.depthmaps, self.photos, self.counts, self.step_stats, self.leveler):
+        self.shading.release()
+        for obj in (self.depthmaps, self.step_stats):
             if obj is not None:
                 obj.release()
 

@@ -29,6 +29,8 @@ import numpy as np
 
 from dmrt.io.bundle import Bundle
 from dmrt.errors import InputError
+from dmrt.gl import abi
+from dmrt.gl.shaders import load_program, set_uniforms
 
 
 class ImageCache:
@@ -202,8 +204,6 @@ def texture_frame(ctx, timer, images: ImageCache, label_counts, hits, colors, ph
 
     import moderngl
 
-    from dmrt.gl.shaders import load_program, set_uniforms
-
     t0 = time.perf_counter()
     counts = np.frombuffer(label_counts.read(), np.uint32).copy()
     t1 = time.perf_counter()
@@ -213,10 +213,10 @@ def texture_frame(ctx, timer, images: ImageCache, label_counts, hits, colors, ph
     w, h = cam_uniforms["u_size"]
     program = load_program(ctx, "dmrt_texturing")
     with timer.section("texturing"):
-        hits.bind_to_storage_buffer(4)
-        photos.bind_to_storage_buffer(5)
-        images.slots.bind_to_storage_buffer(6)
-        colors.bind_to_storage_buffer(7)
+        hits.bind_to_storage_buffer(abi.B_HITS)
+        photos.bind_to_storage_buffer(abi.B_PHOTOS)
+        images.slots.bind_to_storage_buffer(abi.B_SLOTS)
+        colors.bind_to_storage_buffer(abi.B_COLORS)
         images.low.use(1)
         images.high.use(2)
         set_uniforms(program, u_low=1, u_high=2, u_low_dims=images.low_dims,

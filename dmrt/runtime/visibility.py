@@ -38,14 +38,13 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
+from dmrt.gl import abi
+from dmrt.gl.abi import EMPTY_BITS, EMPTY_LABEL, EMPTY_Z, PROXY_FLOATS
+from dmrt.gl.kernels import fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.morton import morton_order
 
-EMPTY_BITS = 0xFFFFFFFF
-EMPTY_LABEL = 0x7FFFFFFF
-_EMPTY_Z = float(np.finfo(np.float32).max)  # raster targets' clear value
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
-PROXY_FLOATS = 8  # position xyz, radius, normal xyz, label bits: see shaders/dmrt_splat_common.glsl
 
 
 def pack_proxies(proxy: dict) -> np.ndarray:
@@ -68,10 +67,6 @@ def pack_proxies(proxy: dict) -> np.ndarray:
     data[:, 4:7] = np.asarray(proxy["normals"], np.float32)[keep]
     data[:, 7] = np.asarray(proxy["labels"], np.int32)[keep].view(np.float32)
     return data
-
-
-def groups(n: int, size: int) -> int:
-    return max(1, min(-(-n // size), 65535))
 
 
 class ProxySplats:
@@ -108,13 +103,14 @@ class ProxySplats:
     def run(self, name: str, defines: dict, uniforms: dict, bindings: dict) -> None:
         """One compute splat pass of program ``name`` over every proxy (both entry points).
 
-        ``bindings`` maps storage-buffer binding points to buffers (0 and 3 are the proxies' own).
+        ``bindings`` maps storage-buffer binding points to buffers (``abi.B_PROXIES`` and
+        ``abi.B_LARGE`` are the proxies' own).
         """
         d = {**defines, "MAX_THREAD_PIXELS": self.max_thread_pixels}
         small = load_program(self.ctx, name, {**d, "LARGE": 0})
         large = load_program(self.ctx, name, {**d, "LARGE": 1})
-        self.buffer.bind_to_storage_buffer(0)
-        self.large.bind_to_storage_buffer(3)
+        self.buffer.bind_to_storage_buffer(abi.B_PROXIES)
+        self.large.bind_to_storage_buffer(abi.B_LARGE)
         for binding, buf in bindings.items():
             buf.bind_to_storage_buffer(binding)
         set_uniforms(small, u_count=self.n, u_build_list=int(not self._built), **uniforms)
@@ -148,7 +144,6 @@ class VisibilityStage:
             raise ValueError(f"RenderConfig.method must be 'compute', 'kbuffer' or 'raster', not {method!r}")
         self.ctx, self.splats, self.method = ctx, splats, method
         self.int64 = bool(int64) and method == "compute"
-        self._fill = load_program(ctx, "fill_u32")
         self._size = None
         self._packed = None
         if method == "kbuffer":
@@ -172,17 +167,11 @@ class VisibilityStage:
             self._vao_quads = ctx.vertex_array(self._quads, layout)
             self.max_point_size = float(ctx.info["GL_POINT_SIZE_RANGE"][1])
 
-    def fill(self, buf, value: int, count: int) -> None:
-        """Set the first ``count`` uint32 words of ``buf`` to ``value`` on the GPU."""
-        buf.bind_to_storage_buffer(0)
-        set_uniforms(self._fill, u_value=int(value), u_count=int(count))
-        self._fill.run(groups(count, 256))
-
     def run(self, uniforms: dict, size: tuple[int, int], layers: int, layer_depth, layer_label) -> None:
         """Fill ``layers`` label layers for the camera in ``uniforms`` (u_R, u_t, u_K, u_size)."""
         w, h = size
-        self.fill(layer_depth, EMPTY_BITS, layers * w * h)
-        self.fill(layer_label, EMPTY_LABEL, layers * w * h)
+        fill_u32(self.ctx, layer_depth, EMPTY_BITS, layers * w * h)
+        fill_u32(self.ctx, layer_label, EMPTY_LABEL, layers * w * h)
         self.ctx.memory_barrier(_BARRIER)
         if self.method == "kbuffer":
             self._kbuffer(uniforms, size, layers, layer_depth, layer_label)
@@ -192,13 +181,14 @@ class VisibilityStage:
                 if self._packed is not None:
                     self._packed.release()
                 self._packed = self.ctx.buffer(reserve=8 * w * h)
-            self.fill(self._packed, EMPTY_BITS, 2 * w * h)
+            fill_u32(self.ctx, self._packed, EMPTY_BITS, 2 * w * h)
             self.ctx.memory_barrier(_BARRIER)
         for layer in range(layers):
             if self.int64:
                 self.splats.run("dmrt_visibility", {"INT64": 1}, {**uniforms, "u_layer": layer},
-                                {1: layer_depth, 2: layer_label, 4: self._packed})
-                for binding, buf in ((1, layer_depth), (2, layer_label), (4, self._packed)):
+                                {abi.B_LAYER_DEPTH: layer_depth, abi.B_LAYER_LABEL: layer_label, abi.B_VKEY: self._packed})
+                for binding, buf in ((abi.B_LAYER_DEPTH, layer_depth), (abi.B_LAYER_LABEL, layer_label),
+                                     (abi.B_VKEY, self._packed)):
                     buf.bind_to_storage_buffer(binding)
                 set_uniforms(self._unpack, u_size=size, u_layer=layer)
                 self._unpack.run(groups(w, 8), groups(h, 8))
@@ -206,7 +196,7 @@ class VisibilityStage:
             elif self.method == "compute":
                 for resolve in (0, 1):
                     self.splats.run("dmrt_visibility", {"RESOLVE": resolve}, {**uniforms, "u_layer": layer},
-                                    {1: layer_depth, 2: layer_label})
+                                    {abi.B_LAYER_DEPTH: layer_depth, abi.B_LAYER_LABEL: layer_label})
             else:
                 self._raster_layer(uniforms, size, layer, layer_depth, layer_label)
 
@@ -218,11 +208,12 @@ class VisibilityStage:
             if self._kbuf is not None:
                 self._kbuf.release()
             self._kbuf = self.ctx.buffer(reserve=4 * n)
-        self.fill(self._kbuf, EMPTY_BITS, n)
-        self.fill(self._overflow, 0, 1)
+        fill_u32(self.ctx, self._kbuf, EMPTY_BITS, n)
+        fill_u32(self.ctx, self._overflow, 0, 1)
         self.ctx.memory_barrier(_BARRIER)
-        self.splats.run("dmrt_visibility_kbuffer", self._kdefines, uniforms, {1: self._kbuf})
-        for binding, buf in ((1, self._kbuf), (2, layer_depth), (3, layer_label), (4, self._overflow)):
+        self.splats.run("dmrt_visibility_kbuffer", self._kdefines, uniforms, {abi.B_KBUFFER: self._kbuf})
+        for binding, buf in ((abi.B_KBUFFER, self._kbuf), (abi.B_LAYER_DEPTH, layer_depth),
+                             (abi.B_LAYER_LABEL, layer_label), (abi.B_OVERFLOW, self._overflow)):
             buf.bind_to_storage_buffer(binding)
         set_uniforms(self._resolve, u_size=size, u_layers=layers)
         self._resolve.run(groups(w, 8), groups(h, 8))
@@ -254,10 +245,10 @@ class VisibilityStage:
         for program in (self._points, self._quads):
             set_uniforms(program, u_layer=layer, u_max_point_size=self.max_point_size, **uniforms)
         set_uniforms(self._copy, u_layer=layer, u_size=size, u_src=0)
-        layer_depth.bind_to_storage_buffer(1)
-        layer_label.bind_to_storage_buffer(2)
+        layer_depth.bind_to_storage_buffer(abi.B_LAYER_DEPTH)
+        layer_label.bind_to_storage_buffer(abi.B_LAYER_LABEL)
         for resolve in (0, 1):
-            self._fbo.clear(_EMPTY_Z, 0.0, 0.0, 0.0)
+            self._fbo.clear(EMPTY_Z, 0.0, 0.0, 0.0)
             if n:
                 for program in (self._points, self._quads):
                     set_uniforms(program, u_resolve=resolve)

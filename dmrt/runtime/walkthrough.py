@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from dmrt.io.bundle import camera_from_json, camera_to_json
 from dmrt.camera import Camera
 from dmrt.errors import InputError
+from dmrt.io.atomic import write_text
 
 
 def camera_path(keys: list[Camera], frames: int, width: int, height: int, fov_x: float = 70.0) -> list[Camera]:
@@ -33,14 +34,32 @@ def camera_path(keys: list[Camera], frames: int, width: int, height: int, fov_x:
 
 
 def save_path(path, cameras: list[Camera]) -> None:
-    Path(path).write_text(json.dumps({"cameras": [camera_to_json(c) for c in cameras]}, indent=1))
+    """Write ``cameras`` as a camera path JSON (``{"cameras": [...]}``), atomically."""
+    write_text(path, json.dumps({"cameras": [camera_to_json(c) for c in cameras]}, indent=1))
 
 
 def load_path(path) -> list[Camera]:
+    """The cameras of a camera path JSON written by :func:`save_path`.
+
+    Raises
+    ------
+    InputError
+        Naming the file (and the camera and field): missing, a folder, not JSON, no ``cameras``
+        list, an empty path, a malformed camera.
+    """
     path = Path(path)
+    if path.is_dir():
+        raise InputError(path, "is a folder, not a camera path file (JSON written by dmrt path)")
     try:
-        return [camera_from_json(c) for c in json.loads(path.read_text())["cameras"]]
-    except FileNotFoundError as exc:
-        raise InputError(path, "camera path file not found") from exc
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise InputError(path, f"not a camera path (JSON {{'cameras': [...]}}): {exc}") from exc
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(path, "camera path file not found") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(path, f"not a camera path: not valid JSON ({exc})") from None
+    if not isinstance(doc, dict) or "cameras" not in doc:
+        raise InputError(path, "not a camera path: expected a JSON object {\"cameras\": [...]} (dmrt path writes one)")
+    if not isinstance(doc["cameras"], list):
+        raise InputError(path, f"field 'cameras' must be a list, not {type(doc['cameras']).__name__}")
+    if not doc["cameras"]:
+        raise InputError(path, "empty camera path: field 'cameras' lists no cameras")
+    return [camera_from_json(c, path, f"cameras[{i}]") for i, c in enumerate(doc["cameras"])]

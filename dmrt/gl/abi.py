@@ -1,0 +1,68 @@
+"""The GPU/Python ABI: every number that Python and the GLSL programs must agree on, in one place.
+
+:func:`dmrt.gl.shaders.load_program` puts each entry of :data:`DEFINES` at the top of every program
+as ``#define NAME value``, so a shader writes ``layout(std430, binding = B_HITS)`` and compares with
+``EMPTY_BITS``, and Python binds ``abi.B_HITS`` and reads ``abi.HIT_DTYPE``. The record layouts
+(``HIT_DTYPE`` <-> ``struct Hit`` in ``shaders/dmrt_frame.glsl``, ``PHOTO_FLOATS`` <-> ``struct
+Photo`` in ``shaders/dmrt_photos.glsl``) are checked on both sides by ``tests/test_abi.py``.
+
+Storage-buffer binding points are unique per buffer role across every program (GL guarantees 8
+binding points only, but every driver the suite runs on has >= 80: NVIDIA 96, Mesa llvmpipe 80),
+so a buffer bound for one pass is never silently read as another's by the next.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# -- storage-buffer binding points --------------------------------------------------------------
+# DMRT frame
+B_PROXIES = 0       # (n, PROXY_FLOATS) float32 proxy discs (dmrt_splat_common.glsl)
+B_LAYER_DEPTH = 1   # k x h x w uint: float bits of each label layer's camera z
+B_LAYER_LABEL = 2   # k x h x w int: each label layer's label
+B_LARGE = 3         # dispatch-indirect command + list of discs splatted by a whole workgroup
+B_HITS = 4          # h x w Hit records
+B_PHOTOS = 5        # n_photos Photo records
+B_COUNTS = 6        # n_photos uint: the label histogram
+B_COLORS = 7        # h x w packed RGBA8
+B_STEP_STATS = 8    # layers x STEP_BINS x 4 uint: iterative-search statistics
+B_PAIRS = 9         # n_photos x n_photos x 4 int: leveling seam sums
+B_GAINS = 10        # n_photos vec4: leveling gains
+B_KBUFFER = 11      # h x w x slots uint: k-buffer fragment lists
+B_OVERFLOW = 12     # uint: k-buffer pixels whose list ran out
+B_KEY = 13          # h x w uint (or uint64): labeling pass nearest-proxy keys
+B_VLABEL = 14       # h x w int: labeling pass labels (portable path)
+B_VKEY = 15         # h x w uint64: visibility pass (depth, label) keys (int64 path)
+B_SLOTS = 16        # n_photos int: photo -> full-resolution cache layer, -1 = low-res only
+# common kernels
+B_FILL = 17         # the buffer fill_u32.glsl writes
+# depth maps (preprocessing)
+B_SPLATS = 18       # (n, SPLAT_FLOATS) float32 P_HD discs
+B_DEPTH_BITS = 19   # h x w uint: float bits of camera z
+B_DEPTH_LARGE = 20  # count + list of large discs
+# DMT
+B_DMT_BOXES = 21    # n_maps x 2 vec4 bounding boxes
+B_DMT_COMMANDS = 22  # n_maps draw-indirect commands
+B_DMT_STATS = 23    # culled maps, triangles drawn
+
+# -- sentinels ---------------------------------------------------------------------------------
+EMPTY_BITS = 0xFFFFFFFF  # an empty depth (above every positive float's bits: atomicMin keeps the nearest)
+EMPTY_LABEL = 0x7FFFFFFF  # an empty label layer entry
+EMPTY_Z = float(np.finfo(np.float32).max)  # raster targets' clear value (MIN blending keeps the nearest)
+
+# -- record layouts ----------------------------------------------------------------------------
+# struct Hit (shaders/dmrt_frame.glsl): one per pixel, written by every DMRT/DMT pass
+HIT_DTYPE = np.dtype([("depth", "<f4"), ("label", "<i4"), ("layer", "<i4"), ("iters", "<i4"),
+                      ("normal", "<f4", 3), ("final_label", "<i4")])
+PHOTO_FLOATS = 24   # struct Photo (shaders/dmrt_photos.glsl): 6 vec4
+PROXY_FLOATS = 8    # proxy disc: position xyz, radius, normal xyz, label bits (dmrt_splat_common.glsl)
+SPLAT_FLOATS = 7    # P_HD disc: position xyz, normal xyz, radius (splat_depth_buffers.glsl)
+
+# -- statistics --------------------------------------------------------------------------------
+STEP_BINS = 32      # iterative-search step index bins (the last pools later steps)
+STAT_LAYERS = 16    # layers the per-workgroup step sums hold in shared memory
+
+BINDINGS = {name: value for name, value in globals().items() if name.startswith("B_")}
+DEFINES = {**BINDINGS, "EMPTY_BITS": "0xFFFFFFFFu", "EMPTY_LABEL": "0x7FFFFFFF", "EMPTY_Z": EMPTY_Z,
+           "STEP_BINS": STEP_BINS, "STAT_LAYERS": STAT_LAYERS, "PROXY_FLOATS": PROXY_FLOATS,
+           "SPLAT_FLOATS": SPLAT_FLOATS}

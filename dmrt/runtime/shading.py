@@ -1,0 +1,145 @@
+"""The end of a frame, shared by the DMRT and DMT renderers: both write the per-pixel ``Hit`` records
+of ``shaders/dmrt_frame.glsl``, and from there on a frame is the same work:
+
+1. ``image_management`` - the label histogram on the GPU, read back, and the most frequent photos
+   streamed into the full-resolution cache (:class:`dmrt.runtime.texturing.ImageCache`);
+2. ``texturing`` - colour from each pixel's photo (:func:`dmrt.runtime.texturing.texture_frame`);
+3. ``leveling`` (optional) - screen-space leveling (:class:`dmrt.runtime.leveling.ScreenLeveler`);
+4. the GL error check, the read-back (unless timing) and the per-stage timings.
+"""
+
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+
+from dmrt.gl import abi
+from dmrt.gl.abi import HIT_DTYPE, PHOTO_FLOATS
+from dmrt.gl.context import check_gl
+from dmrt.gl.kernels import fill_u32, groups
+from dmrt.gl.shaders import load_program, set_uniforms
+from dmrt.io.frames import empty_frame
+from dmrt.runtime.leveling import ScreenLeveler
+from dmrt.runtime.texturing import ImageCache, texture_frame
+
+_BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
+
+
+def photo_params(cameras, origin, depth_sizes, low_sizes) -> np.ndarray:
+    """(n, PHOTO_FLOATS) float32 rows of the ``Photo`` struct of ``shaders/dmrt_photos.glsl``.
+
+    ``cameras`` in world coordinates; intrinsics are scaled to each depth map's resolution.
+    """
+    out = np.zeros((len(cameras), PHOTO_FLOATS), np.float32)
+    for j, (cam, (dw, dh), (lw, lh)) in enumerate(zip(cameras, depth_sizes, low_sizes)):
+        c = cam.relative_to(origin).scaled(dw, dh)
+        out[j, 0:12] = np.concatenate([c.R, c.t[:, None]], axis=1).ravel()
+        out[j, 12:16] = (c.fx, c.fy, c.cx, c.cy)
+        out[j, 16:20] = (dw, dh, lw, lh)
+        out[j, 20:22] = (cam.width, cam.height)
+    return out
+
+
+def read_gpu_frame(hits_buffer: moderngl.Buffer, colors_buffer: moderngl.Buffer, w: int, h: int) -> tuple[dict, np.ndarray]:
+    """Read a frame's ``Hit`` records and packed RGBA8 colours back.
+
+    Returns
+    -------
+    frame : dict, the contract of :mod:`dmrt.io.frames` (``depth``, ``label``, ``color``, ``normal``)
+    hits : (h, w) HIT_DTYPE records, for the renderer's own extra buffers
+    """
+    hits = np.frombuffer(hits_buffer.read(), HIT_DTYPE).reshape(h, w)
+    colors = np.frombuffer(colors_buffer.read(), np.uint8).reshape(h, w, 4)
+    frame = empty_frame(h, w)
+    frame["depth"] = hits["depth"].copy()
+    frame["label"] = hits["final_label"].copy()
+    frame["color"] = colors[..., :3].copy()
+    frame["normal"] = hits["normal"].copy()
+    return frame, hits
+
+
+class FrameShading:
+    """Photos, photo cache, label histogram and leveler of one renderer, and the end of its frames.
+
+    Parameters
+    ----------
+    ctx : moderngl.Context
+    bundle : dmrt.io.bundle.Bundle
+    timer : dmrt.gl.GpuTimer, the renderer's (sections ``image_management``, ``texturing``, ``leveling``)
+    depth_sizes : list of (w, h), each photo's depth map as the renderer holds it (texels)
+    config : RenderConfig or DMTConfig (``cache_mb``, ``max_uploads_per_frame``, ``async_photos``,
+        ``cpu_cache_mb``, ``leveling``, ``leveling_min_samples``, ``leveling_max_gain``,
+        ``discontinuity_threshold``)
+    seam_tolerance : float, metres: how closely a photo's depth map must see a seam point to count
+    """
+
+    def __init__(self, ctx, bundle, timer, depth_sizes, config, seam_tolerance: float):
+        n = len(bundle.cameras)
+        self.ctx, self.timer = ctx, timer
+        self.images = ImageCache(ctx, bundle, config.cache_mb, config.max_uploads_per_frame, config.async_photos,
+                                 config.cpu_cache_mb)
+        self.photos = ctx.buffer(photo_params(bundle.cameras, bundle.origin, depth_sizes,
+                                              self.images.low_sizes).tobytes())
+        self.counts = ctx.buffer(reserve=4 * n)
+        self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
+        self.leveler = ScreenLeveler(ctx, n, config.leveling_min_samples, config.leveling_max_gain,
+                                     config.discontinuity_threshold, seam_tolerance) if config.leveling else None
+        self.label_counts: np.ndarray | None = None  # (n,) uint32 pixels per label of the last frame
+
+    @property
+    def nbytes(self) -> dict:
+        """GPU bytes per resource: the photo caches, the Photo records, the leveling buffers."""
+        out = {**self.images.nbytes, "photos": self.photos.size}
+        if self.leveler is not None:
+            out["leveling"] = self.leveler.nbytes
+        return out
+
+    def finish(self, hits, colors, depthmaps, cam_uniforms: dict, stages, what: str,
+               readback: bool) -> tuple[dict, np.ndarray | None]:
+        """Shade the frame whose ``Hit`` records are in ``hits`` and return it.
+
+        Returns
+        -------
+        frame : dict
+            With ``readback`` the frame contract (``depth``, ``label``, ``color``, ``normal``);
+            always ``timings`` {stage: GPU ms} for ``stages``, ``cpu_ms`` and, with leveling,
+            ``leveling_gains`` (n_photos, 3) float32.
+        records : (h, w) HIT_DTYPE or None (without ``readback``)
+        """
+        ctx, timer = self.ctx, self.timer
+        w, h = cam_uniforms["u_size"]
+        with timer.section("image_management"):
+            fill_u32(ctx, self.counts, 0, self.counts.size // 4)
+            ctx.memory_barrier(_BARRIER)
+            hits.bind_to_storage_buffer(abi.B_HITS)
+            self.counts.bind_to_storage_buffer(abi.B_COUNTS)
+            set_uniforms(self._histogram, u_count=w * h)
+            self._histogram.run(groups(w * h, 64 * 64))
+            ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
+        counts, cpu_ms = texture_frame(ctx, timer, self.images, self.counts, hits, colors, self.photos, cam_uniforms)
+        self.label_counts = counts
+        if self.leveler is not None:
+            cpu_ms["leveling"] = self.leveler.run(timer, hits, colors, self.photos, self.images, depthmaps,
+                                                  cam_uniforms, counts)
+        check_gl(ctx, what)
+        frame, records = {}, None
+        if readback:
+            frame, records = read_gpu_frame(hits, colors, w, h)
+        timer.check_executed(what)
+        ms = timer.ms
+        frame["timings"] = {stage: ms.get(stage, 0.0) for stage in stages}
+        frame["cpu_ms"] = cpu_ms
+        if self.leveler is not None:
+            frame["leveling_gains"] = self.leveler.gains.copy()
+        return frame, records
+
+    def flush_photos(self) -> int:
+        """Wait for the photos being streamed and upload all that the last frame wanted; the next
+        frame of the same view is then textured as with synchronous, unbounded streaming."""
+        return self.images.flush()
+
+    def release(self) -> None:
+        self.images.release()
+        for obj in (self.photos, self.counts, self.leveler):
+            if obj is not None:
+                obj.release()

@@ -1,0 +1,101 @@
+// Tile-binned visibility stage, binning (dmrt/runtime/tiles.py): which discs each screen tile needs.
+// Run four times per frame, around the scan (dmrt_tiles_scan.glsl):
+//   SCATTER 0, LARGE 0: one thread per proxy: cull (empty pixel box: behind the camera, off
+//            screen), count the disc in every tile its pixel box overlaps (atomicAdd on Counts);
+//            a disc over more than MAX_THREAD_TILES tiles is appended to the Large list instead,
+//            whose header holds the dispatch-indirect arguments of the LARGE 1 passes;
+//   SCATTER 0, LARGE 1: one workgroup per listed large disc, its threads striding over its tiles;
+//   SCATTER 1, LARGE 0/1: the same walk again, writing (near key, proxy index) into the tile's slice
+//            of Entries: slot = Offsets[tile] + (Counts[tile] decremented atomically) - 1, so the
+//            counts are back to 0 afterwards and the order within a slice is arbitrary (the raster
+//            pass sorts it). Entries at or past u_capacity are dropped (the host grows the buffer
+//            from the frame's total, dmrt_tiles_scan.glsl).
+// Both walks recompute the disc's box (cheaper than storing it): the same box, so the same tiles.
+//
+// Buffers (binding: layout):
+//   0 Proxies  n x 8 floats (dmrt_tiles_common.glsl)
+//   3 Large    uint groups_x, groups_y, groups_z, n_large; uint large[n]  (proxy indices)
+//   5 Entries  uvec2[capacity]: (near_key bits, proxy index), tile after tile
+//   6 Counts   uint[tiles]: discs per tile
+//   7 Offsets  uint[tiles + 1]: exclusive prefix sum of Counts (SCATTER 1 only)
+#include "dmrt_tiles_common.glsl"
+
+#if defined COMPUTE_SHADER
+
+#ifndef SCATTER
+#define SCATTER 0
+#endif
+#ifndef LARGE
+#define LARGE 0
+#endif
+#ifndef MAX_THREAD_TILES
+#define MAX_THREAD_TILES 16
+#endif
+#define LARGE_GROUPS 1024u  // workgroups striding over the large list
+
+layout(std430, binding = 3) buffer Large { uint groups_x; uint groups_y; uint groups_z; uint n_large; uint large[]; };
+layout(std430, binding = 6) buffer Counts { uint counts[]; };
+#if SCATTER
+layout(std430, binding = 5) writeonly buffer Entries { uvec2 entries[]; };
+layout(std430, binding = 7) readonly buffer Offsets { uint offsets[]; };
+uniform uint u_capacity;  // entries the buffer holds
+#endif
+
+uniform uint u_count;  // number of proxies
+
+void bin_into(uint tile, uint key, uint k) {
+#if SCATTER
+    uint pos = offsets[tile] + atomicAdd(counts[tile], 0xFFFFFFFFu) - 1u;
+    if (pos < u_capacity) entries[pos] = uvec2(key, k);
+#else
+    atomicAdd(counts[tile], 1u);
+#endif
+}
+
+#if LARGE
+
+layout(local_size_x = 256) in;
+
+void main() {
+    for (uint i = gl_WorkGroupID.x; i < n_large; i += gl_NumWorkGroups.x) {
+        uint k = large[i];
+        int label;
+        Splat s = load_proxy(k, label);
+        ivec4 tb = splat_pixel_box(s) / TILE;  // the box is non-empty and non-negative here
+        uint key = SCATTER != 0 ? near_key(s) : 0u;
+        int w = tb.z - tb.x + 1;
+        int n = w * (tb.w - tb.y + 1);
+        for (int j = int(gl_LocalInvocationID.x); j < n; j += int(gl_WorkGroupSize.x))
+            bin_into(uint((tb.y + j / w) * u_tiles.x + tb.x + j % w), key, k);
+    }
+}
+
+#else
+
+layout(local_size_x = 64) in;
+
+void main() {
+    uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+    for (uint k = gl_GlobalInvocationID.x; k < u_count; k += stride) {
+        int label;
+        Splat s = load_proxy(k, label);
+        ivec4 box = splat_pixel_box(s);
+        if (box.x > box.z || box.y > box.w) continue;  // culled
+        ivec4 tb = box / TILE;
+        if ((tb.z - tb.x + 1) * (tb.w - tb.y + 1) > MAX_THREAD_TILES) {
+#if !SCATTER
+            uint i = atomicAdd(n_large, 1u);
+            large[i] = k;
+            atomicMax(groups_x, min(i + 1u, LARGE_GROUPS));
+#endif
+            continue;
+        }
+        uint key = SCATTER != 0 ? near_key(s) : 0u;
+        for (int ty = tb.y; ty <= tb.w; ++ty)
+            for (int tx = tb.x; tx <= tb.z; ++tx)
+                bin_into(uint(ty * u_tiles.x + tx), key, k);
+    }
+}
+
+#endif
+#endif

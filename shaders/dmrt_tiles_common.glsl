@@ -1,0 +1,36 @@
+// Tile-binned visibility stage (dmrt/runtime/tiles.py): what the binning and raster programs share.
+// Included; no #version. The screen is cut into TILE x TILE pixel tiles, tile (tx, ty) has index
+// ty * u_tiles.x + tx. A disc goes to every tile its conservative pixel box (splat_pixel_box, the
+// box every other splat path tests) overlaps, keyed by its near depth (near_key).
+#include "splat_depth_common.glsl"
+
+#ifndef TILE
+#define TILE 16
+#endif
+
+// n proxies x 8 floats: position xyz (metres, scene-origin-relative), radius (metres), normal xyz,
+// label (int bits); the buffer of dmrt.runtime.visibility.ProxySplats (dmrt_splat_common.glsl).
+layout(std430, binding = 0) readonly buffer Proxies { float proxies[]; };
+
+uniform ivec2 u_tiles;  // tiles per row, tile rows
+
+const uint EMPTY_BITS = 0xFFFFFFFFu;  // an empty depth (above every positive float's bits)
+
+// The loader of dmrt_splat_common.glsl, so that every path evaluates the same disc.
+Splat load_proxy(uint k, out int label) {
+    uint o = 8u * k;
+    label = floatBitsToInt(proxies[o + 7u]);
+    return splat_to_camera(vec3(proxies[o], proxies[o + 1u], proxies[o + 2u]),
+                           vec3(proxies[o + 4u], proxies[o + 5u], proxies[o + 6u]), proxies[o + 3u]);
+}
+
+// Float bits of a lower bound of every depth splat_depth_at can return for the disc: the disc's
+// nearest camera z (centre z minus its half-extent in z), lowered by 2e-4 of its distance, which
+// covers the float32 error of the ray-plane depth (up to ~1e3 ulp for the most grazing rays the
+// regular branch takes, |cos| = GRAZING_COS) and of the rim test. Clamped at 0: a disc reaching
+// the camera plane sorts first. Non-negative floats order like their bits, so keys compare as uint.
+uint near_key(Splat s) {
+    float extent = s.r * sqrt(max(1.0 - s.nc.z * s.nc.z, 0.0));
+    float near = s.pc.z - extent - 2e-4 * (abs(s.pc.z) + s.r);
+    return floatBitsToUint(max(near, 0.0));
+}
