@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from bench.workspace import BenchPreset, Workspace
+from bench.workspace import BenchPreset, Workspace, gpu_clocks
 
 
 # ----------------------------------------------------------------------------------------------
@@ -72,8 +72,10 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
     Returns
     -------
     dict
-        ``median_ms`` {stage: median GPU ms}, ``median_total_ms``, ``mean_total_ms`` (the paper's
-        Table 2 averages), ``fps_min_avg_max``, ``fps_median``,
+        ``median_ms`` {stage: median GPU ms}, ``median_total_ms``, ``p95_total_ms``,
+        ``mean_total_ms`` (the paper's Table 2 averages), ``median_wall_ms``, ``p95_wall_ms``,
+        ``frame_size`` (w, h), ``gpu_clocks`` {``before``, ``after``: :func:`gpu_clocks` around the
+        timed pass, None without nvidia-smi}, ``fps_min_avg_max``, ``fps_median``,
         per frame ``total_ms_per_frame``, ``stage_ms_per_frame`` {stage: list}, ``wall_ms_per_frame``
         (``render()`` wall clock), ``median_cpu_ms``, ``mean_iterations`` (over the pixels with a
         surface), ``surface_fraction``, ``photo_uploads`` and ``gpu_bytes``.
@@ -93,6 +95,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
             if on_frame is not None:
                 on_frame(f)
         uploads0 = renderer.images.uploads
+        clocks_before = gpu_clocks()  # the statistics pass just ran back to back: clocks are up
         timings, cpu, wall = [], [], []
         for cam in tqdm(cameras, desc=desc, unit="frame", leave=False, disable=not progress):
             t0 = time.perf_counter()
@@ -100,10 +103,13 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
             wall.append((time.perf_counter() - t0) * 1e3)
             timings.append(f["timings"])
             cpu.append(f.get("cpu_ms", {}))
+        clocks = {"before": clocks_before, "after": gpu_clocks()}
         stages = list(timings[0])
         totals = [float(sum(t.values())) for t in timings]
         return {"median_ms": {s: float(np.median([t[s] for t in timings])) for s in stages},
                 "median_total_ms": float(np.median(totals)), "mean_total_ms": float(np.mean(totals)),
+                "p95_total_ms": float(np.percentile(totals, 95)), "p95_wall_ms": float(np.percentile(wall, 95)),
+                "frame_size": [cameras[0].width, cameras[0].height], "gpu_clocks": clocks,
                 **fps_summary(totals),
                 "total_ms_per_frame": totals, "stage_ms_per_frame": {s: [t[s] for t in timings] for s in stages},
                 "wall_ms_per_frame": wall, "median_wall_ms": float(np.median(wall)),

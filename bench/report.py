@@ -358,7 +358,11 @@ def section_table2(rs: ResultSet, out: Path) -> Section:
             f"fps {main} (min/avg/max)": "/".join(fmt(x) for x in d["fps_min_avg_max"]) if d else None,
             "fps paper": p["fps"][pk] if pk is not None else None,
             "mean search steps": d and d["mean_iterations"],
-            "median wall ms (render call)": d and d["median_wall_ms"]})
+            "p95 total (ms)": d and d.get("p95_total_ms"),
+            "median / p95 wall ms (render call)": d and "/".join(fmt(x) for x in (d["median_wall_ms"],
+                                                                                  d.get("p95_wall_ms"))),
+            "frame": d and "x".join(map(str, d.get("frame_size", []))) or None,
+            "SM clock MHz (after)": d and ((d.get("gpu_clocks") or {}).get("after") or {}).get("sm_mhz")})
     s.table("table2_ratios", f"Ratios: ours ({main} visibility, the default) vs paper; visibility stage of the "
                              f"paper's peeling by rasterization (raster) vs peeling by compute splatting (compute) "
                              f"vs the one-pass k-buffer (kbuffer)", ratio_rows)

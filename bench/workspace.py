@@ -139,6 +139,20 @@ def machine_info() -> dict:
             "platform": platform.platform(), "python": platform.python_version()}
 
 
+def gpu_clocks() -> dict | None:
+    """The NVIDIA GPU's current and maximum SM clock and memory clock in MHz (``nvidia-smi``), or
+    None where there is no such tool. GPUs drop their clocks on light load (an H200 idles at 345
+    MHz), so timed walkthroughs record the clocks they ran at."""
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=clocks.sm,clocks.max.sm,clocks.mem",
+                              "--format=csv,noheader,nounits"], capture_output=True, text=True, timeout=10,
+                             check=True).stdout.splitlines()[0]
+        sm, sm_max, mem = (float(v) for v in out.split(","))
+    except (OSError, subprocess.SubprocessError, IndexError, ValueError):
+        return None
+    return {"sm_mhz": sm, "sm_max_mhz": sm_max, "mem_mhz": mem}
+
+
 def commit_info(repo: Path | None = None) -> dict:
     """``hash`` (12 hex digits, "unknown" outside a git checkout), ``date`` (commit time, ISO) and
     ``dirty`` (uncommitted changes to tracked files). ``DMRT_COMMIT`` in the environment overrides

@@ -6,16 +6,10 @@
 // among the K nearest): u_overflow counts those pixels.
 #if defined COMPUTE_SHADER
 
-#ifndef SLOTS
-#define SLOTS 16
-#endif
-#ifndef LABEL_BITS
-#define LABEL_BITS 8
-#endif
+#include "dmrt_kbuffer_common.glsl"
 
 layout(local_size_x = 8, local_size_y = 8) in;
 
-layout(std430, binding = B_KBUFFER) buffer KBuffer { uint kbuf[]; };
 layout(std430, binding = B_LAYER_DEPTH) writeonly buffer LayerDepth { uint layer_depth[]; };
 layout(std430, binding = B_LAYER_LABEL) writeonly buffer LayerLabel { int layer_label[]; };
 layout(std430, binding = B_OVERFLOW) buffer Overflow { uint overflow; };

@@ -6,13 +6,7 @@
 //   RESOLVE 0: atomicMin of the distance bits;  RESOLVE 1: equal distance -> atomicMin label;
 //   INT64 1 (NVIDIA): one pass, atomicMin of (distance bits << 32 | label) into Key (8 bytes/pixel).
 // Distances are taken in the render camera's space (rotation invariant: the same as in the world).
-#ifndef INT64
-#define INT64 0
-#endif
-#if INT64
-#extension GL_ARB_gpu_shader_int64 : require
-#extension GL_NV_shader_atomic_int64 : require
-#endif
+#include "int64_atomics.glsl"
 #include "dmrt_splat_common.glsl"
 #include "dmrt_frame.glsl"
 

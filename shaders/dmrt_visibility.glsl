@@ -10,13 +10,7 @@
 // a disc hit is discarded where its label equals layer u_layer-1's label at that pixel or its
 // depth is <= that layer's depth; where layer u_layer-1 is empty, so is this one.
 // Each pass runs twice, LARGE 0 then LARGE 1 (see dmrt_splat_common.glsl).
-#ifndef INT64
-#define INT64 0
-#endif
-#if INT64
-#extension GL_ARB_gpu_shader_int64 : require
-#extension GL_NV_shader_atomic_int64 : require
-#endif
+#include "int64_atomics.glsl"
 #include "dmrt_splat_common.glsl"
 
 #if defined COMPUTE_SHADER

@@ -12,15 +12,7 @@
 
 #if defined COMPUTE_SHADER
 
-#ifndef SLOTS
-#define SLOTS 16
-#endif
-#ifndef LABEL_BITS
-#define LABEL_BITS 8
-#endif
-
-// h x w pixels x SLOTS keys, a pixel's slots contiguous; 0xFFFFFFFF = empty
-layout(std430, binding = B_KBUFFER) buffer KBuffer { uint kbuf[]; };
+#include "dmrt_kbuffer_common.glsl"
 
 void visit(Splat s, int label, int col, int row) {
     float z = splat_depth_at(s, vec2(col, row) + 0.5);

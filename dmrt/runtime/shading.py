@@ -2,13 +2,18 @@
 of ``shaders/dmrt_frame.glsl``, and from there on a frame is the same work:
 
 1. ``image_management`` - the label histogram on the GPU, read back, and the most frequent photos
-   streamed into the full-resolution cache (:class:`dmrt.runtime.texturing.ImageCache`);
+   streamed into the full-resolution cache (:class:`dmrt.runtime.texturing.ImageCache`). While
+   streaming (``async_photos``) the previous frame's histogram chooses them: reading the current
+   one back would make the CPU wait for the frame so far (9-13 ms a frame at paper scale on an
+   H200), and photos stream in over several frames anyway;
 2. ``texturing`` - colour from each pixel's photo (:func:`dmrt.runtime.texturing.texture_frame`);
 3. ``leveling`` (optional) - screen-space leveling (:class:`dmrt.runtime.leveling.ScreenLeveler`);
 4. the GL error check, the read-back (unless timing) and the per-stage timings.
 """
 
 from __future__ import annotations
+
+import time
 
 import moderngl
 import numpy as np
@@ -80,7 +85,10 @@ class FrameShading:
                                  config.cpu_cache_mb)
         self.photos = ctx.buffer(photo_params(bundle.cameras, bundle.origin, depth_sizes,
                                               self.images.low_sizes).tobytes())
-        self.counts = ctx.buffer(reserve=4 * n)
+        # two histograms, this frame's and the last one's (see the module doc)
+        self.counts = [ctx.buffer(reserve=4 * n), ctx.buffer(reserve=4 * n)]
+        self.latency = 1 if config.async_photos else 0
+        self.frames = 0
         self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
         self.leveler = ScreenLeveler(ctx, n, config.leveling_min_samples, config.leveling_max_gain,
                                      config.discontinuity_threshold, seam_tolerance) if config.leveling else None
@@ -108,15 +116,22 @@ class FrameShading:
         """
         ctx, timer = self.ctx, self.timer
         w, h = cam_uniforms["u_size"]
+        counts_now = self.counts[self.frames % 2]
         with timer.section("image_management"):
-            fill_u32(ctx, self.counts, 0, self.counts.size // 4)
+            fill_u32(ctx, counts_now, 0, counts_now.size // 4)
             ctx.memory_barrier(_BARRIER)
             hits.bind_to_storage_buffer(abi.B_HITS)
-            self.counts.bind_to_storage_buffer(abi.B_COUNTS)
+            counts_now.bind_to_storage_buffer(abi.B_COUNTS)
             set_uniforms(self._histogram, u_count=w * h)
             self._histogram.run(groups(w * h, 64 * 64))
             ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        counts, cpu_ms = texture_frame(ctx, timer, self.images, self.counts, hits, colors, self.photos, cam_uniforms)
+        t0 = time.perf_counter()
+        chooser = self.counts[(self.frames - min(self.latency, self.frames)) % 2]
+        counts = np.frombuffer(chooser.read(), np.uint32).copy()
+        cpu_ms = {"label_readback": (time.perf_counter() - t0) * 1e3}
+        self.frames += 1
+        cpu_ms["image_management"] = texture_frame(ctx, timer, self.images, counts, hits, colors, self.photos,
+                                                   cam_uniforms)
         self.label_counts = counts
         if self.leveler is not None:
             cpu_ms["leveling"] = self.leveler.run(timer, hits, colors, self.photos, self.images, depthmaps,
@@ -140,6 +155,6 @@ class FrameShading:
 
     def release(self) -> None:
         self.images.release()
-        for obj in (self.photos, self.counts, self.leveler):
+        for obj in (self.photos, *self.counts, self.leveler):
             if obj is not None:
                 obj.release()

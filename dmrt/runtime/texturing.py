@@ -180,7 +180,7 @@ class ImageCache:
             obj.release()
 
 
-def texture_frame(ctx, timer, images: ImageCache, label_counts, hits, colors, photos, cam_uniforms: dict) -> tuple:
+def texture_frame(ctx, timer, images: ImageCache, counts: np.ndarray, hits, colors, photos, cam_uniforms: dict) -> float:
     """Image management after the label histogram, then the texturing pass; shared by the DMRT and
     DMT renderers (both write the ``Hit`` records of ``shaders/dmrt_frame.glsl``).
 
@@ -189,23 +189,19 @@ def texture_frame(ctx, timer, images: ImageCache, label_counts, hits, colors, ph
     ctx : moderngl.Context
     timer : dmrt.gl.GpuTimer, sections ``image_management`` (uploads) and ``texturing``
     images : ImageCache
-    label_counts : moderngl.Buffer, (n_photos,) uint32 pixels per label, counted on the GPU
+    counts : (n_photos,) uint32 pixels per label (the label histogram) that choose the resident photos
     hits, colors : moderngl.Buffer, the frame's ``Hit`` records and packed RGBA8 colours (written)
-    photos : moderngl.Buffer, the ``Photo`` records (``dmrt.runtime.renderer.photo_params``)
+    photos : moderngl.Buffer, the ``Photo`` records (``dmrt.runtime.shading.photo_params``)
     cam_uniforms : dict, ``u_R, u_t, u_K, u_size`` of the frame
 
     Returns
     -------
-    counts : (n_photos,) uint32, the histogram read back
-    cpu_ms : dict, ``label_readback`` (wall ms waiting for the GPU to finish the frame so far) and
-        ``image_management`` (wall ms choosing, decoding and uploading photos)
+    float, wall ms of choosing, decoding and uploading photos (CPU time)
     """
     import time
 
     import moderngl
 
-    t0 = time.perf_counter()
-    counts = np.frombuffer(label_counts.read(), np.uint32).copy()
     t1 = time.perf_counter()
     with timer.section("image_management"):
         images.update(counts)
@@ -223,4 +219,4 @@ def texture_frame(ctx, timer, images: ImageCache, label_counts, hits, colors, ph
                      u_high_dims=(images.high.width, images.high.height), **cam_uniforms)
         program.run(-(-w // 8), -(-h // 8))
         ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
-    return counts, {"label_readback": (t1 - t0) * 1e3, "image_management": (t2 - t1) * 1e3}
+    return (t2 - t1) * 1e3
