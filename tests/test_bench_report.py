@@ -27,7 +27,7 @@ from bench.report import REQUIRED_EXPERIMENTS, fmt
 @pytest.fixture(scope="session")
 def ci_run(tiny_scene, tmp_path_factory):
     """``dmrt bench --preset ci`` then ``dmrt report --check``: (results dir, result set dir, report dir)."""
-    from dmrt.cli import main
+    from dmrt.app.cli import main
 
     root = tmp_path_factory.mktemp("bench")
     results, report = root / "results", root / "report"
@@ -46,6 +46,8 @@ def _md_rows(md: str) -> set[str]:
     return {line for line in md.splitlines() if line.startswith("| ")}
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
 def test_ci_results_layout(ci_run):
     """asv layout: RESULTS/<machine>/<commit>-ci/<experiment>.json with machine, commit, preset,
     parameters, version and raw measurements; machine.json beside the result sets."""
@@ -66,6 +68,8 @@ def test_ci_results_layout(ci_run):
     assert not list(set_dir.glob("*.failed.json"))
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
 def test_report_is_complete(ci_run):
     """Every required section with its tables (CSV too) and non-blank figures; nothing 'not run'."""
     import matplotlib.image as mpimg
@@ -95,6 +99,8 @@ def test_report_is_complete(ci_run):
         [f"{n}.json" for n in REQUIRED_EXPERIMENTS] + ["machine.json"])
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
 def test_report_numbers_are_the_measured_ones(ci_run):
     """Rows of REPORT.md rebuilt from the JSON files (not from the report code) are in it verbatim."""
     from bench import paper
@@ -156,6 +162,8 @@ def test_report_numbers_are_the_measured_ones(ci_run):
                for r in rows)
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
 def test_maps_have_the_frame_shape_and_match_the_json(ci_run):
     """Fig. 8 and Fig. 13 maps are (h, w) of the frame, and the rates in the JSON are theirs."""
     _, set_dir, _ = ci_run
@@ -186,6 +194,8 @@ def test_maps_have_the_frame_shape_and_match_the_json(ci_run):
         assert row["hole_rate_representable_filled"] <= row["hole_rate_representable"]
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
 def test_fig13_direct_renders_agree_with_fig7_from_one_render(ci_run):
     """Fig. 7 reads the hole rate of k layers off one max-layer frame (``hole_counts``); Fig. 13 renders
     1, 2, 3 layers directly at the same photo cameras: the rates must be equal."""
@@ -201,10 +211,12 @@ def test_fig13_direct_renders_agree_with_fig7_from_one_render(ci_run):
                                                                abs=1e-3)
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
 def test_derived_proxy_bundle_equals_preprocessing(ci_run, tiny_bundle):
     """The harness's main bundle (proxies relabeled on the base bundle's depth maps) holds exactly what
     ``dmrt preprocess`` writes for the same scene and settings."""
-    from dmrt.bundle import read_bundle
+    from dmrt.io.bundle import read_bundle
 
     _, set_dir, _ = ci_run
     derived = read_bundle(_result(set_dir, "table1")["measurements"]["bundle"]["path"])
@@ -237,7 +249,7 @@ def _write_set(root: Path, commit: str = "abcdef123456", **files) -> Path:
 
 def test_missing_experiments_show_as_not_run_and_fail_the_check(tmp_path, capsys):
     from bench.report import build_report
-    from dmrt.cli import main
+    from dmrt.app.cli import main
 
     _write_set(tmp_path / "results", table1=_table1_payload())
     r = build_report(tmp_path / "results", tmp_path / "report")
@@ -269,7 +281,7 @@ def test_failed_experiment_is_reported_as_failed(tmp_path):
 
 def test_truncated_result_file_is_a_clear_error_and_keeps_the_old_report(tmp_path, capsys):
     from bench.report import build_report
-    from dmrt.cli import main
+    from dmrt.app.cli import main
     from dmrt.errors import InputError
 
     d = _write_set(tmp_path / "results", table1=_table1_payload())
@@ -290,6 +302,8 @@ def test_truncated_result_file_is_a_clear_error_and_keeps_the_old_report(tmp_pat
         build_report(tmp_path / "results", tmp_path / "report")
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
 def test_history_of_several_result_sets(ci_run, tmp_path):
     """Two result sets of one machine and preset: the newest gives the tables, both the history plot."""
     from bench.report import build_report
@@ -311,13 +325,15 @@ def test_history_of_several_result_sets(ci_run, tmp_path):
     assert (tmp_path / "report" / "figures" / "history.png").stat().st_size > 10_000
 
 
+@pytest.mark.gpu  # dmrt bench records the GL renderer
+@pytest.mark.e2e
 def test_a_failing_experiment_does_not_stop_the_others(tmp_path, monkeypatch, capsys):
     """A raising experiment leaves ``<name>.failed.json`` (and no stale result), the next one still runs,
     and ``dmrt bench`` exits non-zero naming it."""
     from dataclasses import dataclass
 
     from bench import experiments
-    from dmrt.cli import main
+    from dmrt.app.cli import main
 
     @dataclass
     class NoParams:

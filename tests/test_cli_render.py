@@ -5,13 +5,15 @@ import json
 import numpy as np
 import pytest
 
-from dmrt.bundle import camera_to_json, read_bundle
-from dmrt.cli import main
-from dmrt.frames import read_frame
-from dmrt.renderer import STAGES
-from dmrt.scene import load_scene
+from dmrt.io.bundle import camera_to_json, read_bundle
+from dmrt.app.cli import main
+from dmrt.io.frames import read_frame
+from dmrt.runtime.renderer import STAGES
+from dmrt.io.scene import load_scene
 from reference.metrics import compare
 from reference.render import EmbreeReference
+
+pytestmark = pytest.mark.e2e  # the dmrt render / path commands, bundle to frame files
 
 
 def test_render_photo_camera_matches_reference(tiny_bundle, tiny_scene, tmp_path):
@@ -23,7 +25,7 @@ def test_render_photo_camera_matches_reference(tiny_bundle, tiny_scene, tmp_path
     # the Fig. 3 pictures: the per-pixel labels picture shows the frame's labels
     from PIL import Image
 
-    from dmrt.frames import label_colors
+    from dmrt.io.frames import label_colors
 
     names = sorted(p.stem for p in (tmp_path / "stages").glob("*.png"))
     assert names == ["a_splat_labels", "b_raytraced_depth", "c_pixel_labels", "d_textured", "holes", "iterations"]

@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from dmrt.camera import Camera
-from dmrt.colmap import qvec_to_rotation, read_model, rotation_to_qvec, write_model
+from dmrt.io.colmap import qvec_to_rotation, read_model, rotation_to_qvec, write_model
 from dmrt.errors import InputError
 
 
@@ -19,6 +19,12 @@ def _cameras(n=6, seed=1):
                            rng.uniform(0, w), rng.uniform(0, h), Rs[i],
                            rng.uniform(-1, 1, 3) * [1e5, 5e6, 1e3]))
     return cams
+
+
+def _write_text_model(folder, cameras: str, images: str) -> None:
+    """A COLMAP text model from the contents of ``cameras.txt`` and ``images.txt``."""
+    (folder / "cameras.txt").write_text(cameras)
+    (folder / "images.txt").write_text(images)
 
 
 @pytest.mark.parametrize("binary", [False, True])
@@ -65,8 +71,7 @@ def test_simple_pinhole_and_image_order(tmp_path):
 
 
 def test_unnormalized_quaternion_is_normalized(tmp_path):
-    (tmp_path / "cameras.txt").write_text("1 PINHOLE 10 10 5 5 5 5\n")
-    (tmp_path / "images.txt").write_text("1 2 0 0 0 0 0 0 1 a.png\n\n")
+    _write_text_model(tmp_path, "1 PINHOLE 10 10 5 5 5 5\n", "1 2 0 0 0 0 0 0 1 a.png\n\n")
     np.testing.assert_allclose(read_model(tmp_path)[0].R, np.eye(3), atol=1e-15)
 
 
@@ -93,21 +98,18 @@ def test_missing_model(tmp_path):
 
 
 def test_wrong_param_count(tmp_path):
-    (tmp_path / "cameras.txt").write_text("1 PINHOLE 10 10 5 5 5\n")
-    (tmp_path / "images.txt").write_text("1 1 0 0 0 0 0 0 1 a.png\n\n")
+    _write_text_model(tmp_path, "1 PINHOLE 10 10 5 5 5\n", "1 1 0 0 0 0 0 0 1 a.png\n\n")
     with pytest.raises(InputError, match=r"cameras\.txt.*PINHOLE takes 4 parameters, found 3"):
         read_model(tmp_path)
 
 
 def test_nan_quaternion(tmp_path):
-    (tmp_path / "cameras.txt").write_text("1 PINHOLE 10 10 5 5 5 5\n")
-    (tmp_path / "images.txt").write_text("1 nan 0 0 0 0 0 0 1 a.png\n\n")
+    _write_text_model(tmp_path, "1 PINHOLE 10 10 5 5 5 5\n", "1 nan 0 0 0 0 0 0 1 a.png\n\n")
     with pytest.raises(InputError, match=r"images\.txt.*'a\.png'.*NaN"):
         read_model(tmp_path)
 
 
 def test_zero_images(tmp_path):
-    (tmp_path / "cameras.txt").write_text("1 PINHOLE 10 10 5 5 5 5\n")
-    (tmp_path / "images.txt").write_text("# nothing\n")
+    _write_text_model(tmp_path, "1 PINHOLE 10 10 5 5 5 5\n", "# nothing\n")
     with pytest.raises(InputError, match=r"images\.txt.*no images"):
         read_model(tmp_path)

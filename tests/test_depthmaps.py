@@ -1,21 +1,21 @@
 """Depth maps from oriented circular splats (paper Section 4.1), on a real GL context.
 
 Both GPU paths (compute, raster) are checked against analytic planes and against
-:func:`splat_depth_numpy`, an independent brute-force float64 implementation of the same primitive
-written in world space (every pixel against every disc, no bounding boxes).
+:func:`reference.twins.splat_depth_map`, an independent brute-force float64 implementation of the
+same primitive written in world space (every pixel against every disc, no bounding boxes).
 """
 
 import numpy as np
 import pytest
 
 from dmrt.camera import Camera
-from dmrt.depthmaps import (DepthMapConfig, DepthMapRenderer, depth_map_size, read_depth_exr,
+from dmrt.preprocess.depthmaps import (DepthMapConfig, DepthMapRenderer, depth_map_size, read_depth_exr,
                             write_depth_exr)
 from dmrt.errors import InputError
 from dmrt.gl import GpuTimer
+from reference.twins import splat_depth_map
 
 W, H = 96, 64  # depth-map size used throughout: small enough for llvmpipe and the numpy reference
-GRAZING_COS = 1e-3  # the shaders' GRAZING_COS (shaders/splat_depth_common.glsl)
 
 # (method, renderer tweak): the default paths, plus settings that push most discs through the
 # second programs (workgroup-per-disc compute pass; geometry-shader quads in the raster path)
@@ -25,62 +25,6 @@ VARIANTS = {
     "raster": ("raster", {}),
     "raster-quads": ("raster", {"max_point_size": 8.0}),
 }
-
-
-def splat_depth_numpy(camera, positions, normals, radii, width, height):
-    """Reference depth map: nearest ray-disc hit per pixel, float64, brute force.
-
-    Parameters
-    ----------
-    camera : Camera
-        Any resolution; scaled to ``width`` x ``height``.
-    positions, normals : (n, 3) float
-        Disc centres (metres) and normals (any length; zero = facing the camera).
-    radii : (n,) float
-        Disc radii, metres.
-
-    Returns
-    -------
-    depth : (height, width) float64
-        Camera z, 0 where no disc is hit.
-    ambiguous : (height, width) bool
-        Pixels whose result float32 rounding may legitimately flip: some disc's rim passes within
-        0.1 % of the pixel centre's ray, or the ray is near the grazing-angle switch.
-    """
-    cam = camera.scaled(width, height)
-    dirs, centre = cam.pixel_rays()  # world directions with camera z = ray parameter
-    dlen = np.linalg.norm(dirs, axis=1, keepdims=True)
-    p = np.asarray(positions, np.float64) - centre
-    n = np.asarray(normals, np.float64)
-    nlen = np.linalg.norm(n, axis=1, keepdims=True)
-    facing = -p / np.linalg.norm(p, axis=1, keepdims=True)
-    n = np.where(nlen > 0, n / np.where(nlen > 0, nlen, 1), facing)
-    r2 = np.asarray(radii, np.float64) ** 2
-    zc = p @ cam.R[2]  # camera z of each centre
-    depth = np.full(len(dirs), np.inf)
-    ambiguous = np.zeros(len(dirs), bool)
-    for b in range(0, len(p), 128):
-        pb, nb, rb, zb = p[b:b + 128], n[b:b + 128], r2[b:b + 128], zc[b:b + 128]
-        nd = dirs @ nb.T  # (pixels, discs)
-        cos = np.abs(nd) / dlen
-        dp = dirs @ pb.T
-        p2 = (pb ** 2).sum(1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = (nb * pb).sum(1) / nd
-            q2 = s ** 2 * dlen ** 2 - 2 * s * dp + p2  # |s d - p|^2, squared distance to the centre
-        regular = cos > GRAZING_COS
-        hit = regular & (s > 0) & (q2 <= rb)
-        # grazing rays: the centre's depth where the ray passes within r of the centre
-        line2 = p2 - (dp / dlen) ** 2
-        hit_g = ~regular & (zb > 0) & (line2 <= rb)
-        z = np.where(hit, s, np.where(hit_g, zb, np.inf))
-        depth = np.minimum(depth, z.min(1))
-        rim = regular & (s > 0) & (np.abs(q2 / rb - 1) < 1e-3)
-        rim |= ~regular & (zb > 0) & (np.abs(line2 / rb - 1) < 1e-3)
-        switch = (np.abs(cos / GRAZING_COS - 1) < 0.5) & (line2 <= 1.001 * rb)  # near the grazing rule
-        ambiguous |= (rim | switch).any(1)
-    depth[~np.isfinite(depth)] = 0
-    return depth.reshape(height, width), ambiguous.reshape(height, width)
 
 
 def _render(ctx, variant, camera, chunks, **config):
@@ -174,7 +118,7 @@ def _random_scene(seed=0, n=1500):
 @pytest.fixture(scope="module")
 def random_scene():
     camera, p, n, r = _random_scene()
-    ref, ambiguous = splat_depth_numpy(camera, p, n, r, W, H)
+    ref, ambiguous = splat_depth_map(camera, p, n, r, W, H)
     return camera, p, n, r, ref, ambiguous
 
 
@@ -264,7 +208,7 @@ def test_discs_through_the_camera_plane_match_reference(ctx, variant):
     p = np.concatenate([p, wall]).astype(np.float32)
     nrm = np.concatenate([nrm, np.tile([0.0, 1.0, 0.0], (len(u), 1))]).astype(np.float32)
     r = np.concatenate([r, np.full(len(u), 0.15)]).astype(np.float32)
-    ref, ambiguous = splat_depth_numpy(camera, p, nrm, r, W, H)
+    ref, ambiguous = splat_depth_map(camera, p, nrm, r, W, H)
     near = (ref > 0) & (ref < 1.0)
     assert 0.2 < near.mean() < 0.8  # the camera-plane discs cover part of the map, not all of it
     depth = _render(ctx, variant, camera, [(p, nrm, r)])

@@ -4,7 +4,8 @@
   cut is smoother than winner-take-all, the cache in the bundle is reused and bad caches or
   resolutions are refused with the file named.
 * Runtime stages against plain numpy: the grid triangulation with its discontinuity drop and the
-  per-texel label lookup (one depth map seen from its own camera), the frustum culling.
+  per-texel label lookup (one depth map seen from its own camera; the twin
+  :func:`reference.twins.grid_mesh_depth`), the frustum culling.
 * Whole frames against the Embree reference at photo cameras and novel views.
 * The stitching threshold's artifacts of the paper's Fig. 11, on two hand-made scenes whose
   outcome is known in advance.
@@ -22,6 +23,8 @@ import pytest
 
 from dmrt.camera import Camera
 from dmrt.errors import InputError
+from helpers import novel_camera
+from reference.twins import grid_mesh_depth
 
 W, H = 160, 107  # frame size (the photos' aspect), small for llvmpipe
 
@@ -31,19 +34,13 @@ W, H = 160, 107  # frame size (the photos' aspect), small for llvmpipe
 # ---------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def bundle(tiny_bundle, tmp_path_factory):
-    from dmrt.bundle import read_bundle
+    """A copy of ``tiny_bundle`` (overrides conftest's renderer test bundle here): DMT writes its
+    label caches into the bundle."""
+    from dmrt.io.bundle import read_bundle
 
     dst = tmp_path_factory.mktemp("dmt") / "tiny"
     shutil.copytree(tiny_bundle, dst)
     return read_bundle(dst)
-
-
-@pytest.fixture(scope="module")
-def reference(tiny_scene):
-    from dmrt.scene import load_scene
-    from reference.render import EmbreeReference
-
-    return EmbreeReference.from_scene(load_scene(tiny_scene))
 
 
 @pytest.fixture(scope="module")
@@ -54,15 +51,6 @@ def dmt128(ctx, bundle):
     r = DMTRenderer(bundle, DMTConfig(width=128, async_photos=False, max_uploads_per_frame=0, progress=False), ctx)
     yield r
     r.release()
-
-
-def novel_camera(a: Camera, b: Camera, t: float = 0.5) -> Camera:
-    """A camera between ``a`` and ``b``: centre interpolated linearly, rotation by slerp."""
-    from scipy.spatial.transform import Rotation, Slerp
-
-    R = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([a.R, b.R])))(t).as_matrix()
-    c = (1 - t) * a.center + t * b.center
-    return Camera(f"between_{a.name}_{b.name}", a.width, a.height, a.fx, a.fy, a.cx, a.cy, R, -R @ c)
 
 
 def views(cameras) -> list[Camera]:
@@ -77,33 +65,6 @@ def dmt_depths(bundle, width):
     from baselines.dmt.geometry import load_depth_map
 
     return [load_depth_map(bundle, i, width) for i in range(len(bundle.cameras))]
-
-
-def triangle_depth(depth: np.ndarray, p: np.ndarray):
-    """Depth of the grid mesh of ``depth`` at depth-map positions ``p`` (n, 2) (texels, corner
-    origin), seen from the map's own camera: ``(z (n,), ok (n,) bool, texel (n, 2) int)``.
-
-    The triangle holding ``p`` (T0 = 00-10-01 where f.x + f.y <= 1, else T1 = 10-11-01) must exist
-    (:func:`baselines.dmt.geometry.grid_triangles`); inside it 1/z is linear in image coordinates
-    (exact for the plane through its three vertices).
-    """
-    from baselines.dmt.geometry import grid_triangles
-
-    h, w = depth.shape
-    s = p - 0.5
-    i0 = np.floor(s).astype(np.int64)
-    f = s - i0
-    inside = (i0[:, 0] >= 0) & (i0[:, 1] >= 0) & (i0[:, 0] < w - 1) & (i0[:, 1] < h - 1)
-    c, r = np.where(inside, i0[:, 0], 0), np.where(inside, i0[:, 1], 0)
-    t0, t1 = grid_triangles(depth, 0.20)
-    lower = f[:, 0] + f[:, 1] <= 1.0
-    ok = inside & np.where(lower, t0[r, c], t1[r, c])
-    inv = 1.0 / np.where(depth > 0, depth, 1.0).astype(np.float64)
-    i00, i10, i01, i11 = inv[r, c], inv[r, c + 1], inv[r + 1, c], inv[r + 1, c + 1]
-    iz = np.where(lower, i00 + f[:, 0] * (i10 - i00) + f[:, 1] * (i01 - i00),
-                  i11 + (1 - f[:, 1]) * (i10 - i11) + (1 - f[:, 0]) * (i01 - i11))
-    texel = np.clip(np.floor(p).astype(np.int64), 0, [w - 1, h - 1])
-    return 1.0 / iz, ok, texel
 
 
 def dmt_mesh_raycaster(bundle, depths, threshold=0.20):
@@ -219,6 +180,8 @@ def test_grid_triangulation_matches_numpy(dmt128, bundle):
     the numpy grid mesh's (triangles with an empty texel or a depth span > 20 cm dropped), depth the
     plane of each triangle, label that of the texel holding the point. float32 vs float64 can flip
     pixels next to an edge: >= 99.5 % agree, depths to 1e-4 relative."""
+    from baselines.dmt.geometry import grid_triangles
+
     depths = dmt_depths(bundle, 128)
     labels = [np.asarray(a) for a in _labels_of(dmt128)]
     for i in (2, 7):
@@ -233,7 +196,7 @@ def test_grid_triangulation_matches_numpy(dmt128, bundle):
         j, r = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
         p = np.stack([(j.ravel() - cam.cx) / cam.fx * mcam.fx + mcam.cx,
                       (r.ravel() - cam.cy) / cam.fy * mcam.fy + mcam.cy], 1)
-        z, ok, texel = triangle_depth(D, p)
+        z, ok, texel = grid_mesh_depth(D, p, *grid_triangles(D, 0.20))
         hit = (frame["depth"] > 0).ravel()
         print(f"map {i}: coverage {ok.mean():.3f}, agreement {np.mean(hit == ok):.5f}")
         assert 0.3 < ok.mean() < 0.99  # a real test: surface and dropped triangles both present
@@ -321,7 +284,7 @@ def test_frame_contract(dmt128, bundle):
         np.testing.assert_array_equal(grouped[key], frame[key], err_msg=key)
 
 
-@pytest.mark.parametrize("width", [128, 256])
+@pytest.mark.parametrize("width", [128, pytest.param(256, marks=pytest.mark.slow)])
 def test_against_embree(ctx, bundle, reference, dmt128, width):
     """Frames at photo cameras and novel views against two Embree ray casts.
 
@@ -404,8 +367,8 @@ def two_map_bundle(out, cameras, depths, colors):
     """A bundle of hand-made depth maps and single-colour photos (one proxy: unused by DMT)."""
     from PIL import Image
 
-    from dmrt.bundle import BundleWriter, camera_to_json, read_bundle
-    from dmrt.depthmaps import write_depth_exr
+    from dmrt.io.bundle import BundleWriter, camera_to_json, read_bundle
+    from dmrt.preprocess.depthmaps import write_depth_exr
 
     src = out.parent / f"{out.name}-photos"
     src.mkdir(parents=True, exist_ok=True)
@@ -508,9 +471,10 @@ def test_large_epsilon_lets_a_hidden_thin_feature_shine_through(ctx, tmp_path):
     assert (large["color"][won][:, 1] > 200).all()
 
 
+@pytest.mark.slow
 def test_leveling_balances_photo_exposures(ctx, bundle, tiny_scene):
     """DMRT's screen-space leveling on DMT frames (the issue: "the same leveling"), against the
-    generator's per-photo exposure x white-balance gains as in test_renderer. Photos can only be
+    generator's per-photo exposure x white-balance gains as in test_leveling. Photos can only be
     leveled against each other where the frame has seams between them: within each group of
     photos connected by seams of >= 16 samples (the solver's minimum), the spread of the effective
     log gains must at least halve; and the leveled colours are the unleveled ones times the

@@ -1,4 +1,4 @@
-"""Proxy-point labeling (dmrt.labeling): energy terms, solver guarantees, real PyMaxflow.
+"""Proxy-point labeling (dmrt.preprocess.labeling): energy terms, solver guarantees, real PyMaxflow.
 
 Every energy below is checked against an independent plain-loop implementation of the terms in
 the module docstring; the graph-cut solver is checked against winner-take-all, ICM, and the
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from dmrt.camera import Camera
-from dmrt.labeling import (Candidates, LabelingConfig, _Expansion, _submodular, alpha_expansion,
+from dmrt.preprocess.labeling import (Candidates, LabelingConfig, _Expansion, _submodular, alpha_expansion,
                            candidate_data_costs, data_costs, energy, icm, knn_edges,
                            label_points, smoothness_costs, winner_take_all)
 

@@ -1,4 +1,4 @@
-"""Normals and splat radii (dmrt.normals) against analytic surfaces and sampling patterns."""
+"""Normals and splat radii (dmrt.preprocess.normals) against analytic surfaces and sampling patterns."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from dmrt.normals import (estimate_normals, iter_with_results, orient_normals, process_chunked,
+from dmrt.preprocess.normals import (estimate_normals, iter_with_results, orient_normals, process_chunked,
                           radius_factor, splat_radii)
-from dmrt.octree import Octree, OctreeConfig
+from dmrt.preprocess.octree import Octree, OctreeConfig
 
 
 def angle_deg(a, b):

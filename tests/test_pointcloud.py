@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from dmrt.errors import InputError
-from dmrt.pointcloud import (PointCloud, PointWriter, bounds, count_points, iter_point_chunks,
+from dmrt.io.pointcloud import (PointCloud, PointWriter, bounds, count_points, iter_point_chunks,
                              read_points, write_points)
 
 

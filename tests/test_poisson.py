@@ -1,6 +1,7 @@
 """Screened Poisson reference mesh against an analytic sphere, ray cast with Embree."""
 
 import numpy as np
+import pytest
 import trimesh
 
 from dmrt.camera import Camera
@@ -10,6 +11,7 @@ from reference.raycast import MeshRaycaster
 UTM = np.array([512300.0, 5312700.0, 210.0])
 
 
+@pytest.mark.slow
 def test_poisson_sphere_matches_analytic_depth():
     rng = np.random.default_rng(0)
     n = rng.normal(size=(20_000, 3))

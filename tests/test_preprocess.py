@@ -189,6 +189,8 @@ def test_broken_bundles_name_file_and_field(tiny_bundle, tmp_path):
         read_bundle(tmp_path / "c").proxy
 
 
+@pytest.mark.gpu  # the preprocess command splats the depth maps
+@pytest.mark.e2e
 def test_interrupted_preprocess_leaves_no_bundle(tiny_scene, tmp_path):
     out = tmp_path / "b"
     proc = subprocess.Popen([sys.executable, "-m", "dmrt.app.cli", "preprocess", str(tiny_scene), "--out", str(out),

@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 from dmrt.camera import Camera
-from dmrt.frames import empty_frame, read_frame, write_frame
+from dmrt.io.frames import empty_frame, read_frame, write_frame
 from reference.metrics import compare, psnr, texel_footprint
 from reference.raycast import MeshRaycaster
 from reference.render import EmbreeReference, sample_bilinear

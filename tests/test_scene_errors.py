@@ -8,10 +8,10 @@ import pytest
 from PIL import Image
 
 from dmrt.camera import Camera
-from dmrt.colmap import read_model, write_model
+from dmrt.io.colmap import read_model, write_model
 from dmrt.errors import InputError
-from dmrt.pointcloud import PointCloud, write_points
-from dmrt.scene import load_scene
+from dmrt.io.pointcloud import PointCloud, write_points
+from dmrt.io.scene import load_scene
 
 W, H = 64, 48
 XYZ_HEADER = "property double x\nproperty double y\nproperty double z\n"

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from bench.scenes.synthetic import PRESETS, SynthConfig, build_geometry, generate_scene
-from dmrt.cli import main
-from dmrt.scene import load_scene
+from dmrt.app.cli import main
+from dmrt.io.scene import load_scene
 from reference.raycast import MeshRaycaster
 from reference.render import sample_bilinear
 
@@ -103,14 +103,15 @@ def test_existing_output_is_refused(tmp_path, capsys):
     out.mkdir()
     assert main(["scene", "synth", "--out", str(out), "--quiet"]) == 2
     assert "already exists" in capsys.readouterr().err
-    with pytest.raises(ValueError, match="room_size"):
+    with pytest.raises(ValueError, match="--room-size"):
         SynthConfig(room_size=(0.6, 0.7))
 
 
+@pytest.mark.e2e
 def test_interrupted_generation_leaves_nothing(tmp_path):
     """Ctrl-C in the middle of a scan: neither the scene nor its .partial folder remains."""
     out = tmp_path / "small"
-    proc = subprocess.Popen([sys.executable, "-m", "dmrt.cli", "scene", "synth", "--preset", "small",
+    proc = subprocess.Popen([sys.executable, "-m", "dmrt.app.cli", "scene", "synth", "--preset", "small",
                              "--out", str(out), "--quiet", "--workers", "1"])
     deadline = time.time() + 120
     while not list((tmp_path / "small.partial").glob("points.ply*")):  # the scan has begun

@@ -1,4 +1,4 @@
-"""The interactive viewer driven headless through scripted input (dmrt/viewer.py, dmrt/viewer_window.py).
+"""The interactive viewer driven headless through scripted input (dmrt/app/viewer.py, dmrt/app/viewer_window.py).
 
 No mocks: the real renderers on the tiny scene's bundle, at 160x107 pixels. Photo streaming is
 synchronous and unbounded (``async_photos=False, max_uploads_per_frame=0``) so that a frame's
@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from dmrt.bundle import read_bundle
-from dmrt.cli import main
-from dmrt.renderer import RenderConfig
-from dmrt.frames import label_colors
-from dmrt.viewer import Viewer, ViewerConfig
+from dmrt.io.bundle import read_bundle
+from dmrt.app.cli import main
+from dmrt.runtime.renderer import RenderConfig
+from dmrt.io.frames import label_colors
+from dmrt.app.viewer import Viewer, ViewerConfig
 
 W, H = 160, 107
 DETERMINISTIC = RenderConfig(async_photos=False, max_uploads_per_frame=0)
@@ -35,6 +35,7 @@ def centre_depth(frame) -> float:
     return float(np.median(frame["depth"][H // 2 - 1:H // 2 + 2, W // 2 - 1:W // 2 + 2]))
 
 
+@pytest.mark.e2e
 def test_scripted_session(tiny_bundle, ctx, tmp_path):
     v = make_viewer(tiny_bundle, tmp_path)
     bundle = v.bundle
@@ -194,7 +195,7 @@ def test_orbit(tiny_bundle, ctx, tmp_path):
 
 def test_window_app_headless(tiny_bundle, ctx, tmp_path):
     """The moderngl-window path: a headless window on the shared context, events forwarded."""
-    from dmrt.viewer_window import create_app, run_app
+    from dmrt.app.viewer_window import create_app, run_app
 
     config = ViewerConfig(width=W, height=H, layers=2, overlay=False, path_file=tmp_path / "p.json")
     app = create_app(read_bundle(tiny_bundle), config, DETERMINISTIC, window="headless")
@@ -215,6 +216,7 @@ def test_window_app_headless(tiny_bundle, ctx, tmp_path):
     assert len(json.loads((tmp_path / "p.json").read_text())["cameras"]) == 2
 
 
+@pytest.mark.e2e
 def test_view_command(tiny_bundle, ctx, tmp_path, capsys, monkeypatch):
     still = tmp_path / "view.png"
     assert main(["view", str(tiny_bundle), "--window", "headless", "--frames", "2", "--width", "96",
@@ -227,16 +229,18 @@ def test_view_command(tiny_bundle, ctx, tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert "cannot open a window: no display" in err and "--window headless" in err
     assert "Traceback" not in err
-    assert main(["view", str(tiny_bundle), "--buffer", "nope"]) == 2
-    assert "buffer must be one of color" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:  # argparse knows the choices (ViewerConfig.buffer's Literal)
+        main(["view", str(tiny_bundle), "--buffer", "nope"])
+    assert exit_info.value.code == 2
+    assert "--buffer: invalid choice: 'nope' (choose from" in capsys.readouterr().err
 
 
 PYGLET_SCRIPT = """
 import json, sys
-from dmrt.bundle import read_bundle
-from dmrt.renderer import RenderConfig
-from dmrt.viewer import ViewerConfig
-from dmrt.viewer_window import create_app, run_app
+from dmrt.io.bundle import read_bundle
+from dmrt.runtime.renderer import RenderConfig
+from dmrt.app.viewer import ViewerConfig
+from dmrt.app.viewer_window import create_app, run_app
 from pyglet.window import key
 
 app = create_app(read_bundle(sys.argv[1]), ViewerConfig(width=96, height=64, layers=2, overlay=False),
@@ -281,6 +285,7 @@ def display():
         server.wait()
 
 
+@pytest.mark.e2e
 def test_pyglet_window_keys(tiny_bundle, display):
     """A real window (on a virtual X display without one): pyglet's key codes reach the viewer. In
     its own process: the window's GL context would otherwise become current in place of the tests'
@@ -292,11 +297,12 @@ def test_pyglet_window_keys(tiny_bundle, display):
     assert abs(out["moved"] - 0.5) < 1e-6 and out == {**out, "buffer": "depth", "layers": 3, "photo": 2}
 
 
+@pytest.mark.e2e
 def test_proxy_set_switch(tiny_scene, ctx, tmp_path):
     """``p`` switches the proxy set between the k coarsest octree levels of a bundle preprocessed
     with two: the coarser set is the first level's points (their labels kept, radii from their
     own, sparser density: larger), the frame changes, and ``p`` again returns to both levels."""
-    from dmrt.preprocess import PreprocessConfig, preprocess
+    from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
 
     path = preprocess(tiny_scene, tmp_path / "two-levels", PreprocessConfig(depthmap_width=128, proxy_levels=2),
                       progress=False)

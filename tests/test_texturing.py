@@ -1,0 +1,69 @@
+"""Image management (paper Section 5.2.2) and the texturing pass (5.2.3), the colours against the
+numpy twin :func:`reference.twins.texturing_pass`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from helpers import W
+from reference.twins import texturing_pass
+
+
+def test_image_cache_and_texturing(ctx, bundle):
+    """Image management (paper 5.2.2) and texturing (5.2.3).
+
+    * The most frequent labels of the frame (GPU histogram) get the full-resolution slots, and a
+      steady view uploads nothing.
+    * Streaming decodes on background threads and bounds the uploads per frame.
+    * Colours against the numpy texturing of the same frame (:func:`reference.twins.texturing_pass`:
+      each pixel's raytraced point projected into the full-resolution photo of its label, bilinear): with every photo cached, 99 % of the
+      pixels are within 3 levels (8-bit filtering weights on the GPU); the low-resolution copies
+      (half the resolution here) are at least 3 dB worse.
+    """
+    from dmrt.runtime.renderer import RenderConfig, Renderer
+    from reference.metrics import psnr
+
+    cam = bundle.cameras[2].resized(W)
+    slot_mb = max(c.width * c.height for c in bundle.cameras) * 3 / 2 ** 20
+    sync = {"async_photos": False, "max_uploads_per_frame": 0}
+    low = Renderer(bundle, RenderConfig(layers=3, cache_mb=0), ctx)
+    two = Renderer(bundle, RenderConfig(layers=3, cache_mb=2.5 * slot_mb, **sync), ctx)
+    full = Renderer(bundle, RenderConfig(layers=3, **sync), ctx)
+    streamed = Renderer(bundle, RenderConfig(layers=3, max_uploads_per_frame=1), ctx)  # asynchronous
+    try:
+        assert low.images.n_slots == 0 and two.images.n_slots == 2
+        assert full.images.n_slots == len(bundle.cameras)  # the default 1 GB holds them all
+        f_two = two.render(cam)
+        counts = two.label_counts.astype(np.int64)
+        labelled = f_two["label"][f_two["label"] >= 0]
+        np.testing.assert_array_equal(counts, np.bincount(labelled, minlength=len(bundle.cameras)))
+        assert set(np.flatnonzero(two.images.slot_of >= 0)) == set(np.argsort(-counts, kind="stable")[:2])
+        uploads = two.images.uploads
+        two.render(cam)
+        assert two.images.uploads == uploads
+
+        f_low, f_full = low.render(cam), full.render(cam)
+        for key in ("depth", "label"):
+            np.testing.assert_array_equal(f_low[key], f_full[key])
+        expected = texturing_pass(cam, f_full["depth"], f_full["label"], bundle.cameras, bundle.image)
+        hit = f_full["depth"] > 0
+        err = np.abs(f_full["color"].astype(int) - expected.astype(int)).max(-1)[hit]
+        p_low, p_full = psnr(f_low["color"], expected, hit), psnr(f_full["color"], expected, hit)
+        print(f"texturing vs numpy: full-res {p_full:.2f} dB (99th pct error {np.percentile(err, 99):.0f}), "
+              f"low-res {p_low:.2f} dB")
+        assert np.percentile(err, 99) <= 3
+        assert p_full > p_low + 3.0
+
+        # streaming: the first frame waits for nothing (decodes run in the background), at most
+        # one upload per frame, and once flushed the frame equals the synchronous one
+        f0 = streamed.render(cam)
+        assert streamed.images.uploads <= 1
+        streamed.render(cam)
+        assert streamed.images.uploads <= 2
+        streamed.flush_photos()
+        np.testing.assert_array_equal(streamed.render(cam)["color"], f_full["color"])
+        assert (f0["depth"] == f_full["depth"]).all()
+    finally:
+        for r in (low, two, full, streamed):
+            r.release()
