@@ -43,6 +43,15 @@ def bundle_path(args, setup: dict) -> Path:
     return out
 
 
+def add_source_args(p: argparse.ArgumentParser, work: str) -> None:
+    """``--bundle BUNDLE`` or ``--preset NAME`` (made in ``--work``, default ``work``), and ``--out``."""
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--bundle", type=Path)
+    src.add_argument("--preset")
+    p.add_argument("--work", type=Path, default=Path(work))
+    p.add_argument("--out", type=Path, required=True)
+
+
 def main(argv=None) -> None:
     from bench.experiments import measure_walkthrough
     from dmrt.gl import get_context, renderer_info
@@ -51,11 +60,7 @@ def main(argv=None) -> None:
     from dmrt.runtime.walkthrough import camera_path
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--bundle", type=Path)
-    src.add_argument("--preset")
-    p.add_argument("--work", type=Path, default=Path("/tmp/dmrt-bench"))
-    p.add_argument("--out", type=Path, required=True)
+    add_source_args(p, "/tmp/dmrt-bench")
     p.add_argument("--sizes", nargs="+", default=["1280x720"], help="frame sizes WxH (default: 1280x720)")
     p.add_argument("--layers", type=int, nargs="+", default=[1, 3, 5, 7, 9, 11])
     p.add_argument("--methods", nargs="+", default=["compute", "raster"])

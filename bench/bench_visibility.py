@@ -5,34 +5,31 @@
 
 Renders a walkthrough at 1280x720 with 1 and ``--layers`` label layers for depth peeling by compute
 passes (``compute``, per ``--max-thread-pixels``: discs with a larger pixel box are splatted by a
-workgroup each) and for the single-pass k-buffer (``kbuffer``, per ``--slots``), and records the
-median GPU ms of the visibility stage and of the labeling pass (one more splat pass). For the
-k-buffer also the agreement of its layers with the peeled ones (share of pixels with equal label,
-per layer) and the pixels whose list overflowed. One JSON ``visibility-<name>.json``.
+workgroup each), for the single-pass k-buffer (``kbuffer``, per ``--slots``) and for the tile-binned
+single pass (``tiles``, :mod:`dmrt.runtime.tiles`), and records the median GPU ms of the visibility
+stage and of the labeling pass (one more splat pass). For the single passes also the agreement of
+their layers with the peeled ones (share of pixels with equal label, per layer) and the pixels
+whose list overflowed; for ``tiles`` its list's statistics and GPU bytes. One JSON
+``visibility-<name>.json``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
 import numpy as np
 
 
 def main(argv=None) -> None:
-    from bench.bench_render import bundle_path
+    from bench.bench_render import add_source_args, bundle_path
     from dmrt.io.bundle import read_bundle
     from dmrt.gl import get_context, renderer_info
     from dmrt.runtime.renderer import RenderConfig, Renderer
     from dmrt.runtime.walkthrough import camera_path
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--bundle", type=Path)
-    src.add_argument("--preset")
-    p.add_argument("--work", type=Path, default=Path("/tmp/dmrt-vis"))
-    p.add_argument("--out", type=Path, required=True)
+    add_source_args(p, "/tmp/dmrt-vis")
     p.add_argument("--width", type=int, default=1280)
     p.add_argument("--height", type=int, default=720)
     p.add_argument("--layers", type=int, default=5)
@@ -48,6 +45,7 @@ def main(argv=None) -> None:
     path = camera_path(keys, args.frames, args.width, args.height)
     configs = [("compute", mtp, 0) for mtp in args.max_thread_pixels]
     configs += [("kbuffer", args.max_thread_pixels[-1], slots) for slots in args.slots]
+    configs += [("tiles", args.max_thread_pixels[-1], 0)]
     reference = None
     runs = []
     for method, mtp, slots in configs:
@@ -66,6 +64,8 @@ def main(argv=None) -> None:
             row[f"visibility_{k}_ms"] = float(np.median([x["visibility"] for x in t]))
             row["labeling_ms"] = float(np.median([x["labeling"] for x in t]))
             row["n_large"] = int(np.frombuffer(r.splats.large.read(16), np.uint32)[3])
+            if method == "tiles":  # the last frame's list length, pending-list length, overflows
+                row[f"tiles_{k}"] = {**r.visibility._tiles.stats(), "bytes": r.visibility.nbytes}
             r.release()
         if reference is None:
             reference = labels  # the first configuration: compute peeling

@@ -21,14 +21,24 @@ class InputError(DMRTError, ValueError):
         self.message = message
         super().__init__(f"{self.path}: {message}" if self.path is not None else message)
 
+    def __reduce__(self):  # picklable (raised in a Dask task, re-raised in the client)
+        if type(self).__init__ is not InputError.__init__:
+            return super().__reduce__()  # a subclass with its own arguments
+        return type(self), (self.path, self.message)
+
 
 class ConfigError(DMRTError, ValueError):
     """An option out of range or of an unknown choice; the message names the option
     (``--layers: must be >= 1, not 0``)."""
 
     def __init__(self, option: str, message: str):
-        self.option = option
+        self.option, self.message = option, message
         super().__init__(f"--{option.replace('_', '-')}: {message}")
+
+    def __reduce__(self):  # picklable (raised in a Dask task, re-raised in the client)
+        if type(self).__init__ is not ConfigError.__init__:
+            return super().__reduce__()  # a subclass with its own arguments
+        return type(self), (self.option, self.message)
 
 
 class MissingDependencyError(DMRTError, ImportError):

@@ -251,8 +251,21 @@ def _write_cache(folder: Path, labels: list[np.ndarray], meta: dict) -> None:
         (tmp / "dmt.json").write_text(json.dumps(meta, indent=1))
 
 
+def _label_maps(maps, root, width: int, energy: LabelingConfig, occlusion: PreprocessConfig, labeler: str,
+                threshold: float, radius: float | None, cache_mb: float) -> list[tuple[np.ndarray, dict]]:
+    """:func:`label_depth_map` of the depth maps ``maps`` of the bundle at ``root`` (a Dask task:
+    the bundle is read from the shared file system)."""
+    from dmrt.io.bundle import read_bundle
+
+    bundle = read_bundle(root)
+    stored = _LRU(bundle.depth_map, cache_mb / 2)
+    photos = _LRU(bundle.image, cache_mb / 2)
+    return [label_depth_map(bundle, i, load_depth_map(bundle, i, width, stored(i)), stored, photos, energy,
+                            occlusion, labeler, threshold, radius) for i in maps]
+
+
 def dmt_labels(bundle, width: int, config: DMTLabelingConfig | None = None, progress: bool = True,
-               recompute: bool = False) -> tuple[list[np.ndarray], dict]:
+               recompute: bool = False, executor=None) -> tuple[list[np.ndarray], dict]:
     """The DMT labels of every depth map at width ``width``: loaded from the bundle's cache, or
     computed (with a progress bar) and cached.
 
@@ -264,6 +277,9 @@ def dmt_labels(bundle, width: int, config: DMTLabelingConfig | None = None, prog
     config : DMTLabelingConfig
     progress : bool, a tqdm bar over the depth maps
     recompute : bool, ignore (and replace) an existing cache
+    executor : optional, :mod:`dmrt.preprocess.parallel`: the per-map labelings (graph cuts) as
+        Dask tasks, one contiguous group of maps per worker, reading the bundle from the shared
+        file system; the labels are the same (each map's cut is independent of the others)
 
     Returns
     -------
@@ -291,9 +307,19 @@ def dmt_labels(bundle, width: int, config: DMTLabelingConfig | None = None, prog
     hd = bundle.proxy.get("hd_radii")
     radius = float(np.median(hd)) if hd is not None and len(hd) else None
     labels, per_map = [], []
-    for i in tqdm(range(n), desc=f"DMT labeling {width}", unit="map", disable=not progress):
-        lab, st = label_depth_map(bundle, i, depths[i], stored, photos, energy, occl, config.labeler,
-                                  config.discontinuity_threshold, radius)
+    if executor is not None and executor.distributed:
+        from dmrt.preprocess.parallel import split
+
+        parts = executor.map(_label_maps, split(n, executor.workers), desc=f"DMT labeling {width}",
+                             progress=progress, root=str(Path(bundle.root).resolve()), width=width, energy=energy,
+                             occlusion=occl, labeler=config.labeler, threshold=config.discontinuity_threshold,
+                             radius=radius, cache_mb=config.cache_mb)
+        results = (r for part in parts for r in part)
+    else:
+        results = (label_depth_map(bundle, i, depths[i], stored, photos, energy, occl, config.labeler,
+                                   config.discontinuity_threshold, radius)
+                   for i in tqdm(range(n), desc=f"DMT labeling {width}", unit="map", disable=not progress))
+    for lab, st in results:
         labels.append(lab)
         per_map.append(st)
     total = time.perf_counter() - t_start

@@ -36,7 +36,7 @@ def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 def find_candidates(positions: np.ndarray, normals: np.ndarray, hd_radii: np.ndarray, cameras,
                     depth_maps, photos, config: PreprocessConfig, progress: bool = True,
-                    radii: np.ndarray | None = None) -> Candidates:
+                    radii: np.ndarray | None = None, executor=None) -> Candidates:
     """The photos that see each proxy point, and the proxy's colour in each.
 
     Parameters
@@ -48,10 +48,38 @@ def find_candidates(positions: np.ndarray, normals: np.ndarray, hd_radii: np.nda
     photos : callable ``j -> (H, W, 3) uint8`` photo ``j``.
     radii : (n,) float32, optional, the proxies' own splat radii: with them a candidate must also
         see ``config.candidate_rim_fraction`` of the disc's rim.
+    executor : optional, :mod:`dmrt.preprocess.parallel`: the photos are cut into one contiguous
+        group per worker, each a task (``depth_maps`` and ``photos`` must then pickle); the result
+        is the same, the groups being joined in photo order before the rim rule.
 
     Returns
     -------
     Candidates (CSR over points; colours RGB 0..1).
+    """
+    if executor is None or not executor.distributed:
+        found = photo_candidates(range(len(cameras)), positions, normals, hd_radii, cameras, depth_maps,
+                                 photos, config, radii, progress)
+    else:
+        from dmrt.preprocess.parallel import split
+
+        parts = executor.map(photo_candidates, split(len(cameras), executor.workers), desc="candidates",
+                             progress=progress, positions=positions, normals=normals, hd_radii=hd_radii,
+                             cameras=cameras, depth_maps=depth_maps, photos=photos, config=config, radii=radii)
+        found = [pair for part in parts for pair in part]
+    return join_candidates(found, len(positions), len(cameras), rims=radii is not None and
+                           config.candidate_rim_fraction > 0)
+
+
+def photo_candidates(js, positions: np.ndarray, normals: np.ndarray, hd_radii: np.ndarray, cameras,
+                     depth_maps, photos, config: PreprocessConfig, radii: np.ndarray | None = None,
+                     progress: bool = False) -> list[tuple]:
+    """:func:`find_candidates` for the photos ``js`` alone, before the rim rule.
+
+    Returns
+    -------
+    list of ``(points, photo, colors, rim_ok)``, one per photo of ``js`` that sees any point, in
+    the order of ``js``: ``points`` (m,) int64 point indices, ``photo`` (m,) its index, ``colors``
+    (m, 3) float32 RGB 0..1, ``rim_ok`` (m,) bool or None (no rim test).
     """
     p = positions.astype(np.float64)
     rims = None
@@ -75,8 +103,9 @@ def find_candidates(positions: np.ndarray, normals: np.ndarray, hd_radii: np.nda
         tol = config.occlusion_tolerance * hd_radii[idx] + config.occlusion_texels * z / cam.fx
         return inside & (d > 0) & (np.abs(d - z) <= tol)
 
-    pts, phs, cols, rim_ok = [], [], [], []
-    for j, cam in enumerate(tqdm(cameras, desc="candidates", unit="photo", disable=not progress)):
+    found = []
+    for j in tqdm(js, desc="candidates", unit="photo", disable=not progress):
+        cam = cameras[j]
         depth = depth_maps(j)
         h, w = depth.shape
         dm_cam = cam.scaled(w, h)
@@ -89,19 +118,24 @@ def find_candidates(positions: np.ndarray, normals: np.ndarray, hd_radii: np.nda
         if len(idx) == 0:
             continue
         uv_photo, _ = cam.project(p[idx])
-        pts.append(idx)
-        phs.append(np.full(len(idx), j))
-        cols.append(sample_bilinear(photos(j), uv_photo) / 255.0)
+        rim_ok = None
         if rims is not None:
             frac = np.mean([seen(dm_cam, depth, rim[idx], idx) for rim in rims], axis=0)
-            rim_ok.append(frac >= config.candidate_rim_fraction)
-    if not pts:
-        return Candidates(np.zeros(len(p) + 1, np.int64), np.zeros(0, np.int32), None, len(cameras))
-    pts, phs, cols = np.concatenate(pts), np.concatenate(phs), np.concatenate(cols)
-    if rims is not None:
-        ok = np.concatenate(rim_ok)
-        has_ok = np.zeros(len(p), bool)
+            rim_ok = frac >= config.candidate_rim_fraction
+        found.append((idx, np.full(len(idx), j), sample_bilinear(photos(j), uv_photo) / 255.0, rim_ok))
+    return found
+
+
+def join_candidates(found: list[tuple], n_points: int, n_photos: int, rims: bool) -> Candidates:
+    """The :class:`Candidates` of :func:`photo_candidates`' pairs of all photos (in photo order),
+    after the rim rule: a point none of whose photos sees its rim keeps them all."""
+    if not found:
+        return Candidates(np.zeros(n_points + 1, np.int64), np.zeros(0, np.int32), None, n_photos)
+    pts, phs, cols = (np.concatenate([f[i] for f in found]) for i in range(3))
+    if rims:
+        ok = np.concatenate([f[3] for f in found])
+        has_ok = np.zeros(n_points, bool)
         has_ok[pts[ok]] = True
         keep = ok | ~has_ok[pts]  # a point none of whose photos sees its rim keeps them all
         pts, phs, cols = pts[keep], phs[keep], cols[keep]
-    return Candidates.from_pairs(pts, phs, cols, len(p), len(cameras))
+    return Candidates.from_pairs(pts, phs, cols, n_points, n_photos)

@@ -257,7 +257,8 @@ def _margin_from_counts(keys, cnts, cell, k, extent):
 
 def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = True, k_normals: int = 16,
                     k_radii: int = 8, scale: float = 1.0, viewpoints=None, margin: float | None = None,
-                    memory_limit_mb: float = 1024, bbox=None, progress: bool = True) -> ChunkedResult:
+                    memory_limit_mb: float = 1024, bbox=None, progress: bool = True,
+                    executor=None) -> ChunkedResult:
     """Normals and/or radii of a cloud too large for memory.
 
     The cloud is cut into spatial buckets (consecutive Morton cells of a grid whose cells are wider
@@ -284,6 +285,10 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
         processed whole, in memory (no buckets).
     memory_limit_mb : float
         Budget for the points of one bucket with its halo and the kNN work arrays.
+    executor : optional, :mod:`dmrt.preprocess.parallel`: the buckets' kNN work as tasks, one per
+        bucket (workers read the spill files in ``work_dir``, so it must be on a file system they
+        share); results are written here, as without it, and equal bit for bit. A cloud processed
+        whole (above) stays in this process.
 
     Returns
     -------
@@ -427,38 +432,21 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
         out_r = np.lib.format.open_memmap(tmp_names["radii"], "w+", np.float32, (n,)) if radii else None
         n_unverified = 0
         max_bucket = 0
-        with _progress(n, "normals: buckets", progress) as bar:
-            for b in range(nb):
-                rec = _read_records(spill / f"b{b:06d}", schema)
-                shutil.rmtree(spill / f"b{b:06d}", ignore_errors=True)
-                pos, gidx, core = rec["positions"], rec["gidx"], rec["core"].astype(bool)
-                max_bucket = max(max_bucket, len(pos))
-                qi = np.flatnonzero(core)
-                if len(qi) == 0:
-                    continue
-                c = pos - pos.mean(axis=0)
-                tree = _kdtree(c)
-                kn = min(k_normals, len(pos))  # neighbours of the plane fit, the point included
-                kr = min(k_radii, len(pos) - 1)  # rank of the radius neighbour, the point excluded
-                kq = max(kn if normals else 1, kr + 1 if radii else 1)  # kNN columns needed
-                for s in range(0, len(qi), knn_rows):
-                    rows = qi[s:s + knn_rows]
-                    d, idx = tree.query(c[rows], k=kq, workers=-1)
-                    d = d.reshape(len(rows), kq)
-                    idx = idx.reshape(len(rows), kq)
-                    # complete neighbourhood <=> its farthest member lies within the halo margin
-                    n_unverified += int(np.count_nonzero(~(d[:, -1] <= margin)))
-                    if normals:
-                        if kn >= 3:
-                            nrm = _pca_normals(c, idx[:, :kn])
-                        else:
-                            nrm = np.tile([0.0, 0.0, 1.0], (len(rows), 1))
-                        nrm = orient_normals(nrm, pos[rows], viewpoints, per_point=False)
-                        out_n[gidx[rows]] = nrm.astype(np.float32)
-                    if radii:
-                        rad = d[:, kr] * (scale * radius_factor(kr)) if kr >= 1 else np.zeros(len(rows))
-                        out_r[gidx[rows]] = rad.astype(np.float32)
-                bar.update(len(qi))
+        task = dict(spill=str(spill), normals=normals, radii=radii, k_normals=k_normals, k_radii=k_radii,
+                    scale=scale, viewpoints=viewpoints, margin=margin, knn_rows=knn_rows)
+        if executor is None or not executor.distributed:
+            results = (_bucket_attrs(b, **task) for b in range(nb))
+        else:
+            results = executor.imap(_bucket_attrs, range(nb), desc="normals: buckets", progress=progress, **task)
+        with _progress(n, "normals: buckets", progress and not getattr(executor, "distributed", False)) as bar:
+            for gidx, nrm, rad, unverified, size in results:
+                max_bucket = max(max_bucket, size)
+                n_unverified += unverified
+                if normals:
+                    out_n[gidx] = nrm
+                if radii:
+                    out_r[gidx] = rad
+                bar.update(len(gidx))
         for arr in (out_n, out_r):
             if arr is not None:
                 arr.flush()
@@ -477,6 +465,51 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
         radii=np.load(names["radii"], mmap_mode="r") if radii else None,
         n_points=n, margin=margin, n_unverified=n_unverified, n_buckets=nb,
         max_bucket_points=max_bucket, seconds=time.perf_counter() - t0)
+
+
+def _bucket_attrs(b: int, spill: str, normals: bool, radii: bool, k_normals: int, k_radii: int, scale: float,
+                  viewpoints, margin: float, knn_rows: int):
+    """The normals and radii of bucket ``b``'s core points (its spill folder is removed).
+
+    Returns
+    -------
+    gidx : (m,) int64 the core points' indices in the input.  normals : (m, 3) float32 or None.
+    radii : (m,) float32 or None.  n_unverified : int.  size : int, core + halo points.
+    """
+    folder = Path(spill) / f"b{b:06d}"
+    schema = {"positions": ("float64", (3,)), "gidx": ("int64", ()), "core": ("uint8", ())}
+    rec = _read_records(folder, schema)
+    shutil.rmtree(folder, ignore_errors=True)
+    pos, gidx, core = rec["positions"], rec["gidx"], rec["core"].astype(bool)
+    qi = np.flatnonzero(core)
+    out_n = np.empty((len(qi), 3), np.float32) if normals else None
+    out_r = np.empty(len(qi), np.float32) if radii else None
+    n_unverified = 0
+    if len(qi) == 0:
+        return gidx[qi], out_n, out_r, 0, len(pos)
+    c = pos - pos.mean(axis=0)
+    tree = _kdtree(c)
+    kn = min(k_normals, len(pos))  # neighbours of the plane fit, the point included
+    kr = min(k_radii, len(pos) - 1)  # rank of the radius neighbour, the point excluded
+    kq = max(kn if normals else 1, kr + 1 if radii else 1)  # kNN columns needed
+    for s in range(0, len(qi), knn_rows):
+        rows = qi[s:s + knn_rows]
+        d, idx = tree.query(c[rows], k=kq, workers=-1)
+        d = d.reshape(len(rows), kq)
+        idx = idx.reshape(len(rows), kq)
+        # complete neighbourhood <=> its farthest member lies within the halo margin
+        n_unverified += int(np.count_nonzero(~(d[:, -1] <= margin)))
+        if normals:
+            if kn >= 3:
+                nrm = _pca_normals(c, idx[:, :kn])
+            else:
+                nrm = np.tile([0.0, 0.0, 1.0], (len(rows), 1))
+            nrm = orient_normals(nrm, pos[rows], viewpoints, per_point=False)
+            out_n[s:s + len(rows)] = nrm.astype(np.float32)
+        if radii:
+            rad = d[:, kr] * (scale * radius_factor(kr)) if kr >= 1 else np.zeros(len(rows))
+            out_r[s:s + len(rows)] = rad.astype(np.float32)
+    return gidx[qi], out_n, out_r, n_unverified, len(pos)
 
 
 def _process_in_memory(src, n, work, normals, radii, k_normals, k_radii, scale, viewpoints, progress,

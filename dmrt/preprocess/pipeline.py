@@ -9,7 +9,8 @@ Phases, each with a progress bar and a wall-clock timing in ``bundle.json``:
 4. **proxies** — P_LD = the k coarsest octree levels, with radii from their own density;
 5. **candidates** — the photos that see each proxy: inside the frame, in front, not grazing, and
    not occluded according to that photo's depth map;
-6. **labeling** — one photo per proxy by alpha-expansion (:mod:`dmrt.preprocess.labeling`);
+6. **labeling** — one photo per proxy by alpha-expansion (:mod:`dmrt.preprocess.labeling`); then
+   one colour gain per photo from the proxies the photos share (:mod:`dmrt.preprocess.photometric`);
 7. **bundle** — written atomically (:mod:`dmrt.io.bundle`) with low-resolution photo copies.
 """
 
@@ -30,6 +31,8 @@ from dmrt.io.bundle import BundleWriter, camera_to_json
 from dmrt.io.exr import read_depth_exr, write_depth_exr
 from dmrt.preprocess.config import PreprocessConfig
 from dmrt.preprocess.labeling import LabelingConfig
+from dmrt.preprocess.parallel import InProcess, check_gpu_worker, split
+from dmrt.preprocess.photometric import solve_for_proxies
 from dmrt.preprocess.proxies import choose_proxy_levels, label_proxies
 from dmrt.io.scene import Scene, load_scene
 
@@ -41,20 +44,105 @@ def _gl_renderer_string() -> str:
     return f"{info['renderer']} ({info['version']})"
 
 
+class _DepthFiles:
+    """``j -> (h, w) float32``: photo ``j``'s depth map, read from ``folder / rels[j]`` (picklable,
+    for Dask tasks)."""
+
+    def __init__(self, folder, rels):
+        self.folder, self.rels = Path(folder), list(rels)
+
+    def __call__(self, j: int) -> np.ndarray:
+        return read_depth_exr(self.folder / self.rels[j])
+
+
+class _Photos:
+    """``j -> (H, W, 3) uint8``: photo ``j`` of ``scene``, the last one kept (192 full photos need
+    not sit in RAM); picklable, for Dask tasks."""
+
+    def __init__(self, scene: Scene):
+        self.scene, self._cache = scene, {}
+
+    def __call__(self, j: int) -> np.ndarray:
+        if j not in self._cache:
+            self._cache.clear()
+            self._cache[j] = self.scene.read_image(j)
+        return self._cache[j]
+
+    def __getstate__(self):
+        return {"scene": self.scene, "_cache": {}}
+
+
+def render_depth_group(js, cameras, names, work, out_dir, has_normals: bool, config: PreprocessConfig,
+                       progress: bool = False) -> tuple[list[str], list[list[int]], dict, str]:
+    """Phase 3 for the photos ``js`` (a Dask task, or the whole phase in process): P_HD from the
+    octree and the normals/radii in the work folder ``work``, splatted by
+    :meth:`~dmrt.preprocess.depthmaps.DepthMapRenderer.render_many` on this process's GL context;
+    the maps are written to ``out_dir/depthmaps/<photo stem>.exr``.
+
+    Returns
+    -------
+    rels : the maps' paths relative to ``out_dir``, in the order of ``js``.  sizes : ``[w, h]`` each.
+    gpu_ms : GPU milliseconds per stage (:class:`~dmrt.gl.GpuTimer`).  renderer : the GL renderer.
+    """
+    from dmrt.gl import GpuTimer, get_context
+    from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer
+    from dmrt.preprocess.octree import Octree
+
+    check_gpu_worker()
+    work, out_dir = Path(work), Path(out_dir)
+    octree = Octree.open(work / "octree")
+    normals = None if has_normals else np.load(work / "attrs" / "normals.npy", mmap_mode="r")
+    radii = np.load(work / "attrs" / "radii.npy", mmap_mode="r")
+
+    def hd_chunks():
+        g = 0
+        for ch in octree.iter_levels(chunk_size=config.chunk_points):
+            m = len(ch["positions"])
+            nrm = ch["normals"] if has_normals else normals[g:g + m]
+            yield ch["positions"].astype(np.float32), np.asarray(nrm, np.float32), np.asarray(radii[g:g + m])
+            g += m
+
+    ctx = get_context()
+    timer = GpuTimer(ctx)
+    # GPU batches of one read chunk: on a CPU renderer (llvmpipe) GPU buffers are host memory
+    renderer = DepthMapRenderer(ctx, DepthMapConfig(width=config.depthmap_width, method=config.depthmap_method,
+                                                    chunk_points=config.chunk_points), timer=timer)
+    js = list(js)
+    rels, sizes = [], []
+    try:
+        for i, depth in renderer.render_many([cameras[j] for j in js], hd_chunks, resident_mb=config.resident_mb,
+                                             progress=progress):
+            rel = f"depthmaps/{Path(names[js[i]]).stem}.exr"
+            write_depth_exr(out_dir / rel, depth)
+            rels.append(rel)
+            sizes.append([depth.shape[1], depth.shape[0]])
+    finally:
+        renderer.release()
+    return rels, sizes, dict(timer.ms), _gl_renderer_string()
+
+
 def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
-               labeling: LabelingConfig | None = None, force: bool = False, progress: bool = True) -> Path:
-    """Preprocess ``scene_dir`` into the bundle ``out``; returns its path."""
+               labeling: LabelingConfig | None = None, force: bool = False, progress: bool = True,
+               executor=None) -> Path:
+    """Preprocess ``scene_dir`` into the bundle ``out``; returns its path.
+
+    ``executor`` (:func:`dmrt.preprocess.parallel.open_executor`) runs the parallel phases as Dask
+    tasks: normals/radii per spatial bucket (when the cloud exceeds the memory budget), depth maps
+    and candidates per group of photos (one contiguous group per worker). The octree build and the
+    (global) labeling run here. The bundle equals the in-process one; bundle.json records the
+    cluster under ``dask``. None: everything in this process.
+    """
     from PIL import Image
 
-    from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer
-    from dmrt.gl import GpuTimer, get_context
     from dmrt.preprocess.normals import process_chunked
     from dmrt.preprocess.octree import Octree, OctreeConfig
 
     config = config or PreprocessConfig()
     labeling = labeling or LabelingConfig()
+    executor = executor or InProcess()
     t_all = time.perf_counter()
-    scene: Scene = load_scene(scene_dir, chunk_size=config.chunk_points)
+    # absolute paths: Dask workers may run elsewhere on the shared file system
+    scene: Scene = load_scene(Path(scene_dir).resolve(), chunk_size=config.chunk_points)
     origin = scene.origin
     timings: dict[str, float] = {}
     cams_local = [c.relative_to(origin) for c in scene.cameras]
@@ -67,7 +155,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         peak_rss[name] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
 
     with BundleWriter(out, force=force) as bw:
-        work = bw.tmp / "work"
+        work = Path(bw.tmp).resolve() / "work"
         # 1. octree (positions relative to the origin keep float32 safe later; float64 here)
         t0 = time.perf_counter()
         def scene_chunks():
@@ -85,36 +173,28 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         attrs = process_chunked(lambda: octree.iter_levels(chunk_size=config.chunk_points), work / "attrs",
                                 normals=not has_normals, radii=True, k_normals=config.normals_k,
                                 k_radii=config.radius_k, scale=config.radius_scale, viewpoints=centers,
-                                memory_limit_mb=config.memory_limit_mb, progress=progress)
+                                memory_limit_mb=config.memory_limit_mb, progress=progress, executor=executor)
         tic("normals_radii_s", t0)
 
-        def hd_chunks():
-            g = 0
-            for ch in octree.iter_levels(chunk_size=config.chunk_points):
-                m = len(ch["positions"])
-                nrm = ch["normals"] if has_normals else attrs.normals[g:g + m]
-                yield ch["positions"].astype(np.float32), np.asarray(nrm, np.float32), np.asarray(attrs.radii[g:g + m])
-                g += m
-
-        # 3. depth maps
+        # 3. depth maps: one task per group of photos (all photos in process), each reading P_HD
+        # and its attributes from the work folder
         t0 = time.perf_counter()
-        ctx = get_context()
-        timer = GpuTimer(ctx)
-        # GPU batches of one read chunk: on a CPU renderer (llvmpipe) GPU buffers are host memory
-        renderer = DepthMapRenderer(ctx, DepthMapConfig(width=config.depthmap_width, method=config.depthmap_method,
-                                                        chunk_points=config.chunk_points), timer=timer)
-        depth_files, depth_sizes = [], []
-        bar = tqdm(total=len(cams_local), desc="depth maps", unit="map", disable=not progress)
-        for j, depth in renderer.render_many(cams_local, hd_chunks, resident_mb=config.resident_mb):
-            rel = f"depthmaps/{Path(scene.cameras[j].name).stem}.exr"
-            write_depth_exr(bw.tmp / rel, depth)
-            depth_files.append(rel)
-            depth_sizes.append([depth.shape[1], depth.shape[0]])
-            bar.update()
-        bar.close()
-        renderer.release()
+        task = dict(cameras=cams_local, names=[c.name for c in scene.cameras], work=str(work),
+                    out_dir=str(work.parent), has_normals=has_normals, config=config)
+        if executor.distributed:
+            parts = executor.map(render_depth_group, split(len(cams_local), executor.workers), desc="depth maps",
+                                 progress=progress, **task)
+        else:
+            parts = [render_depth_group(range(len(cams_local)), progress=progress, **task)]
+        depth_files = [rel for part in parts for rel in part[0]]
+        depth_sizes = [size for part in parts for size in part[1]]
+        gpu_ms: dict[str, float] = {}
+        for part in parts:
+            for k, v in part[2].items():
+                gpu_ms[k] = gpu_ms.get(k, 0.0) + v
+        gl_renderers = list(dict.fromkeys(part[3] for part in parts))
         tic("depthmaps_s", t0)
-        timings["depthmaps_gpu_ms"] = {k: round(v, 3) for k, v in timer.ms.items()}
+        timings["depthmaps_gpu_ms"] = {k: round(v, 3) for k, v in gpu_ms.items()}
 
         # 4-6. proxies (the k coarsest levels, first in octree order) with radii of their own
         # density, their candidate photos and labels
@@ -127,19 +207,18 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                  "normals": proxy["normals"] if has_normals else np.asarray(attrs.normals[:n_proxy]),
                  "hd_radii": np.asarray(attrs.radii[:n_proxy], np.float32)}
         read_s = time.perf_counter() - t0
-        photos_cache: dict[int, np.ndarray] = {}
-
-        def photo(j):
-            if j not in photos_cache:
-                photos_cache.clear()  # one photo at a time: 192 full photos need not sit in RAM
-                photos_cache[j] = scene.read_image(j)
-            return photos_cache[j]
-
-        proxies = label_proxies(proxy, cams_local, lambda j: read_depth_exr(bw.tmp / depth_files[j]), photo,
-                                config, labeling, progress=progress)
+        proxies = label_proxies(proxy, cams_local, _DepthFiles(work.parent, depth_files), _Photos(scene),
+                                config, labeling, progress=progress, executor=executor)
         timings.update(proxies.timings, proxies_s=round(proxies.timings["proxies_s"] + read_s, 3))
         for name in ("proxies_s", "candidates_s", "labeling_s"):
             peak_rss[name] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+
+        # 6b. photometric adjustment: one gain per photo and channel from the proxies' colours in
+        # the photos that share them (dmrt.preprocess.photometric)
+        t0 = time.perf_counter()
+        photometric = solve_for_proxies(proxies.proxy, proxies.candidates, cams_local, _Photos(scene),
+                                        progress=progress)
+        tic("photometric_s", t0)
 
         # 7. photos and their low-resolution copies
         t0 = time.perf_counter()
@@ -159,7 +238,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
             "scene": str(Path(scene_dir).resolve()),
             "command": " ".join(shlex.quote(a) for a in sys.argv),
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "gl_renderer": _gl_renderer_string(),
+            "gl_renderer": "; ".join(gl_renderers),
             "origin": origin.tolist(),
             "cameras": [camera_to_json(c) for c in scene.cameras],
             "images": images, "images_low": images_low, "depthmaps": depth_files,
@@ -174,6 +253,10 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                 "normals_estimated": not has_normals,
             },
             "labeling": proxies.labeling_meta(),
+            "photo_gains": photometric.gains.tolist(),
+            "photometric": photometric.meta(),
         }
+        if executor.distributed:  # outside "parameters": a cluster does not change the bundle
+            meta["dask"] = executor.record()
         return bw.finish(meta)
 

@@ -67,7 +67,7 @@ class ProxySet:
 
 def label_proxies(proxy: dict, cameras, depth_maps, photos, config: PreprocessConfig | None = None,
                   labeling: LabelingConfig | None = None, relabel: bool = True,
-                  progress: bool = False) -> ProxySet:
+                  progress: bool = False, executor=None) -> ProxySet:
     """Steps 4-6 of preprocessing for one proxy set: radii, candidates, labels.
 
     Parameters
@@ -81,6 +81,8 @@ def label_proxies(proxy: dict, cameras, depth_maps, photos, config: PreprocessCo
     relabel : bool
         False: only the splat radii are recomputed (a sparser set needs larger discs) and the
         labels are kept, as the viewer does for an interactive switch.
+    executor : optional, :mod:`dmrt.preprocess.parallel`: runs the candidates' per-photo tests as
+        tasks (``depth_maps`` and ``photos`` must then pickle); the labeling stays global, here.
     """
     config = config or PreprocessConfig()
     proxy = dict(proxy)
@@ -94,7 +96,8 @@ def label_proxies(proxy: dict, cameras, depth_maps, photos, config: PreprocessCo
         return out
     t0 = time.perf_counter()
     out.candidates = find_candidates(proxy["positions"], proxy["normals"], np.asarray(proxy["hd_radii"], np.float32),
-                                     cameras, depth_maps, photos, config, progress, radii=proxy["radii"])
+                                     cameras, depth_maps, photos, config, progress, radii=proxy["radii"],
+                                     executor=executor)
     out.timings["candidates_s"] = round(time.perf_counter() - t0, 3)
     t0 = time.perf_counter()
     out.labeling = label_points(proxy["positions"], proxy["normals"], out.candidates, cameras,

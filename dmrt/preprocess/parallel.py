@@ -1,0 +1,215 @@
+"""Preprocessing past one machine: the parallel phases as Dask tasks (``dask.distributed``).
+
+:func:`open_executor` turns ``dmrt preprocess --dask SPEC`` into an executor whose :meth:`map`
+runs a module-level function over items, results in item order:
+
+``None``
+    :class:`InProcess`: a plain loop in this process (the default; preprocessing as it always ran).
+``"local:N"``
+    A ``LocalCluster`` of ``N`` worker processes with one thread each, closed on exit.
+``"tcp://HOST:PORT"``
+    A running scheduler (``dask scheduler`` + ``dask worker ... --nthreads 1`` on each machine).
+
+Tasks take picklable arguments (paths, configurations, cameras, index ranges) and read the octree,
+the normals/radii and the depth maps from the bundle's ``.partial`` work folder, so every worker
+must see the bundle's folder and the scene at the same paths (a shared file system). GPU tasks make
+the worker's own GL context on first use (:func:`dmrt.gl.get_context`): one context per worker
+process, so a worker must run one thread; on a host with several NVIDIA GPUs the workers of that
+host are spread over them (``GLCONTEXT_DEVICE_INDEX``, unless already set).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from contextlib import contextmanager
+from typing import Callable, Iterator, Sequence
+
+from dmrt.errors import ConfigError, DMRTError, require
+
+__all__ = ["InProcess", "DaskExecutor", "open_executor", "split"]
+
+_SPEC_HELP = "expected local:N (a LocalCluster of N worker processes) or tcp://HOST:PORT (a running scheduler)"
+
+
+def split(n: int, parts: int) -> list[range]:
+    """``range(n)`` cut into at most ``parts`` contiguous, non-empty ranges of near-equal length."""
+    parts = max(1, min(int(parts), n))
+    bounds = [n * i // parts for i in range(parts + 1)]
+    return [range(a, b) for a, b in zip(bounds, bounds[1:]) if b > a]
+
+
+class InProcess:
+    """Runs tasks here, one after the other (no Dask)."""
+
+    spec = None
+    workers = 1
+    distributed = False
+
+    def map(self, fn: Callable, items: Sequence, desc: str | None = None, progress: bool = False,
+            **shared) -> list:
+        """``[fn(item, **shared) for item in items]``."""
+        return [fn(item, **shared) for item in items]
+
+    def imap(self, fn: Callable, items: Sequence, desc: str | None = None, progress: bool = False,
+             **shared) -> Iterator:
+        """:meth:`map`, one result at a time."""
+        return (fn(item, **shared) for item in items)
+
+    def record(self) -> None:
+        return None
+
+
+class DaskExecutor:
+    """Runs tasks on a ``dask.distributed`` cluster through ``client``.
+
+    ``shared`` keyword arguments of :meth:`map` are sent to every worker once (scattered,
+    broadcast) rather than once per task.
+    """
+
+    distributed = True
+
+    def __init__(self, client, spec: str):
+        self.client, self.spec = client, spec
+
+    @property
+    def workers(self) -> int:
+        """Workers connected now (at least 1)."""
+        return max(1, len(self.client.nthreads()))
+
+    def record(self) -> dict:
+        """What bundle.json records of the cluster."""
+        return {"spec": self.spec, "workers": self.workers}
+
+    def _submit(self, fn, items, shared):
+        box = {k: self.client.scatter([v], broadcast=True, hash=False)[0] for k, v in shared.items()}
+        return self.client.map(fn, list(items), pure=False, **box)
+
+    def map(self, fn: Callable, items: Sequence, desc: str | None = None, progress: bool = False,
+            **shared) -> list:
+        """``[fn(item, **shared) for item in items]`` as tasks; a tqdm bar over completed ones.
+        The first task that fails raises its exception here."""
+        from distributed import as_completed
+        from tqdm import tqdm
+
+        futures = self._submit(fn, items, shared)
+        try:
+            with tqdm(total=len(futures), desc=desc, unit="task", disable=not progress) as bar:
+                for f in as_completed(futures):
+                    if f.status == "error":
+                        f.result()  # raises the task's exception
+                    bar.update()
+            return self.client.gather(futures)
+        finally:
+            for f in futures:
+                f.release()
+
+    def imap(self, fn: Callable, items: Sequence, desc: str | None = None, progress: bool = False,
+             **shared) -> Iterator:
+        """:meth:`map`, results handed over (and released on the workers) one at a time, in order."""
+        from tqdm import tqdm
+
+        futures = self._submit(fn, items, shared)
+        try:
+            with tqdm(total=len(futures), desc=desc, unit="task", disable=not progress) as bar:
+                for i in range(len(futures)):
+                    result = futures[i].result()
+                    futures[i].release()
+                    futures[i] = None
+                    bar.update()
+                    yield result
+        finally:
+            for f in futures:
+                if f is not None:
+                    f.release()
+
+
+def _nvidia_gpus() -> int:
+    """NVIDIA GPUs of this host (``/dev/nvidia<N>`` device files); 0 without them."""
+    try:
+        return sum(1 for name in os.listdir("/dev") if re.fullmatch(r"nvidia\d+", name))
+    except OSError:
+        return 0
+
+
+def _pin_gpu(rank: int) -> int | None:
+    """In a worker: use GPU ``rank mod GPUs`` of its host for EGL, where the host has several
+    GPUs and nothing chose one yet (the worker has made no GL context so far)."""
+    n = _nvidia_gpus()
+    if n > 1 and "GLCONTEXT_DEVICE_INDEX" not in os.environ:
+        os.environ["GLCONTEXT_DEVICE_INDEX"] = str(rank % n)
+    value = os.environ.get("GLCONTEXT_DEVICE_INDEX")
+    return int(value) if value else None
+
+
+def _spread_gpus(client) -> None:
+    """Give the workers of each host consecutive GPU ranks (workers joining later keep the default)."""
+    ranks, per_host = {}, {}
+    for address in sorted(client.nthreads()):
+        host = address.rsplit(":", 1)[0]
+        ranks[address] = per_host[host] = per_host.get(host, -1) + 1
+    for address, rank in ranks.items():
+        client.run(_pin_gpu, rank, workers=[address])
+
+
+@contextmanager
+def open_executor(spec: str | None, progress: bool = False):
+    """The executor of ``spec`` (see the module docstring), closed on exit.
+
+    Raises
+    ------
+    ConfigError
+        A spec of neither form, or a scheduler that cannot be reached / has no workers.
+    MissingDependencyError
+        ``dask[distributed]`` is not installed.
+    """
+    if spec is None:
+        yield InProcess()
+        return
+    spec = str(spec).strip()
+    local = re.fullmatch(r"local:(\d+)", spec)
+    remote = re.fullmatch(r"tcp://([^\s:/]+|\[[0-9a-fA-F:]+\]):(\d{1,5})", spec)
+    if local is None and remote is None:
+        raise ConfigError("dask", f"{spec!r}: {_SPEC_HELP}")
+    if local is not None and int(local.group(1)) < 1:
+        raise ConfigError("dask", f"{spec!r}: local:N needs N >= 1 worker processes")
+    require("distributed", "--dask", "dask")
+    import logging
+
+    from distributed import Client, LocalCluster
+
+    cluster = client = None
+    try:
+        if local is not None:
+            # one thread per worker: GL contexts are per process and current on one thread, and
+            # numpy-heavy Python tasks scale by processes
+            cluster = LocalCluster(n_workers=int(local.group(1)), threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=logging.ERROR)
+            client = Client(cluster)
+        else:
+            try:
+                client = Client(spec, timeout="10s")
+                client.wait_for_workers(1, timeout=60)
+            except (OSError, TimeoutError) as exc:
+                raise ConfigError("dask", f"cannot use the scheduler at {spec} ({exc})") from None
+        _spread_gpus(client)
+        yield DaskExecutor(client, spec)
+    finally:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def check_gpu_worker() -> None:
+    """In a task: refuse a Dask worker with several threads (its one GL context is current on one
+    thread only)."""
+    try:
+        from distributed import get_worker
+
+        worker = get_worker()
+    except (ImportError, ValueError):
+        return  # not in a worker
+    if worker.state.nthreads > 1:
+        raise DMRTError(f"dask worker {worker.address} runs {worker.state.nthreads} threads: GPU tasks need "
+                        "workers with one thread each (dask worker --nthreads 1)")
