@@ -26,7 +26,7 @@ import trimesh
 from tqdm import tqdm
 
 from dmrt.camera import Camera
-from dmrt.errors import ConfigError
+from dmrt.errors import ConfigError, require
 from dmrt.io.atomic import atomic_dir
 from dmrt.options import option, validate
 from reference.raycast import MeshRaycaster, write_mesh_ply
@@ -105,6 +105,7 @@ def _rgb(img: np.ndarray, tint=(1.0, 1.0, 1.0)) -> np.ndarray:
 
 def make_materials() -> list[Material]:
     """The material palette (index = material id). Photos from ``skimage.data`` (public domain)."""
+    require("skimage", "the synthetic scenes' textures", "bench")
     from skimage import data
 
     return [
@@ -500,6 +501,7 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
     from dmrt.io.pointcloud import PointCloud, PointWriter
 
     out = Path(out)
+    require("skimage", "the synthetic scenes' textures", "bench")  # before any work
     rng = np.random.default_rng(config.seed + 1)
     workers = workers if workers is not None else (os.cpu_count() or 1)
     offset = np.asarray(config.offset, np.float64)

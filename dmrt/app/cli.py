@@ -93,13 +93,13 @@ def check_output(path, option: str = "out", suffixes=None, folder: bool = False,
     import os
 
     path = Path(path)
-    if suffixes is not None and path.suffix.lower() not in suffixes:
-        raise ConfigError(option, f"{path}: a {what} ends in {' or '.join(suffixes)}, not "
-                                  f"{path.suffix or 'no suffix'!r}".replace("'no suffix'", "no suffix"))
     if folder and path.exists() and not path.is_dir():
         raise ConfigError(option, f"{path} is a file; --{option} names a folder here")
     if not folder and path.is_dir():
         raise ConfigError(option, f"{path} is a folder; --{option} names a {what}")
+    if suffixes is not None and path.suffix.lower() not in suffixes:
+        raise ConfigError(option, f"{path}: a {what} ends in {' or '.join(suffixes)}, "
+                                  + (f"not {path.suffix!r}" if path.suffix else "and this name has no suffix"))
     for parent in path.absolute().parents:
         if parent.exists():
             if not parent.is_dir():
@@ -110,39 +110,51 @@ def check_output(path, option: str = "out", suffixes=None, folder: bool = False,
     return path
 
 
-def frame_limits(ctx=None) -> dict:
-    """What frames this GL context can render: ``side`` (largest width or height, pixels; the
-    smallest of GL_MAX_TEXTURE_SIZE, GL_MAX_VIEWPORT_DIMS and the framebuffer limits) and
-    ``buffer_bytes`` (largest per-pixel buffer, bytes; GL_MAX_SHADER_STORAGE_BLOCK_SIZE, the
-    renderer binding each frame buffer whole)."""
+# Per-pixel buffers are bound whole, and addressed with 32-bit signed byte offsets: one of 2^31
+# bytes or more cannot be used, whatever the GPU's memory. Measured on Mesa llvmpipe, which reports
+# GL_MAX_SHADER_STORAGE_BLOCK_SIZE 128 MiB yet renders larger buffers correctly: a 4096x2731 frame
+# with 47 k-buffer slots (2.10e9 bytes) runs, with 48 (2.15e9 bytes) the process segfaults.
+# A driver that reports a block size above 2^31 - 1 is believed.
+MAX_BUFFER_BYTES = (1 << 31) - 1
+
+
+def max_frame_side(ctx=None) -> int:
+    """The largest frame width or height this GL context renders, pixels: the smallest of
+    GL_MAX_TEXTURE_SIZE, GL_MAX_VIEWPORT_DIMS and the framebuffer and renderbuffer limits."""
     if ctx is None:
         from dmrt.gl import get_context
 
         ctx = get_context()
     info = ctx.info
-    side = min(int(info["GL_MAX_TEXTURE_SIZE"]), *(int(v) for v in info["GL_MAX_VIEWPORT_DIMS"]),
-               int(info.get("GL_MAX_FRAMEBUFFER_WIDTH", 1 << 30)), int(info.get("GL_MAX_FRAMEBUFFER_HEIGHT", 1 << 30)),
-               int(info.get("GL_MAX_RENDERBUFFER_SIZE", 1 << 30)))
-    return {"side": side, "buffer_bytes": int(info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE", 1 << 31))}
+    return min(int(info["GL_MAX_TEXTURE_SIZE"]), *(int(v) for v in info["GL_MAX_VIEWPORT_DIMS"]),
+               *(int(info.get(k, 1 << 30)) for k in ("GL_MAX_FRAMEBUFFER_WIDTH", "GL_MAX_FRAMEBUFFER_HEIGHT",
+                                                      "GL_MAX_RENDERBUFFER_SIZE")))
 
 
-def check_frame_size(width: int, height: int, bytes_per_pixel: int = 4, what: str = "", ctx=None) -> None:
-    """:class:`ConfigError` naming ``--width``/``--height`` when a ``width`` x ``height`` frame is
-    more than the GL context can hold (:func:`frame_limits`), before anything is allocated.
+def check_frame_size(width: int, height: int, bytes_per_pixel: int = 4, what: str = "", ctx=None,
+                     prefer: str = "width") -> None:
+    """:class:`ConfigError` naming ``--width`` or ``--height`` when a ``width`` x ``height`` frame
+    is more than the GPU can render, before anything is allocated: a side above
+    :func:`max_frame_side`, or a per-pixel buffer of ``bytes_per_pixel`` (the largest record, e.g.
+    ``4 * layers`` for DMRT's layer buffers; ``what`` says whose, for the message) larger than
+    :data:`MAX_BUFFER_BYTES` (or the driver's larger GL_MAX_SHADER_STORAGE_BLOCK_SIZE).
+    ``prefer`` is the option named when both sides are too large (the one the user gave)."""
+    if ctx is None:
+        from dmrt.gl import get_context
 
-    ``bytes_per_pixel`` is the largest per-pixel buffer's record (``4 * layers`` for DMRT's layer
-    buffers), ``what`` says whose it is for the message.
-    """
-    lim = frame_limits(ctx)
-    for option, v in (("width", width), ("height", height)):
-        if v > lim["side"]:
+        ctx = get_context()
+    side = max_frame_side(ctx)
+    sides = (("width", width), ("height", height))
+    for option, v in sides if prefer == "width" else sides[::-1]:
+        if v > side:
             raise ConfigError(option, f"a {width}x{height} frame is larger than this GPU renders: at most "
-                                      f"{lim['side']} pixels a side (GL_MAX_TEXTURE_SIZE, GL_MAX_VIEWPORT_DIMS)")
+                                      f"{side} pixels a side (GL_MAX_TEXTURE_SIZE, GL_MAX_VIEWPORT_DIMS)")
+    limit = max(MAX_BUFFER_BYTES, int(ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE", 0)))
     need = width * height * bytes_per_pixel
-    if need > lim["buffer_bytes"] or width * height * (bytes_per_pixel // 4) >= 1 << 32:
-        raise ConfigError("width", f"a {width}x{height} frame{what} needs a {need / 2**20:.0f} MiB buffer; this "
-                                   f"GPU binds at most {lim['buffer_bytes'] / 2**20:.0f} MiB "
-                                   f"(GL_MAX_SHADER_STORAGE_BLOCK_SIZE): give a smaller --width/--height")
+    if need > limit:
+        raise ConfigError(prefer, f"a {width}x{height} frame{what} needs a {need / 2**30:.1f} GiB per-pixel "
+                                   f"buffer; GPU buffers are addressed up to {limit / 2**30:.1f} GiB: give a "
+                                   f"smaller --width/--height")
 
 
 def check_reference_size(width: int, height: int) -> None:
@@ -158,8 +170,9 @@ def check_render_size(width: int, height: int, args) -> None:
     layers (and with ``--visibility kbuffer`` its fragment slots) per pixel, or DMT's hit records."""
     from dmrt.gl.abi import HIT_DTYPE
 
-    if args.renderer == "dmt":
-        return check_frame_size(width, height, HIT_DTYPE.itemsize)
+    prefer = "height" if args.height is not None and args.width is None else "width"
+    if args.renderer == "dmt":  # hit records, and RGBA float32 frame textures
+        return check_frame_size(width, height, max(HIT_DTYPE.itemsize, 16), prefer=prefer)
     from dmrt.runtime.renderer import RenderConfig
 
     config = config_from_args(RenderConfig, args)
@@ -169,7 +182,7 @@ def check_render_size(width: int, height: int, args) -> None:
     if config.method == "kbuffer":
         slots = config.kbuffer_slots or 6 * config.layers + 2
         per_pixel, what = max(per_pixel, 4 * slots), f" with {slots} k-buffer slots"
-    check_frame_size(width, height, max(per_pixel, HIT_DTYPE.itemsize, 8), what)
+    check_frame_size(width, height, max(per_pixel, HIT_DTYPE.itemsize, 8), what, prefer=prefer)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -213,8 +226,15 @@ def cmd_preprocess(args) -> None:
     from dmrt.preprocess.labeling import LabelingConfig
     from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
 
-    out = preprocess(args.scene, args.out, config_from_args(PreprocessConfig, args),
-                     config_from_args(LabelingConfig, args), force=args.force, progress=not args.quiet)
+    from dmrt.preprocess.parallel import open_executor
+
+    config, labeling = config_from_args(PreprocessConfig, args), config_from_args(LabelingConfig, args)
+    check_output(args.out, folder=True)
+    if args.out.exists() and not args.force:  # refused before the scene is read (minutes on big clouds)
+        raise InputError(args.out, "bundle exists (use --force to replace it)")
+    with open_executor(args.dask) as executor:
+        out = preprocess(args.scene, args.out, config, labeling, force=args.force, progress=not args.quiet,
+                         executor=executor)
     print(f"wrote {out}")
 
 
@@ -260,7 +280,13 @@ def make_renderer(bundle, args):
         # width, not the frame's --width
         given = {k: v for k, v in (("width", args.dmt_resolution), ("epsilon", args.dmt_epsilon),
                                    ("labeler", args.dmt_labeler)) if v is not None}
-        config = dataclasses.replace(config_from_args(DMTConfig, args), **{"width": None, **given})
+        try:
+            config = dataclasses.replace(config_from_args(DMTConfig, args), **{"width": None, **given})
+        except ConfigError as exc:  # name the option the user typed, not DMTConfig's field
+            renamed = {"width": "dmt-resolution", "epsilon": "dmt-epsilon", "labeler": "dmt-labeler"}
+            if exc.option in given and exc.option in renamed:
+                raise ConfigError(renamed[exc.option], str(exc).split(": ", 1)[1]) from None
+            raise
         return DMTRenderer(bundle, config), config
     from dmrt.runtime.renderer import RenderConfig, Renderer
 
@@ -360,7 +386,8 @@ def render_walkthrough(bundle, args) -> None:
 
     per_frame = []
     with atomic_dir(out, force=True, what="walkthrough") as tmp:
-        for n, cam in enumerate(tqdm(cameras, desc="walkthrough", unit="frame")):
+        # on a terminal only, and erased when it ends: an error stays the one line on stderr
+        for n, cam in enumerate(tqdm(cameras, desc="walkthrough", unit="frame", leave=False, disable=None)):
             frame = renderer.render(cam, args.width, args.height)
             write_frame(tmp / f"frame_{n:05d}.png", frame)
             per_frame.append(frame["timings"])
@@ -421,7 +448,7 @@ def cmd_bench(args) -> None:
 
     try:
         status = run_bench(args.preset, args.out, work=args.work, only=args.only, scene=args.scene,
-                           progress=not args.quiet, machine_name=args.machine)
+                           progress=not args.quiet, machine_name=args.machine, holdout_every=args.holdout_every)
     except ValueError as exc:
         raise InputError(None, str(exc)) from exc
     if status["failed"]:
@@ -430,6 +457,9 @@ def cmd_bench(args) -> None:
 
 
 def cmd_report(args) -> None:
+    check_output(args.out, folder=True)
+    for module in ("pandas", "matplotlib"):
+        require(module, "dmrt report", "bench")
     from bench.report import build_report
 
     r = build_report(args.results, args.out, preset=args.preset, machine=args.machine)
@@ -477,6 +507,9 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("--out", type=Path, required=True, help="bundle directory to write")
     pre.add_argument("--force", action="store_true", help="overwrite an existing bundle")
     pre.add_argument("--quiet", action="store_true", help="no progress bars")
+    pre.add_argument("--dask", metavar="SPEC", help="run the parallel phases as Dask tasks: local:N (a LocalCluster "
+                     "of N worker processes) or tcp://HOST:PORT (a running scheduler; workers with --nthreads 1 "
+                     "that see the scene and --out at the same paths); needs dmrt[dask]")
     add_config_args(pre, PreprocessConfig)
     add_config_args(pre, LabelingConfig)
     pre.set_defaults(func=cmd_preprocess)
@@ -549,6 +582,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help=f"run only these experiments ({' '.join(EXPERIMENTS)})")
     bench.add_argument("--scene", type=Path, help="benchmark this scene instead of the preset's synthetic one")
     bench.add_argument("--machine", help="machine name of the results folder (default: from the GL renderer)")
+    bench.add_argument("--holdout-every", type=int, metavar="N",
+                       help="real_views: hold out photos 0, N, 2N, ... of the scene (N >= 2; default 8, the field's "
+                            "habit; a scene of few photos needs a smaller N to hold out more than photo 0)")
     bench.add_argument("--quiet", action="store_true", help="no progress bars")
     bench.set_defaults(func=cmd_bench)
 

@@ -88,8 +88,8 @@ def camera_from_json(d: dict, path=None, where: str = "") -> Camera:
         try:
             a = np.asarray(d[key], dtype=np.float64)
         except (TypeError, ValueError):
-            raise bad(f"field '{key}' must be {'a 3x3 array' if key == 'R' else 'an array of 3'} "
-                      f"numbers, not {d[key]!r:.60}") from None
+            raise bad(f"field '{key}' must be {'a 3x3 array of' if key == 'R' else '3'} "
+                      f"numbers, not {str(d[key])[:60]}") from None
         if a.shape != shape:
             raise bad(f"field '{key}' must be {'x'.join(map(str, shape)) if key == 'R' else '3 numbers'}, "
                       f"got shape {a.shape}")
@@ -153,6 +153,25 @@ class Bundle:
             raise InputError(p, f"cannot read image ({exc})") from exc
 
     @property
+    def photo_gains(self) -> np.ndarray:
+        """(n_photos, 3) float32: each photo's RGB colour gain from preprocessing's photometric
+        adjustment (:mod:`dmrt.preprocess.photometric`; bundle.json ``photo_gains``), all 1 when
+        the bundle has none (made before it). Raises :class:`InputError` naming bundle.json when
+        the field is not n_photos rows of 3 finite numbers > 0."""
+        n = len(self.cameras)
+        gains = self.meta.get("photo_gains")
+        if gains is None:
+            return np.ones((n, 3), np.float32)
+        try:
+            a = np.asarray(gains, np.float64)
+        except (TypeError, ValueError):
+            a = np.zeros(0)
+        if a.shape != (n, 3) or not np.isfinite(a).all() or (a <= 0).any():
+            raise InputError(self.root / "bundle.json", f"field 'photo_gains' must list 3 finite gains > 0 for each "
+                                                        f"of the {n} photos (got shape {a.shape})")
+        return a.astype(np.float32)
+
+    @property
     def proxy(self) -> dict:
         """The proxy points P_LD: dict of ``positions``, ``normals``, ``radii``, ``labels``."""
         if self._proxy is None:
@@ -168,6 +187,8 @@ def _read_proxy(path: Path, n_photos: int | None = None) -> dict:
 
     if not path.is_file():
         raise InputError(path, "missing")
+    if not zipfile.is_zipfile(path):
+        raise InputError(path, "cannot read proxy points: not an .npz (zip) archive, or truncated")
     try:
         z = np.load(path, allow_pickle=False)
         if not isinstance(z, np.lib.npyio.NpzFile):  # a plain .npy array, not an archive
@@ -247,7 +268,7 @@ def read_bundle(path) -> Bundle:
     except (TypeError, ValueError):
         origin = None
     if origin is None or origin.shape != (3,) or not np.isfinite(origin).all():
-        raise InputError(meta_path, f"field 'origin' must be 3 finite numbers, not {meta['origin']!r:.60}")
+        raise InputError(meta_path, f"field 'origin' must be 3 finite numbers, not {str(meta['origin'])[:60]}")
     if not isinstance(meta["cameras"], list) or not meta["cameras"]:
         raise InputError(meta_path, "field 'cameras' must be a non-empty list of cameras")
     cameras = [camera_from_json(c, meta_path, f"cameras[{i}]") for i, c in enumerate(meta["cameras"])]

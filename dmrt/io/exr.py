@@ -3,7 +3,12 @@ written atomically (:mod:`dmrt.io.atomic`)."""
 
 from __future__ import annotations
 
+import os
+import sys
+import tempfile
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -34,6 +39,51 @@ def write_depth_exr(path, depth: np.ndarray) -> None:
         OpenEXR.File(header, {"Z": depth}).write(str(tmp))
 
 
+@contextmanager
+def library_stderr() -> Iterator[list]:
+    """Hold back what C libraries (OpenEXR reports a corrupt file on file descriptor 2 before it
+    raises) write to stderr inside the block: yields a list that receives the text, so that a
+    reader can fold it into its one-line error. Text written by a block that succeeds is passed
+    on to stderr unchanged."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as buf:
+        os.dup2(buf.fileno(), 2)
+        held: list = []
+        ok = False
+        try:
+            yield held
+            ok = True
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            buf.seek(0)
+            text = buf.read().decode(errors="replace")
+            held.append(text)
+            if ok and text:
+                sys.stderr.write(text)
+
+
+def _first_line(text: str, path: Path) -> str:
+    """The library's first message line, without the file name it repeats."""
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    return lines[0].replace(f" '{path}'", "").replace(f"{path}: ", "").replace(str(path), "the file") if lines else ""
+
+
+def read_exr_channels(path) -> dict:
+    """``{name: pixels}`` of an OpenEXR file, or an :class:`InputError` naming it (with the
+    library's reason, on one line) when it is not readable: not OpenEXR, truncated, corrupt."""
+    import OpenEXR
+
+    path = Path(path)
+    try:
+        with library_stderr() as held:
+            return {k: v.pixels for k, v in OpenEXR.File(str(path)).channels().items()}
+    except Exception as exc:  # OpenEXR raises RuntimeError with the library's message
+        reason = _first_line(held[0] if held else "", path) or str(exc).replace(str(path), "the file")
+        raise InputError(path, f"not a readable OpenEXR file, truncated or corrupt ({reason})") from None
+
+
 def read_depth_exr(path) -> np.ndarray:
     """Read a depth map written by :func:`write_depth_exr`.
 
@@ -48,18 +98,13 @@ def read_depth_exr(path) -> np.ndarray:
         The file is missing, not OpenEXR, has no ``Z`` channel, or holds non-depth values
         (non-float, non-finite or negative); the message names the file.
     """
-    import OpenEXR
-
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "depth map not found")
-    try:
-        channels = OpenEXR.File(str(path)).channels()
-    except Exception as exc:  # OpenEXR raises RuntimeError with the library's message
-        raise InputError(path, f"not a readable OpenEXR file ({exc})") from None
+    channels = read_exr_channels(path)
     if "Z" not in channels:
         raise InputError(path, f"no 'Z' channel (channels: {', '.join(sorted(channels)) or 'none'})")
-    z = np.asarray(channels["Z"].pixels)
+    z = np.asarray(channels["Z"])
     if z.ndim != 2 or z.dtype.kind != "f":
         raise InputError(path, f"channel 'Z' must be one float per pixel, got {z.dtype} {z.shape}")
     z = z.astype(np.float32, copy=False)

@@ -62,18 +62,20 @@ def write_frame(path, frame: dict) -> None:
 
 def read_frame(path) -> dict:
     """Read a frame written by :func:`write_frame` (``.exr``: every channel; ``.png``: colour)."""
-    import OpenEXR
     from PIL import Image
+
+    from dmrt.io.exr import read_exr_channels
 
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "frame file not found")
     if path.suffix.lower() == ".png":
-        return {"color": np.asarray(Image.open(path).convert("RGB"))}
-    try:
-        channels = {k: v.pixels for k, v in OpenEXR.File(str(path)).channels().items()}
-    except Exception as exc:
-        raise InputError(path, f"not a readable OpenEXR file ({exc})") from exc
+        try:
+            with Image.open(path) as im:
+                return {"color": np.asarray(im.convert("RGB"))}
+        except (OSError, ValueError) as exc:
+            raise InputError(path, f"cannot read image ({exc})") from None
+    channels = read_exr_channels(path)
     # OpenEXR groups R, G, B (and N.X, N.Y, N.Z) into one multi-channel entry when it reads.
     if "RGB" in channels:
         rgb = channels.pop("RGB")
