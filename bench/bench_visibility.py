@@ -6,11 +6,11 @@
 Renders a walkthrough at 1280x720 with 1 and ``--layers`` label layers for depth peeling by compute
 passes (``compute``, per ``--max-thread-pixels``: discs with a larger pixel box are splatted by a
 workgroup each), for the single-pass k-buffer (``kbuffer``, per ``--slots``) and for the tile-binned
-single pass (``tiles``, :mod:`dmrt.runtime.tiles`), and records the median GPU ms of the visibility
-stage and of the labeling pass (one more splat pass). For the single passes also the agreement of
-their layers with the peeled ones (share of pixels with equal label, per layer) and the pixels
-whose list overflowed; for ``tiles`` its list's statistics and GPU bytes. One JSON
-``visibility-<name>.json``.
+single pass (``tiles``, :mod:`dmrt.runtime.tiles`; ``tiles-lagged`` without its end-of-stage
+readback), and records the median GPU ms of the visibility stage and of the labeling pass (one
+more splat pass). For the single passes also the agreement of their layers with the peeled ones
+(share of pixels with equal label, per layer) and the pixels whose list overflowed; for ``tiles``
+its list's statistics and GPU bytes. One JSON ``visibility-<name>.json``.
 """
 
 from __future__ import annotations
@@ -45,14 +45,17 @@ def main(argv=None) -> None:
     path = camera_path(keys, args.frames, args.width, args.height)
     configs = [("compute", mtp, 0) for mtp in args.max_thread_pixels]
     configs += [("kbuffer", args.max_thread_pixels[-1], slots) for slots in args.slots]
-    configs += [("tiles", args.max_thread_pixels[-1], 0)]
+    # tiles-lagged: the tiles path without its end-of-stage statistics readback (dmrt.runtime.tiles)
+    configs += [(m, args.max_thread_pixels[-1], 0) for m in ("tiles", "tiles-lagged")]
     reference = None
     runs = []
     for method, mtp, slots in configs:
         row = {"method": method, "max_thread_pixels": mtp, "slots": slots}
         for k in (1, args.layers):
-            r = Renderer(bundle, RenderConfig(layers=k, method=method, max_thread_pixels=mtp, kbuffer_slots=slots,
-                                              cache_mb=0))
+            r = Renderer(bundle, RenderConfig(layers=k, method=method.split("-")[0], max_thread_pixels=mtp,
+                                              kbuffer_slots=slots, cache_mb=0))
+            if method == "tiles-lagged":
+                r.visibility._tiles.check = "lagged"
             for cam in path[:3]:
                 r.render(cam)
             t, labels, overflow = [], [], 0
@@ -64,7 +67,7 @@ def main(argv=None) -> None:
             row[f"visibility_{k}_ms"] = float(np.median([x["visibility"] for x in t]))
             row["labeling_ms"] = float(np.median([x["labeling"] for x in t]))
             row["n_large"] = int(np.frombuffer(r.splats.large.read(16), np.uint32)[3])
-            if method == "tiles":  # the last frame's list length, pending-list length, overflows
+            if method.startswith("tiles"):  # the last frame's list length, pending-list length, overflows
                 row[f"tiles_{k}"] = {**r.visibility._tiles.stats(), "bytes": r.visibility.nbytes}
             r.release()
         if reference is None:

@@ -3,7 +3,8 @@
 //   SCATTER 0, LARGE 0: one thread per proxy: cull (empty pixel box: behind the camera, off
 //            screen), count the disc in every tile its pixel box overlaps (atomicAdd on Counts);
 //            a disc over more than MAX_THREAD_TILES tiles is appended to the Large list instead,
-//            whose header holds the dispatch-indirect arguments of the LARGE 1 passes;
+//            whose header holds the dispatch-indirect arguments of the LARGE 1 passes (the host
+//            resets it to zero workgroups and an empty list before this pass);
 //   SCATTER 0, LARGE 1: one workgroup per listed large disc, its threads striding over its tiles;
 //   SCATTER 1, LARGE 0/1: the same walk again, writing (near key, proxy index) into the tile's slice
 //            of Entries: slot = Offsets[tile] + (Counts[tile] decremented atomically) - 1, so the
@@ -13,11 +14,11 @@
 // Both walks recompute the disc's box (cheaper than storing it): the same box, so the same tiles.
 //
 // Buffers (binding: layout):
-//   0 Proxies  n x 8 floats (dmrt_tiles_common.glsl)
-//   3 Large    uint groups_x, groups_y, groups_z, n_large; uint large[n]  (proxy indices)
-//   5 Entries  uvec2[capacity]: (near_key bits, proxy index), tile after tile
-//   6 Counts   uint[tiles]: discs per tile
-//   7 Offsets  uint[tiles + 1]: exclusive prefix sum of Counts (SCATTER 1 only)
+//   B_PROXIES       n x 8 floats (dmrt_tiles_common.glsl)
+//   B_LARGE         uint groups_x, groups_y, groups_z, n_large; uint large[n]  (proxy indices)
+//   B_TILE_ENTRIES  uvec2[capacity]: (near_key bits, proxy index), tile after tile
+//   B_TILE_COUNTS   uint[tiles]: discs per tile
+//   B_TILE_OFFSETS  uint[tiles + 1]: exclusive prefix sum of Counts (SCATTER 1 only)
 #include "dmrt_tiles_common.glsl"
 
 #if defined COMPUTE_SHADER
@@ -33,11 +34,11 @@
 #endif
 #define LARGE_GROUPS 1024u  // workgroups striding over the large list
 
-layout(std430, binding = 3) buffer Large { uint groups_x; uint groups_y; uint groups_z; uint n_large; uint large[]; };
-layout(std430, binding = 6) buffer Counts { uint counts[]; };
+layout(std430, binding = B_LARGE) buffer Large { uint groups_x; uint groups_y; uint groups_z; uint n_large; uint large[]; };
+layout(std430, binding = B_TILE_COUNTS) buffer Counts { uint counts[]; };
 #if SCATTER
-layout(std430, binding = 5) writeonly buffer Entries { uvec2 entries[]; };
-layout(std430, binding = 7) readonly buffer Offsets { uint offsets[]; };
+layout(std430, binding = B_TILE_ENTRIES) writeonly buffer Entries { uvec2 entries[]; };
+layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
 uniform uint u_capacity;  // entries the buffer holds
 #endif
 
@@ -45,7 +46,7 @@ uniform uint u_count;  // number of proxies
 
 void bin_into(uint tile, uint key, uint k) {
 #if SCATTER
-    uint pos = offsets[tile] + atomicAdd(counts[tile], 0xFFFFFFFFu) - 1u;
+    uint pos = offsets[tile] + atomicAdd(counts[tile], ~0u) - 1u;  // decrement: adding 2^32 - 1
     if (pos < u_capacity) entries[pos] = uvec2(key, k);
 #else
     atomicAdd(counts[tile], 1u);

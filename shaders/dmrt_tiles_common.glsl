@@ -8,13 +8,15 @@
 #define TILE 16
 #endif
 
+// Binding points: B_PROXIES, B_LARGE, B_LAYER_DEPTH, B_LAYER_LABEL and the sentinels EMPTY_BITS,
+// EMPTY_LABEL from dmrt/gl/abi.py; B_TILE_ENTRIES, B_TILE_COUNTS, B_TILE_OFFSETS, B_TILE_STATUS
+// from dmrt/runtime/tiles.py (TILE_BINDINGS), all injected as #defines by the loader.
+//
 // n proxies x 8 floats: position xyz (metres, scene-origin-relative), radius (metres), normal xyz,
 // label (int bits); the buffer of dmrt.runtime.visibility.ProxySplats (dmrt_splat_common.glsl).
-layout(std430, binding = 0) readonly buffer Proxies { float proxies[]; };
+layout(std430, binding = B_PROXIES) readonly buffer Proxies { float proxies[]; };
 
 uniform ivec2 u_tiles;  // tiles per row, tile rows
-
-const uint EMPTY_BITS = 0xFFFFFFFFu;  // an empty depth (above every positive float's bits)
 
 // The loader of dmrt_splat_common.glsl, so that every path evaluates the same disc.
 Splat load_proxy(uint k, out int label) {

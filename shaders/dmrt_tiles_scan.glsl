@@ -6,10 +6,10 @@
 // a multi-workgroup scan would only pay off at millions.
 //
 // Buffers (binding: layout):
-//   4 Status   uint total (entries this frame), forced, long_tiles, spare (see dmrt_tiles_raster.glsl;
-//              this pass zeroes the counters the raster pass increments)
-//   6 Counts   uint[tiles] (dmrt_tiles_bin.glsl SCATTER 0)
-//   7 Offsets  uint[tiles + 1]: Offsets[t] = sum of Counts[0..t), Offsets[tiles] = total
+//   B_TILE_STATUS   uint total (entries this frame), overflow, long_tiles, spare (see
+//                   dmrt_tiles_raster.glsl; this pass zeroes the counters the raster pass increments)
+//   B_TILE_COUNTS   uint[tiles] (dmrt_tiles_bin.glsl SCATTER 0)
+//   B_TILE_OFFSETS  uint[tiles + 1]: Offsets[t] = sum of Counts[0..t), Offsets[tiles] = total
 #if defined COMPUTE_SHADER
 
 #ifndef SCAN_THREADS
@@ -18,9 +18,9 @@
 
 layout(local_size_x = SCAN_THREADS) in;
 
-layout(std430, binding = 4) buffer Status { uint total; uint forced; uint long_tiles; uint spare; };
-layout(std430, binding = 6) readonly buffer Counts { uint counts[]; };
-layout(std430, binding = 7) writeonly buffer Offsets { uint offsets[]; };
+layout(std430, binding = B_TILE_STATUS) buffer Status { uint total; uint overflow; uint long_tiles; uint spare; };
+layout(std430, binding = B_TILE_COUNTS) readonly buffer Counts { uint counts[]; };
+layout(std430, binding = B_TILE_OFFSETS) writeonly buffer Offsets { uint offsets[]; };
 
 uniform uint u_tile_count;  // tiles_x * tiles_y
 
@@ -51,7 +51,7 @@ void main() {
     if (t == uint(SCAN_THREADS) - 1u) {
         offsets[u_tile_count] = s_sum[t];
         total = s_sum[t];
-        forced = 0u;
+        overflow = 0u;
         long_tiles = 0u;
     }
 }

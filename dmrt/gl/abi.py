@@ -44,6 +44,13 @@ B_DEPTH_LARGE = 20  # count + list of large discs
 B_DMT_BOXES = 21    # n_maps x 2 vec4 bounding boxes
 B_DMT_COMMANDS = 22  # n_maps draw-indirect commands
 B_DMT_STATS = 23    # culled maps, triangles drawn
+# tile-binned visibility (dmrt/runtime/tiles.py)
+B_TILE_ENTRIES = 24  # uvec2 (near key, proxy index) per disc-tile overlap
+B_TILE_COUNTS = 25   # uint per tile: discs binned
+B_TILE_OFFSETS = 26  # uint per tile + 1: where each tile's entries start
+B_TILE_STATUS = 27   # uint x 4: list length, overflow pixels, long tiles, spare
+# photometric adjustment
+B_PHOTO_GAINS = 28  # n_photos vec4: each photo's RGB colour gain (bundle.json photo_gains), 1 = unchanged
 
 # -- sentinels ---------------------------------------------------------------------------------
 EMPTY_BITS = 0xFFFFFFFF  # an empty depth (above every positive float's bits: atomicMin keeps the nearest)

@@ -23,6 +23,9 @@ Two GPU paths write the same layer buffers (``RenderConfig.method``):
     (relative 2^-(23 - label_bits): 2e-6 for 12 photos, 3e-5 for 192) and ties within that break
     by label, (b) where more than ``slots`` fragments lie in front of the k-th layer
     (:meth:`VisibilityStage.read_overflow` counts those pixels; their deeper layers stay empty).
+``"tiles"``
+    One tile-binned walk for all k layers, the per-pixel layer lists in registers
+    (:mod:`dmrt.runtime.tiles`, which says where it can differ from peeling).
 ``"raster"``
     The paper's way: GL_POINTS sprites (geometry-shader quads for discs larger than the largest
     sprite; the depth maps' raster programs with ``WITH_LABEL``) with the per-fragment ray-disc test and the peeling test in the fragment shader,
@@ -43,6 +46,7 @@ from dmrt.gl.abi import EMPTY_BITS, EMPTY_LABEL, EMPTY_Z, PROXY_FLOATS
 from dmrt.gl.kernels import fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.morton import morton_order
+from dmrt.runtime.tiles import TileVisibility
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 
@@ -133,19 +137,20 @@ class VisibilityStage:
     ----------
     ctx : moderngl.Context
     splats : ProxySplats
-    method : ``"compute"`` or ``"raster"``
+    method : ``"compute"``, ``"kbuffer"``, ``"tiles"`` or ``"raster"``
     int64 : bool
         Compute path: one pass per layer with 64-bit atomics (see module doc).
     """
 
     def __init__(self, ctx: moderngl.Context, splats: ProxySplats, method: str = "compute", int64: bool = False,
                  slots: int = 16, n_labels: int = 256):
-        if method not in ("compute", "raster", "kbuffer"):
-            raise ValueError(f"RenderConfig.method must be 'compute', 'kbuffer' or 'raster', not {method!r}")
+        if method not in ("compute", "raster", "kbuffer", "tiles"):
+            raise ValueError(f"RenderConfig.method must be 'compute', 'kbuffer', 'tiles' or 'raster', not {method!r}")
         self.ctx, self.splats, self.method = ctx, splats, method
         self.int64 = bool(int64) and method == "compute"
         self._size = None
         self._packed = None
+        self._tiles = TileVisibility(ctx, splats) if method == "tiles" else None
         if method == "kbuffer":
             label_bits = max(1, int(n_labels - 1).bit_length())
             if label_bits > 16:
@@ -169,6 +174,9 @@ class VisibilityStage:
 
     def run(self, uniforms: dict, size: tuple[int, int], layers: int, layer_depth, layer_label) -> None:
         """Fill ``layers`` label layers for the camera in ``uniforms`` (u_R, u_t, u_K, u_size)."""
+        if self._tiles is not None:  # writes every layer of every pixel: nothing to clear
+            self._tiles.run(uniforms, size, layers, layer_depth, layer_label)
+            return
         w, h = size
         fill_u32(self.ctx, layer_depth, EMPTY_BITS, layers * w * h)
         fill_u32(self.ctx, layer_label, EMPTY_LABEL, layers * w * h)
@@ -220,12 +228,17 @@ class VisibilityStage:
         self.ctx.memory_barrier(_BARRIER)
 
     def read_overflow(self) -> int:
-        """Pixels of the last k-buffer frame whose list ran out before the k-th layer."""
+        """Pixels of the last k-buffer frame whose list ran out before the k-th layer (tiles: pixels
+        that may differ from peeling, :meth:`dmrt.runtime.tiles.TileVisibility.read_overflow`)."""
+        if self._tiles is not None:
+            return self._tiles.read_overflow()
         return int(np.frombuffer(self._overflow.read(), np.uint32)[0]) if self.method == "kbuffer" else 0
 
     @property
     def nbytes(self) -> int:
-        """GPU bytes of the stage's own buffers (the k-buffer list)."""
+        """GPU bytes of the stage's own buffers (the k-buffer list; the tiles path's buffers)."""
+        if self._tiles is not None:
+            return self._tiles.nbytes
         kbuf = getattr(self, "_kbuf", None)
         return kbuf.size if kbuf is not None else 0
 
@@ -274,6 +287,8 @@ class VisibilityStage:
 
     def release(self) -> None:
         self._release_targets()
+        if self._tiles is not None:
+            self._tiles.release()
         for name in ("_vao_points", "_vao_quads", "_packed", "_kbuf", "_overflow"):
             obj = self.__dict__.pop(name, None)
             if obj is not None:
