@@ -88,7 +88,8 @@ def main(argv=None) -> None:
                 runs.append({"method": method, "layers": k, **r})
                 print(f"{w}x{h} {method:8s} k={k:2d}  " + "  ".join(f"{s} {v:.3f}" for s, v in r["median_ms"].items())
                       + f"  | GPU median {r['median_total_ms']:.3f} p95 {r['p95_total_ms']:.3f} ms, wall median "
-                        f"{r['median_wall_ms']:.3f} p95 {r['p95_wall_ms']:.3f} ms, {r['mean_iterations']:.2f} steps, "
+                        f"{r['median_wall_ms']:.3f} p95 {r['p95_wall_ms']:.3f} ms, sustained {r['sustained_ms']:.3f} "
+                        f"ms/frame, {r['mean_iterations']:.2f} steps, "
                         f"clocks {r['gpu_clocks']}", flush=True)
     result = {"benchmark": "render", "version": 2, "bundle": str(bundle.root), "preset": args.preset,
               "machine": {"gl": renderer_info(get_context())}, "setup_s": setup, "frames": args.frames,

@@ -62,7 +62,7 @@ class BenchPreset:
     # Table 2: layer counts and visibility paths (RenderConfig.method; the first is the default path,
     # used by every other experiment).
     layers: tuple[int, ...] = (1, 3, 5, 7, 9, 11)
-    methods: tuple[str, ...] = ("kbuffer", "compute", "raster")
+    methods: tuple[str, ...] = ("tiles", "compute", "kbuffer", "raster")
     # Fig. 7: proxy sets as numbers of coarsest octree levels (LOD k); the main bundle of every other
     # experiment uses main_proxy_levels (None: the preprocessing default, PreprocessConfig.proxy_factor).
     proxy_levels: tuple[int, ...] = (3, 4, 5)
@@ -89,7 +89,7 @@ PRESETS = {
         name="ci", scene="tiny", preprocess={"depthmap_width": 256}, frame_size=(192, 128),
         walkthrough_frames=10, walkthrough_keys=6, warmup_frames=2, layers=(1, 3, 5),
         proxy_levels=(1, 2, 3), photo_cameras=4, quality_width=192, max_layers=5,
-        fig7_fps_layers=(1, 3), dmt_resolutions=(64, 128, 256)),
+        fig7_fps_layers=(1, 3), dmt_resolutions=(64, 128, 256), methods=("tiles", "compute", "raster")),
     "small": BenchPreset(
         name="small", scene="small", preprocess={"depthmap_width": 512}, frame_size=(640, 360),
         walkthrough_frames=20, warmup_frames=5, layers=(1, 3, 5, 7), proxy_levels=(2, 3, 4),

@@ -90,7 +90,7 @@ def test_report_is_complete(ci_run):
         img = mpimg.imread(path)
         assert img.ndim == 3 and img[..., :3].std() > 0.05, f"{f} looks blank"
         assert f"figures/{f}" in md and f"figures/{f}" in page
-    for csv in ["table1_scene", "table1_preprocessing", "table2_kbuffer", "table2_compute", "table2_raster",
+    for csv in ["table1_scene", "table1_preprocessing", "table2_tiles", "table2_compute", "table2_raster",
                 "table2_ratios",
                 "table3", "fig7", "fig7_holes", "fig8", "fig9_10", "fig13", "memory"]:
         assert (report / "csv" / f"{csv}.csv").stat().st_size > 50, csv
@@ -114,15 +114,15 @@ def test_report_numbers_are_the_measured_ones(ci_run):
     assert f"| proxies | {c['proxies']} | 1000000 | {fmt(c['proxies'] / 1e6)} |" in rows
 
     t2 = _result(set_dir, "table2")["measurements"]
-    assert [r["method"] for r in t2["runs"]] == ["kbuffer"] * 3 + ["compute"] * 3 + ["raster"] * 3
+    assert [r["method"] for r in t2["runs"]] == ["tiles"] * 3 + ["compute"] * 3 + ["raster"] * 3
     k1 = t2["runs"][0]
     # the raytracing row of the default path's table starts with the 1-layer median and the paper's 1.2 ms
     assert any(r.startswith(f"| raytracing | {fmt(k1['median_ms']['raytracing'])} | 1.2 |") for r in rows)
     # mean search steps and the visibility ratios appear in the ratio table
     ratios = t2["visibility_ratios"]
-    assert set(ratios) == {"raster/compute", "compute/kbuffer", "raster/kbuffer"}
-    assert any(f"| {fmt(ratios['raster/compute']['1'])} | {fmt(ratios['compute/kbuffer']['1'])} | "
-               f"{fmt(ratios['raster/kbuffer']['1'])} |" in r and f"| {fmt(k1['mean_iterations'])} |" in r
+    assert set(ratios) == {"raster/compute", "compute/tiles", "raster/tiles"}
+    assert any(f"| {fmt(ratios['raster/compute']['1'])} | {fmt(ratios['compute/tiles']['1'])} | "
+               f"{fmt(ratios['raster/tiles']['1'])} |" in r and f"| {fmt(k1['mean_iterations'])} |" in r
                for r in rows)
 
     dmt = _result(set_dir, "table3_fig12")["measurements"]["dmt"]

@@ -29,7 +29,7 @@ def test_config_is_validated():
     from dmrt.errors import ConfigError
     from dmrt.runtime.renderer import RenderConfig
 
-    with pytest.raises(ConfigError, match="^--method: must be one of 'kbuffer', 'compute', 'raster'"):
+    with pytest.raises(ConfigError, match="^--method: must be one of 'tiles', 'compute', 'kbuffer', 'raster', not 'cuda'"):
         RenderConfig(method="cuda")
     with pytest.raises(ConfigError, match="^--discontinuity-test: .*'edge'"):
         RenderConfig(discontinuity_test="edge")
