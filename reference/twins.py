@@ -266,7 +266,7 @@ def surface_depth(D: np.ndarray, uv: np.ndarray, max_span: float = 1e29, snap: f
 
 
 def raytrace(camera: Camera, cameras, depthmaps, layer_depth, layer_label, max_steps=100,
-             binary_steps=20, threshold=0.20, steps=None):
+             binary_steps=20, threshold=0.20, steps=None, refine="illinois"):
     """The raytracing pass (``shaders/dmrt_raytrace.glsl``: the paper's adaptive search and quad
     test, Section 5.1.2), vectorised over pixels.
 
@@ -283,13 +283,15 @@ def raytrace(camera: Camera, cameras, depthmaps, layer_depth, layer_label, max_s
     layer_label : (k, h, w) int
         Label per layer, -1 = empty.
     max_steps, binary_steps : int
-        Iterative and bisection steps.
+        Iterative and (at most) refinement steps.
     threshold : float
         Discontinuity threshold, metres.
     steps : (k, bins, 2) float64, optional
         Per layer and step index (the last bin pools the later ones), the count and the summed
         length (metres along the ray) of the iterative steps taken are added to it (the renderer's
         ``step_stats``).
+    refine : ``"illinois"`` or ``"bisection"``
+        How an enclosed hit is refined (``RenderConfig.refine``).
 
     Returns
     -------
@@ -308,13 +310,13 @@ def raytrace(camera: Camera, cameras, depthmaps, layer_depth, layer_label, max_s
             idx = np.flatnonzero((zs > 0) & (ls == lab) & (layer < 0))
             s_hit, ok = _trace(centre, dirs[idx], zs[idx].astype(np.float64), cameras[lab],
                                depthmaps[lab], max_steps, binary_steps, threshold,
-                               None if steps is None else steps[li])
+                               None if steps is None else steps[li], refine)
             depth[idx[ok]], layer[idx[ok]] = s_hit[ok], li
     shape = (camera.height, camera.width)
     return depth.reshape(shape), layer.reshape(shape)
 
 
-def _trace(centre, d, s, photo, D, max_steps, binary_steps, threshold, steps=None):
+def _trace(centre, d, s, photo, D, max_steps, binary_steps, threshold, steps=None, refine="illinois"):
     """One label's rays in its depth map: ``centre`` (3,) and ``d`` (m, 3) the rays (camera z =
     ray parameter), ``s`` (m,) float64 start parameters (the splat depth), ``photo`` the label's
     camera, ``D`` (h, w) its depth map. Returns the hit parameters (m,) float64 and (m,) bool ok."""
@@ -359,17 +361,10 @@ def _trace(centre, d, s, photo, D, max_steps, binary_steps, threshold, steps=Non
         s[step], f[step] = sn[step], fn[step]
     ok = alive & found
     bis = ok & (sa != sb)
-    for _ in range(binary_steps):
-        sm = 0.5 * (sa + sb)
-        fm, okm = F(sm)
-        ok &= ~(bis & ~okm)
-        same = (fm > 0) == (fa > 0)
-        upd_a, upd_b = bis & same, bis & ~same
-        sa[upd_a], fa[upd_a] = sm[upd_a], fm[upd_a]
-        sb[upd_b], fb[upd_b] = sm[upd_b], fm[upd_b]
-    with np.errstate(all="ignore"):
-        secant = np.where(fa == fb, 0.5 * (sa + sb), sa + (sb - sa) * fa / (fa - fb))
-    s_hit = np.where(bis, secant, sa)
+    if refine == "illinois":
+        s_hit, ok = _illinois(F, sa, fa, sb, fb, bis, ok, binary_steps)
+    else:
+        s_hit, ok = _bisection(F, sa, fa, sb, fb, bis, ok, binary_steps)
     with np.errstate(all="ignore"):
         pc = c.world_to_camera(centre + s_hit[:, None] * d)
         uv = np.stack([c.fx * pc[:, 0] / pc[:, 2] + c.cx, c.fy * pc[:, 1] / pc[:, 2] + c.cy], 1)
@@ -379,6 +374,57 @@ def _trace(centre, d, s, photo, D, max_steps, binary_steps, threshold, steps=Non
     ok &= inside & (pc[:, 2] > 1e-6) & (q > 0).all(1)
     ok &= np.all([np.abs(q[:, a] - q[:, b]) <= threshold for a, b in pairs], axis=0)
     return s_hit, ok
+
+
+def _secant(sa, fa, sb, fb):
+    with np.errstate(all="ignore"):
+        return np.where(fa == fb, 0.5 * (sa + sb), sa + (sb - sa) * fa / (fa - fb))
+
+
+def _bisection(F, sa, fa, sb, fb, bis, ok, n):
+    """The paper's refinement of the intervals ``bis``: ``n`` bisection steps, then a secant step.
+    Returns the hit parameters and ``ok`` less the rays whose probe fell on empty texels."""
+    sa, fa, sb, fb, ok = sa.copy(), fa.copy(), sb.copy(), fb.copy(), ok.copy()
+    for _ in range(n):
+        sm = 0.5 * (sa + sb)
+        fm, okm = F(sm)
+        ok &= ~(bis & ~okm)
+        same = (fm > 0) == (fa > 0)
+        upd_a, upd_b = bis & same, bis & ~same
+        sa[upd_a], fa[upd_a] = sm[upd_a], fm[upd_a]
+        sb[upd_b], fb[upd_b] = sm[upd_b], fm[upd_b]
+    return np.where(bis, _secant(sa, fa, sb, fb), sa), ok
+
+
+def _illinois(F, sa, fa, sb, fb, bis, ok, n):
+    """The Illinois refinement of ``shaders/dmrt_raytrace.glsl`` (``ILLINOIS``): at most ``n``
+    regula-falsi steps, the kept end's value halved when the same end is kept twice, stopping at
+    |h| <= 1e-6 of the depth; then a secant step for the rays that did not stop."""
+    sa, fa, sb, fb, ok = sa.copy(), fa.copy(), sb.copy(), fb.copy(), ok.copy()
+    side = np.zeros(len(sa), np.int8)
+    active = bis & ok
+    hit = sa.copy()
+    for _ in range(n):
+        act = active & (fa != fb)
+        if not act.any():
+            break
+        with np.errstate(all="ignore"):
+            sm = np.where(act, (sa * fb - sb * fa) / (fb - fa), sa)
+        fm, okm = F(sm)
+        ok &= ~(act & ~okm)
+        act &= okm
+        done = act & (np.abs(fm) <= 1e-6 * sm)
+        hit[done] = sm[done]
+        active &= ~done & ok
+        act &= ~done
+        keep_b = act & ((fm > 0) == (fb > 0))
+        keep_a = act & ~keep_b
+        fa[keep_b & (side == -1)] *= 0.5
+        sb[keep_b], fb[keep_b] = sm[keep_b], fm[keep_b]
+        fb[keep_a & (side == 1)] *= 0.5
+        sa[keep_a], fa[keep_a] = sm[keep_a], fm[keep_a]
+        side[keep_b], side[keep_a] = -1, 1
+    return np.where(active, _secant(sa, fa, sb, fb), hit), ok
 
 
 # ---------------------------------------------------------------------------------------------

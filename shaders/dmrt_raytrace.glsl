@@ -16,7 +16,11 @@
 // when two consecutive points enclose the surface (h changes sign) or when |h| <= 1e-5 of the camera
 // z (landed on the surface, float32 precision); it fails when a point leaves the depth map, falls
 // on empty texels, goes behind the camera, or after u_max_steps steps. An enclosed interval is
-// refined by u_binary_steps bisection steps and a final secant step.
+// refined by u_binary_steps bisection steps and a final secant step (the paper), or with ILLINOIS by
+// the Illinois variant of regula falsi: each step takes the secant point of the interval, halving
+// the stale end's value when the same end is kept twice, and stops when |h| <= 1e-6 of the camera z
+// (float32 resolves ~1e-7) - a few fetches where bisection always takes u_binary_steps; at most
+// u_binary_steps steps either way.
 //
 // Discontinuity test on the four texels around the hit's projection (triangles T0 = (00,10,01),
 // T1 = (10,11,01)), as chosen by QUAD_TEST:
@@ -69,6 +73,10 @@ uniform float u_threshold;  // metres
 
 #ifndef FILL
 #define FILL 0
+#endif
+
+#ifndef ILLINOIS
+#define ILLINOIS 0
 #endif
 
 #if FILL
@@ -171,18 +179,37 @@ bool valid_hit(int l, vec3 C, vec3 dir, float dlen, float s_hit, out vec3 n) {
     return true;
 }
 
-// Bisection of the enclosing interval [sa, sb] (f changes sign), then a secant step: true with the
-// intersection s_hit; false where a midpoint falls on empty texels.
+// Refinement of the enclosing interval [sa, sb] (f changes sign): true with the intersection s_hit;
+// false where a probe falls on empty texels (see the header for the two methods).
 bool refine(int l, vec3 C, vec3 dir, float sa, float fa, float sb, float fb, out float s_hit) {
     bool ok;
     s_hit = sa;
     if (sa == sb) return true;
+#if ILLINOIS
+    int side = 0;
+    for (int b = 0; b < u_binary_steps && fa != fb; ++b) {
+        float sm = (sa * fb - sb * fa) / (fb - fa);
+        float fm = signed_distance(l, C + sm * dir, ok);
+        if (!ok) return false;
+        if (abs(fm) <= 1e-6 * sm) { s_hit = sm; return true; }
+        if ((fm > 0.0) == (fb > 0.0)) {
+            sb = sm; fb = fm;
+            if (side == -1) fa *= 0.5;
+            side = -1;
+        } else {
+            sa = sm; fa = fm;
+            if (side == 1) fb *= 0.5;
+            side = 1;
+        }
+    }
+#else
     for (int b = 0; b < u_binary_steps; ++b) {
         float sm = 0.5 * (sa + sb);
         float fm = signed_distance(l, C + sm * dir, ok);
         if (!ok) return false;
         if ((fm > 0.0) == (fa > 0.0)) { sa = sm; fa = fm; } else { sb = sm; fb = fm; }
     }
+#endif
     s_hit = (fa == fb) ? 0.5 * (sa + sb) : sa + (sb - sa) * fa / (fa - fb);
     return true;
 }

@@ -6,24 +6,27 @@ variants: the coarse-splats ablation, hole filling from neighbours, the secant s
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from helpers import W, novel_camera
 from reference.twins import raytrace
 
 
-def test_raytracing_matches_numpy(ctx, bundle, depthmaps):
-    """The raytracing pass (the paper's adaptive search) against its float64 numpy version on the
-    GPU's own layers. Rounding can flip a decision (enclosure, discontinuity threshold) on a few
-    pixels: >= 99.5 % of the pixels agree on hit / miss and layer, and common hits agree to 1e-4
-    relative depth."""
+@pytest.mark.parametrize("refine", ["bisection", "illinois"])
+def test_raytracing_matches_numpy(ctx, bundle, depthmaps, refine):
+    """The raytracing pass (the paper's adaptive search; the paper's bisection or the Illinois
+    refinement) against its float64 numpy version on the GPU's own layers. Rounding can flip a
+    decision (enclosure, discontinuity threshold) on a few pixels: >= 99.5 % of the pixels agree on
+    hit / miss and layer, and common hits agree to 1e-4 relative depth (both refinements stop far
+    below that: 20 halvings of a step, or |h| <= 1e-6 of the depth)."""
     from dmrt.runtime.renderer import RenderConfig, Renderer
 
     paper = Renderer(bundle, RenderConfig(layers=3, search="adaptive", fill_passes=0, async_photos=False,
-                                          max_uploads_per_frame=0), ctx)
+                                          max_uploads_per_frame=0, refine=refine), ctx)
     for cam in (bundle.cameras[5].resized(W), novel_camera(bundle.cameras[6], bundle.cameras[7]).resized(W)):
         frame = paper.render(cam)
         layers = paper.layers()
-        depth, layer = raytrace(cam, bundle.cameras, depthmaps, layers["depth"], layers["label"])
+        depth, layer = raytrace(cam, bundle.cameras, depthmaps, layers["depth"], layers["label"], refine=refine)
         assert np.mean((depth > 0) == (frame["depth"] > 0)) >= 0.995
         assert np.mean(layer == frame["layer_used"]) >= 0.995
         both = (depth > 0) & (frame["depth"] > 0)

@@ -69,7 +69,10 @@ class RenderConfig:
     layers: int = option(5, "label layers k (paper: 3-5 give high quality, Fig. 13; 11 for the worst case)",
                          minimum=1)
     max_steps: int = option(100, "iterative-search steps per layer (paper: <= 100)", minimum=1)
-    binary_steps: int = option(20, "bisection steps refining a hit (paper: 20)", minimum=0)
+    binary_steps: int = option(20, "refinement steps of a hit at most (paper: 20 bisection steps)", minimum=0)
+    refine: Literal["illinois", "bisection"] = option(
+        "illinois", "refinement of an enclosed hit: illinois (regula falsi with the Illinois fix, stopping at "
+                    "1e-6 of the depth: a few fetches) or bisection (the paper: always --binary-steps steps)")
     discontinuity_threshold: float = option(0.20, "depth disparity between the texels of a depth-map quad that "
                                                   "marks a discontinuity, metres (paper: 0.20)", minimum=0.0)
     discontinuity_test: Literal["quad", "triangle"] = option(
@@ -199,7 +202,7 @@ class Renderer:
                                           self.config.kbuffer_slots or 6 * self.config.layers + 2, n)
         defines = {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
                    "SECANT": int(self.config.search == "secant"), "RAYTRACE": int(self.config.raytrace),
-                   "STATISTICS": int(self.config.statistics)}
+                   "STATISTICS": int(self.config.statistics), "ILLINOIS": int(self.config.refine == "illinois")}
         self._raytrace = load_program(self.ctx, "dmrt_raytrace", defines)
         self._fill = load_program(self.ctx, "dmrt_raytrace", {**defines, "FILL": 1})
         self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
