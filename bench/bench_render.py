@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import shutil
 import time
@@ -64,6 +65,7 @@ def main(argv=None) -> None:
     p.add_argument("--sizes", nargs="+", default=["1280x720"], help="frame sizes WxH (default: 1280x720)")
     p.add_argument("--layers", type=int, nargs="+", default=[1, 3, 5, 7, 9, 11])
     p.add_argument("--methods", nargs="+", default=["compute", "raster"])
+    p.add_argument("--refine", nargs="+", default=["illinois"], help="hit refinements (RenderConfig.refine)")
     p.add_argument("--leveling", action=argparse.BooleanOptionalAction, default=True,
                    help="screen-space leveling, as the paper's texturing pass (default: on)")
     p.add_argument("--frames", type=int, default=30, help="walkthrough frames per configuration")
@@ -80,17 +82,17 @@ def main(argv=None) -> None:
     for size in args.sizes:
         w, h = (int(v) for v in size.lower().split("x"))
         path = camera_path(keys, args.frames, w, h)
-        for method in args.methods:
-            for k in args.layers:
-                r = measure_walkthrough(bundle, RenderConfig(layers=k, method=method, leveling=args.leveling), path,
-                                        f"{method} k={k} {w}x{h}")
-                r.pop("stage_ms_per_frame")
-                runs.append({"method": method, "layers": k, **r})
-                print(f"{w}x{h} {method:8s} k={k:2d}  " + "  ".join(f"{s} {v:.3f}" for s, v in r["median_ms"].items())
-                      + f"  | GPU median {r['median_total_ms']:.3f} p95 {r['p95_total_ms']:.3f} ms, wall median "
-                        f"{r['median_wall_ms']:.3f} p95 {r['p95_wall_ms']:.3f} ms, sustained {r['sustained_ms']:.3f} "
-                        f"ms/frame, {r['mean_iterations']:.2f} steps, "
-                        f"clocks {r['gpu_clocks']}", flush=True)
+        for method, refine, k in itertools.product(args.methods, args.refine, args.layers):
+            config = RenderConfig(layers=k, method=method, leveling=args.leveling, refine=refine)
+            r = measure_walkthrough(bundle, config, path, f"{method} k={k} {w}x{h}")
+            r.pop("stage_ms_per_frame")
+            runs.append({"method": method, "refine": refine, "layers": k, **r})
+            stages = "  ".join(f"{s} {v:.3f}" for s, v in r["median_ms"].items())
+            print(f"{w}x{h} {method:8s} {refine:9s} k={k:2d}  {stages}"
+                  + f"  | GPU median {r['median_total_ms']:.3f} p95 {r['p95_total_ms']:.3f} ms, wall median "
+                    f"{r['median_wall_ms']:.3f} p95 {r['p95_wall_ms']:.3f} ms, sustained {r['sustained_ms']:.3f} "
+                    f"ms/frame, {r['mean_iterations']:.2f} steps, "
+                    f"clocks {r['gpu_clocks']}", flush=True)
     result = {"benchmark": "render", "version": 2, "bundle": str(bundle.root), "preset": args.preset,
               "machine": {"gl": renderer_info(get_context())}, "setup_s": setup, "frames": args.frames,
               "leveling": args.leveling, "counts": bundle.meta.get("counts"), "runs": runs}

@@ -28,7 +28,7 @@ step scene python3 -m dmrt.app.cli scene synth --preset paper --out "$work/scene
 step preprocess python3 -m dmrt.app.cli preprocess "$work/scene" --out "$work/bundle" --force --quiet
 cp "$work/bundle/bundle.json" "$out/results/bundle.json"
 step render python3 -m bench.bench_render --bundle "$work/bundle" --out "$out/results" --layers 5 \
-    --methods tiles compute kbuffer --sizes 1280x720 3840x2160 --frames 30
+    --methods tiles compute kbuffer --sizes 1280x720 3840x2160 --frames 30 --no-leveling
 step visibility python3 -m bench.bench_visibility --bundle "$work/bundle" --out "$out/results" --layers 5 \
     --slots 32 --max-thread-pixels 256
 if [ "$(nvidia-smi -L 2>/dev/null | wc -l)" -ge 2 ]; then
