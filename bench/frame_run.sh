@@ -5,9 +5,11 @@
 #   setsid nohup bench/frame_run.sh /tmp/frame >/dev/null 2>&1 </dev/null &
 #   cat /tmp/frame/done.txt                 # one line per step: name, exit status, seconds
 #
-# Steps: the paper scene (32M points, 192 photos 1024x684); its preprocessing in-process; the
-# per-stage frame times of every visibility path at 1280x720 and 3840x2160 with 5 layers
-# (bench.bench_render: GPU-resident walkthroughs, median / p95, clocks); the visibility paths'
+# Steps: the paper scene (32M points with the scan's normals, 192 photos 1024x684); its
+# preprocessing in-process; the per-stage frame times of every visibility path at 1280x720 and
+# 3840x2160 with 5 layers and the default configuration (bench.bench_render: GPU-resident
+# walkthroughs, median / p95, sustained, clocks), and the paper's bisection beside the default
+# Illinois refinement; the visibility paths'
 # agreement with compute peeling (bench.bench_visibility); with 2+ GPUs, the preprocessing again
 # on a 2-worker Dask LocalCluster (one GPU each) for the depth maps' speed-up.
 # The environment (EGL vendor file, PYTHONPATH with the wheels, DMRT_COMMIT) is the caller's:
@@ -24,11 +26,13 @@ step() {  # step NAME COMMAND...: run, log, record, repack
     tar czf "$out/results.tgz.tmp" -C "$out" results log.txt && mv "$out/results.tgz.tmp" "$out/results.tgz"
 }
 nvidia-smi --query-gpu=name,clocks.sm,clocks.max.sm,memory.total --format=csv >"$out/results/gpus.csv" 2>&1
-step scene python3 -m dmrt.app.cli scene synth --preset paper --out "$work/scene" --force --quiet
+step scene python3 -m dmrt.app.cli scene synth --preset paper --write-normals --out "$work/scene" --force --quiet
 step preprocess python3 -m dmrt.app.cli preprocess "$work/scene" --out "$work/bundle" --force --quiet
 cp "$work/bundle/bundle.json" "$out/results/bundle.json"
 step render python3 -m bench.bench_render --bundle "$work/bundle" --out "$out/results" --layers 5 \
     --methods tiles compute kbuffer --sizes 1280x720 3840x2160 --frames 30 --no-leveling
+step render_bisection python3 -m bench.bench_render --bundle "$work/bundle" --out "$out/results/bisection" \
+    --layers 5 --methods tiles --refine bisection --sizes 1280x720 3840x2160 --frames 30 --no-leveling
 step visibility python3 -m bench.bench_visibility --bundle "$work/bundle" --out "$out/results" --layers 5 \
     --slots 32 --max-thread-pixels 256
 if [ "$(nvidia-smi -L 2>/dev/null | wc -l)" -ge 2 ]; then
