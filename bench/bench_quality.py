@@ -92,8 +92,11 @@ def main(argv=None) -> None:
     synth = Path(args.scene) / "synthetic.json"
     if synth.is_file():
         truth = np.log(np.array(json.loads(synth.read_text())["photo_gains"], np.float64))
-        for name, renderer in (("dmrt", Renderer(bundle, RenderConfig(layers=3, leveling=True, **sync))),
-                               ("dmt", DMTRenderer(bundle, DMTConfig(leveling=True, progress=False, **sync)))):
+        # the photos' own colours (photometric off): leveling alone against the known exposures
+        for name, renderer in (("dmrt", Renderer(bundle, RenderConfig(layers=3, leveling=True, photometric=False,
+                                                                      **sync))),
+                               ("dmt", DMTRenderer(bundle, DMTConfig(leveling=True, photometric=False, progress=False,
+                                                                     **sync)))):
             pairs = [s for s in (log_gain_spread(renderer.render(cam), truth) for cam in bundle.cameras) if s]
             renderer.release()
             before, after = np.mean(pairs, axis=0)

@@ -31,7 +31,7 @@ from bench.workspace import (PRESETS, RESULTS_FORMAT, BenchPreset, Workspace, co
 
 
 def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, progress: bool = True,
-              machine_name: str | None = None) -> dict:
+              machine_name: str | None = None, holdout_every: int | None = None) -> dict:
     """Run the experiments of ``preset`` and write their results under ``out``.
 
     Parameters
@@ -42,6 +42,8 @@ def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, 
     only : experiment names to run (default: all)
     scene : an existing scene directory instead of the synthetic one
     machine_name : results folder name of the machine (default: from the GL renderer)
+    holdout_every : the experiments that hold photos out (``real_views``) hold out photos 0, N,
+        2N, ... (default: theirs, 8)
 
     Returns
     -------
@@ -54,6 +56,8 @@ def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, 
             raise ValueError(f"unknown preset {preset!r} (choose from {', '.join(PRESETS)})")
         preset = PRESETS[preset]
     names = list(only) if only else run_order()
+    if holdout_every is not None and holdout_every < 2:
+        raise ValueError(f"--holdout-every {holdout_every}: must be >= 2 (1 would hold out every photo)")
     unknown = [n for n in names if n not in EXPERIMENTS]
     if unknown:
         raise ValueError(f"unknown experiment(s) {', '.join(unknown)} (choose from {', '.join(EXPERIMENTS)})")
@@ -72,6 +76,8 @@ def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, 
     for n, name in enumerate(names, 1):
         exp = EXPERIMENTS[name]
         params = exp.params(preset)
+        if holdout_every is not None and "holdout_every" in {f.name for f in dataclasses.fields(params)}:
+            params = dataclasses.replace(params, holdout_every=holdout_every)
         print(f"[bench] {n}/{len(names)} {name}: {exp.title}", flush=True)
         t0 = time.perf_counter()
         (rdir / f"{name}.failed.json").unlink(missing_ok=True)

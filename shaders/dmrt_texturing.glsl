@@ -1,5 +1,6 @@
 // DMRT texturing pass (paper Section 5.2.3): each pixel's surface point is projected into the photo
-// of its final label and coloured from it (dmrt_photo_color.glsl).
+// of its final label and coloured from it, times that photo's photometric gain (dmrt_photo_color.glsl:
+// the gains buffer B_PHOTO_GAINS, bundle.json photo_gains; all 1 with RenderConfig.photometric off).
 // Output: one packed RGBA8 word per pixel (R in the lowest byte), 0 = background.
 #include "splat_depth_common.glsl"
 #include "dmrt_frame.glsl"
@@ -21,7 +22,8 @@ void main() {
         colors[pix] = 0u;
         return;
     }
-    colors[pix] = packUnorm4x8(vec4(photo_color(hit.final_label, pixel_point(p, hit.depth)), 1.0));
+    vec3 c = photo_color(hit.final_label, pixel_point(p, hit.depth));  // x the photo's gain
+    colors[pix] = packUnorm4x8(vec4(clamp(c, 0.0, 1.0), 1.0));
 }
 
 #endif

@@ -6,7 +6,8 @@ of ``shaders/dmrt_frame.glsl``, and from there on a frame is the same work:
    streaming (``async_photos``) the previous frame's histogram chooses them: reading the current
    one back would make the CPU wait for the frame so far (9-13 ms a frame at paper scale on an
    H200), and photos stream in over several frames anyway;
-2. ``texturing`` - colour from each pixel's photo (:func:`dmrt.runtime.texturing.texture_frame`);
+2. ``texturing`` - colour from each pixel's photo (:func:`dmrt.runtime.texturing.texture_frame`),
+   times the photo's photometric gain (bundle.json ``photo_gains``; all 1 with ``photometric`` off);
 3. ``leveling`` (optional) - screen-space leveling (:class:`dmrt.runtime.leveling.ScreenLeveler`);
 4. the GL error check, the read-back (unless timing) and the per-stage timings.
 """
@@ -25,7 +26,7 @@ from dmrt.gl.kernels import fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.io.frames import empty_frame
 from dmrt.runtime.leveling import ScreenLeveler
-from dmrt.runtime.texturing import ImageCache, texture_frame
+from dmrt.runtime.texturing import ImageCache, gains_buffer_data, texture_frame
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 
@@ -73,8 +74,12 @@ class FrameShading:
     timer : dmrt.gl.GpuTimer, the renderer's (sections ``image_management``, ``texturing``, ``leveling``)
     depth_sizes : list of (w, h), each photo's depth map as the renderer holds it (texels)
     config : RenderConfig or DMTConfig (``cache_mb``, ``max_uploads_per_frame``, ``async_photos``,
-        ``cpu_cache_mb``, ``leveling``, ``leveling_min_samples``, ``leveling_max_gain``,
+        ``cpu_cache_mb``, ``photometric``, ``leveling``, ``leveling_min_samples``, ``leveling_max_gain``,
         ``discontinuity_threshold``)
+
+    Attributes
+    ----------
+    photo_gains : (n_photos, 3) float32, the photometric gains applied (the bundle's, or all 1).
     seam_tolerance : float, metres: how closely a photo's depth map must see a seam point to count
     """
 
@@ -85,6 +90,8 @@ class FrameShading:
                                  config.cpu_cache_mb)
         self.photos = ctx.buffer(photo_params(bundle.cameras, bundle.origin, depth_sizes,
                                               self.images.low_sizes).tobytes())
+        self.photo_gains = (bundle.photo_gains if config.photometric else np.ones((n, 3), np.float32)).copy()
+        self.gains = ctx.buffer(gains_buffer_data(self.photo_gains, n).tobytes())
         # two histograms, this frame's and the last one's (see the module doc)
         self.counts = [ctx.buffer(reserve=4 * n), ctx.buffer(reserve=4 * n)]
         self.latency = 1 if config.async_photos else 0
@@ -97,7 +104,7 @@ class FrameShading:
     @property
     def nbytes(self) -> dict:
         """GPU bytes per resource: the photo caches, the Photo records, the leveling buffers."""
-        out = {**self.images.nbytes, "photos": self.photos.size}
+        out = {**self.images.nbytes, "photos": self.photos.size + self.gains.size}
         if self.leveler is not None:
             out["leveling"] = self.leveler.nbytes
         return out
@@ -131,9 +138,10 @@ class FrameShading:
         cpu_ms = {"label_readback": (time.perf_counter() - t0) * 1e3}
         self.frames += 1
         cpu_ms["image_management"] = texture_frame(ctx, timer, self.images, counts, hits, colors, self.photos,
-                                                   cam_uniforms)
+                                                   cam_uniforms, self.gains)
         self.label_counts = counts
-        if self.leveler is not None:
+        if self.leveler is not None:  # its seams compare the photos' colours after the gains
+            self.gains.bind_to_storage_buffer(abi.B_PHOTO_GAINS)
             cpu_ms["leveling"] = self.leveler.run(timer, hits, colors, self.photos, self.images, depthmaps,
                                                   cam_uniforms, counts)
         check_gl(ctx, what)
@@ -155,6 +163,6 @@ class FrameShading:
 
     def release(self) -> None:
         self.images.release()
-        for obj in (self.photos, *self.counts, self.leveler):
+        for obj in (self.photos, self.gains, *self.counts, self.leveler):
             if obj is not None:
                 obj.release()

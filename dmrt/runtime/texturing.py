@@ -17,7 +17,8 @@
   frame's cache is exactly its most frequent labels (what the tests check).
 
 The texturing pass then colours each pixel from its label's photo at the projection of its
-raytraced point: from the cache when resident, else from the low-res copy (bilinear both).
+raytraced point: from the cache when resident, else from the low-res copy (bilinear both), times
+the photo's photometric gain (:mod:`dmrt.preprocess.photometric`, :func:`gains_buffer_data`).
 """
 
 from __future__ import annotations
@@ -180,7 +181,17 @@ class ImageCache:
             obj.release()
 
 
-def texture_frame(ctx, timer, images: ImageCache, counts: np.ndarray, hits, colors, photos, cam_uniforms: dict) -> float:
+def gains_buffer_data(gains: np.ndarray | None, n_photos: int) -> np.ndarray:
+    """(n_photos, 4) float32 rows of the ``photo_gains`` buffer (``shaders/dmrt_photo_color.glsl``):
+    RGB gain and 1; ``gains`` (n_photos, 3) or None (all 1)."""
+    out = np.ones((n_photos, 4), np.float32)
+    if gains is not None:
+        out[:, :3] = np.asarray(gains, np.float32).reshape(n_photos, 3)
+    return out
+
+
+def texture_frame(ctx, timer, images: ImageCache, counts: np.ndarray, hits, colors, photos, cam_uniforms: dict,
+                  gains=None) -> float:
     """Image management after the label histogram, then the texturing pass; shared by the DMRT and
     DMT renderers (both write the ``Hit`` records of ``shaders/dmrt_frame.glsl``).
 
@@ -193,6 +204,8 @@ def texture_frame(ctx, timer, images: ImageCache, counts: np.ndarray, hits, colo
     hits, colors : moderngl.Buffer, the frame's ``Hit`` records and packed RGBA8 colours (written)
     photos : moderngl.Buffer, the ``Photo`` records (``dmrt.runtime.shading.photo_params``)
     cam_uniforms : dict, ``u_R, u_t, u_K, u_size`` of the frame
+    gains : moderngl.Buffer, the photos' gains (:func:`gains_buffer_data`), bound to
+        ``abi.B_PHOTO_GAINS``; None keeps what is bound there
 
     Returns
     -------
@@ -213,6 +226,8 @@ def texture_frame(ctx, timer, images: ImageCache, counts: np.ndarray, hits, colo
         photos.bind_to_storage_buffer(abi.B_PHOTOS)
         images.slots.bind_to_storage_buffer(abi.B_SLOTS)
         colors.bind_to_storage_buffer(abi.B_COLORS)
+        if gains is not None:
+            gains.bind_to_storage_buffer(abi.B_PHOTO_GAINS)
         images.low.use(1)
         images.high.use(2)
         set_uniforms(program, u_low=1, u_high=2, u_low_dims=images.low_dims,

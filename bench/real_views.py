@@ -1,0 +1,308 @@
+"""Held-out photographs: how close renders come to real photos (the ``real_views`` experiment).
+
+Users judge a textured scan by how close its renders look to their photographs, and the field
+measures that on held-out views: photos left out of the input, rendered at their cameras and
+compared with them (PSNR, SSIM). This experiment does the same for any scene with photos (no
+reference mesh needed, so real scenes too):
+
+1. hold out every ``holdout_every``-th photo (indices 0, N, 2N, ... of the scene's COLMAP image
+   order; N = 8 is the field's habit) and preprocess the scene once without them: a derived scene
+   in the work folder whose model and ``images/`` hold only the other photos (so the bundle has
+   no camera, photo or depth map of a held-out one);
+2. render each held-out camera (its intrinsics at the frame width, at most the photo's) with DMRT,
+   DMT and the coarse splats (``RenderConfig(raytrace=False)``), each with the photometric gains
+   off and on, and DMRT also with screen-space leveling;
+3. compare each frame with the photo (area-resampled to the frame size) over the pixels the
+   frame has a surface at: PSNR (dB, 8-bit), SSIM (scikit-image; both images masked to black
+   outside that surface, its map averaged over the surface) and the share of pixels with a
+   surface, per photo and as means over the photos; and PSNR over the pixels *every* variant
+   covers (``common``), which compares variants on the same pixels; and, as a diagnostic, PSNR
+   after the per-channel gain that best maps the frame onto the photo (``matched``: what is left
+   once the held-out photo's own exposure, which no renderer can know, is taken out).
+
+A source-photo breakdown per view (which photos textured how much of it, and how well each agrees
+with the held-out photo) shows where the error comes from. On a synthetic scene the solved gains
+are also compared with the generator's known per-photo exposure x white balance.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bench.workspace import Workspace, _stamp_ok, write_json
+
+# name -> (renderer, options): "dmrt" (RenderConfig), "dmt" (DMTConfig) or "splats" (RenderConfig,
+# raytrace off). "dmrt" is the paper's DMRT with colours the photos' own: the "before" of the
+# photometric work; the others add the global gains and/or the screen-space leveling.
+VARIANTS = {
+    "dmrt": ("dmrt", {"photometric": False}),
+    "dmrt+gains": ("dmrt", {"photometric": True}),
+    "dmrt+leveling": ("dmrt", {"photometric": False, "leveling": True}),
+    "dmrt+gains+leveling": ("dmrt", {"photometric": True, "leveling": True}),
+    "dmt": ("dmt", {"photometric": False}),
+    "dmt+gains": ("dmt", {"photometric": True}),
+    "splats": ("splats", {"photometric": False}),
+    "splats+gains": ("splats", {"photometric": True}),
+}
+# the variants whose frames the report shows (and whose error images it draws)
+SHOWN = ("dmrt", "dmrt+gains", "dmrt+gains+leveling", "dmt+gains", "splats+gains")
+
+
+@dataclass
+class RealViewsParams:
+    # hold out photos 0, N, 2N, ... (``dmrt bench --holdout-every N``)
+    holdout_every: int = 8
+    # frame width (the photo's if smaller; height: the photo's aspect)
+    width: int = 512
+    # DMRT's label layers
+    layers: int = 5
+    # DMT's per-texel labeling (bench.workspace.BenchPreset.dmt_labeler)
+    dmt_labeler: str = "graphcut"
+    # held-out views whose frames, photos and error images are kept for the report
+    shown_views: int = 2
+
+
+def holdout_indices(n_photos: int, every: int) -> list[int]:
+    """Indices of the held-out photos: 0, ``every``, 2 ``every``, ... below ``n_photos``.
+
+    Raises
+    ------
+    ValueError
+        ``every`` < 2 (no photo would be left to preprocess) or fewer than 2 photos.
+    """
+    if every < 2:
+        raise ValueError(f"--holdout-every {every}: must be >= 2 (1 would hold out every photo)")
+    if n_photos < 2:
+        raise ValueError(f"the scene has {n_photos} photo(s): holding one out needs at least 2")
+    return list(range(0, n_photos, every))
+
+
+def psnr(rendered: np.ndarray, photo: np.ndarray, mask: np.ndarray) -> float:
+    """PSNR in dB of two (h, w, 3) uint8 images over ``mask`` (h, w) bool: ``10 log10(255^2 / MSE)``
+    over every channel of the masked pixels (inf when equal, nan when the mask is empty)."""
+    d = rendered.astype(np.float64)[mask] - photo.astype(np.float64)[mask]
+    if d.size == 0:
+        return float("nan")
+    mse = float(np.mean(d * d))
+    return float("inf") if mse == 0 else float(10.0 * np.log10(255.0 ** 2 / mse))
+
+
+def psnr_matched(rendered: np.ndarray, photo: np.ndarray, mask: np.ndarray) -> float:
+    """:func:`psnr` after the per-channel gain that best maps ``rendered`` onto ``photo`` over
+    ``mask`` (least squares, then 8-bit clipping): a diagnostic that takes the held-out photo's own
+    exposure and white balance, which no renderer can know, out of the error."""
+    r = rendered.astype(np.float64)[mask]
+    if r.size == 0:
+        return float("nan")
+    p = photo.astype(np.float64)[mask]
+    gain = (r * p).sum(axis=0) / np.maximum((r * r).sum(axis=0), 1e-12)
+    out = rendered.astype(np.float64)
+    out[mask] = np.clip(np.rint(r * gain), 0, 255)
+    return psnr(out, photo, mask)
+
+
+def ssim(rendered: np.ndarray, photo: np.ndarray, mask: np.ndarray) -> float:
+    """SSIM (``skimage.metrics.structural_similarity``, 7x7 windows, data range 255, the channels'
+    mean) of two (h, w, 3) uint8 images over ``mask`` (h, w) bool: both images are set to black
+    outside the mask (so the background never differs), the SSIM map is averaged over the mask.
+    1 for identical images; nan when the mask is empty or the image is smaller than a window."""
+    from skimage.metrics import structural_similarity
+
+    if not mask.any() or min(mask.shape) < 7:
+        return float("nan")
+    m = mask[..., None]
+    a = np.where(m, rendered, 0).astype(np.float64)
+    b = np.where(m, photo, 0).astype(np.float64)
+    _, smap = structural_similarity(a, b, data_range=255.0, channel_axis=-1, full=True)
+    return float(smap.mean(axis=-1)[mask].mean())
+
+
+def photo_at(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(height, width, 3) uint8: ``image`` area-averaged (PIL box filter) to the frame size."""
+    from PIL import Image
+
+    if image.shape[:2] == (height, width):
+        return image
+    return np.asarray(Image.fromarray(image).resize((width, height), Image.BOX))
+
+
+def write_holdout_scene(scene, keep: list[int], out: Path) -> Path:
+    """A scene directory ``out`` with only the photos ``keep`` of ``scene``: their COLMAP model
+    (``sparse/``, text), symbolic links to their photos and to the point cloud (and mesh)."""
+    from dmrt.io.colmap import write_model
+
+    out = Path(out)
+    if out.exists():
+        shutil.rmtree(out)
+    (out / "images").mkdir(parents=True)
+    write_model(out / "sparse", [scene.cameras[i] for i in keep], binary=False)
+    for i in keep:
+        dst = out / "images" / scene.cameras[i].name
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        os.symlink(Path(scene.image_paths[i]).resolve(), dst)
+    os.symlink(Path(scene.points_path).resolve(), out / scene.points_path.name)
+    if scene.mesh_path is not None:
+        os.symlink(Path(scene.mesh_path).resolve(), out / "mesh.ply")
+    return out
+
+
+def holdout_bundle(ws: Workspace, every: int):
+    """The scene preprocessed without its held-out photos, in ``ws.work/real_views-every<N>/``
+    (made once; redone when the scene or the preset's preprocessing changed).
+
+    Returns
+    -------
+    bundle : Path.  held_out, kept : the scene's photo indices.  seconds : preprocessing wall time.
+    scene : the whole scene (:class:`dmrt.io.scene.Scene`).
+    """
+    from dmrt.io.scene import load_scene
+    from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
+
+    scene = load_scene(ws.scene_dir)
+    held = holdout_indices(len(scene.cameras), every)
+    keep = [i for i in range(len(scene.cameras)) if i not in set(held)]
+    config = PreprocessConfig(**ws.preset.preprocess)
+    root = ws.work / f"real_views-every{every}"
+    out, stamp = root / "bundle", root / "bundle.stamp.json"
+    stamp_file = ws.work / "scene.stamp.json"
+    wanted = {"scene": str(Path(ws.scene_dir).resolve()), "kept": [scene.cameras[i].name for i in keep],
+              "preprocess": dataclasses.asdict(config),
+              "scene_stamp": stamp_file.read_text() if stamp_file.is_file() else None}
+    if not (_stamp_ok(stamp, wanted) and (out / "bundle.json").is_file()):
+        stamp.unlink(missing_ok=True)
+        print(f"[bench] real_views: preprocessing {len(keep)} of {len(scene.cameras)} photos (holding out "
+              f"{len(held)}: every {every}th) -> {out}", flush=True)
+        t0 = time.perf_counter()
+        sub = write_holdout_scene(scene, keep, root / "scene")
+        preprocess(sub, out, config, force=True, progress=ws.progress)
+        write_json(stamp, {"config": wanted, "seconds": round(time.perf_counter() - t0, 2)})
+    return out, held, keep, json.loads(stamp.read_text())["seconds"], scene
+
+
+def make_renderer(bundle, kind: str, options: dict, p: RealViewsParams):
+    """A renderer of ``kind`` with ``options``: synchronous photo streaming (each frame's photo cache
+    holds exactly its most frequent labels, so colours do not depend on the frames before)."""
+    sync = {"async_photos": False, "max_uploads_per_frame": 0}
+    if kind == "dmt":
+        from baselines.dmt import DMTConfig, DMTRenderer
+
+        return DMTRenderer(bundle, DMTConfig(labeler=p.dmt_labeler, progress=False, **sync, **options))
+    from dmrt.runtime.renderer import RenderConfig, Renderer
+
+    return Renderer(bundle, RenderConfig(layers=p.layers, raytrace=kind != "splats", **sync, **options))
+
+
+def source_breakdown(frame: dict, photo: np.ndarray, names: list[str]) -> list[dict]:
+    """Per source photo (label) of ``frame`` (``color``, ``label``, ``mask``: the pixels with a
+    surface): its share of the surface pixels and the PSNR of those pixels against the held-out
+    ``photo``, most pixels first."""
+    label, hit = frame["label"], frame["mask"]
+    total = max(int(hit.sum()), 1)
+    rows = []
+    for j in np.unique(label[hit & (label >= 0)]):
+        m = hit & (label == j)
+        rows.append({"photo": names[int(j)], "share": float(m.sum() / total),
+                     "psnr_db": psnr(frame["color"], photo, m)})
+    return sorted(rows, key=lambda r: -r["share"])
+
+
+def gain_recovery(scene_dir: Path, kept: list[int], gains: np.ndarray) -> dict | None:
+    """On a synthetic scene: the solved gains against the generator's per-photo exposure x white
+    balance (``synthetic.json`` ``photo_gains``): the spread of the true log gains over the kept
+    photos, and of the corrected ones (true + solved: 0 when the photos agree), both up to the
+    common scale (standard deviation over the photos, mean over the channels). None elsewhere."""
+    path = Path(scene_dir) / "synthetic.json"
+    if not path.is_file():
+        return None
+    truth = np.log(np.asarray(json.loads(path.read_text())["photo_gains"], np.float64)[kept])
+    corrected = truth + np.log(np.asarray(gains, np.float64))
+    return {"log_spread_before": float(truth.std(axis=0).mean()),
+            "log_spread_after": float(corrected.std(axis=0).mean())}
+
+
+def run_real_views(ws: Workspace, p: RealViewsParams, out: Path) -> dict:
+    from dmrt.io.bundle import read_bundle
+
+    path, held, kept, prep_s, scene = holdout_bundle(ws, p.holdout_every)
+    bundle = read_bundle(path)
+    names = [c.name for c in bundle.cameras]
+    held_names = [scene.cameras[i].name for i in held]
+    leak = set(held_names) & set(names)
+    if leak:
+        raise RuntimeError(f"{path}: held-out photos {sorted(leak)} are in the bundle")
+    cams, photos = [], []
+    for i in held:
+        cam = scene.cameras[i].resized(min(p.width, scene.cameras[i].width), None)
+        cams.append(cam)
+        photos.append(photo_at(scene.read_image(i), cam.width, cam.height))
+
+    frames: dict[str, list] = {}
+    rows = []
+    for name, (kind, options) in VARIANTS.items():
+        renderer = make_renderer(bundle, kind, options, p)
+        t0 = time.perf_counter()
+        try:
+            # only what is measured: a frame's other buffers would take GBs at the paper's scale
+            frames[name] = [{"color": f["color"], "label": f["label"], "mask": f["depth"] > 0}
+                            for f in (renderer.render(cam) for cam in cams)]
+        finally:
+            renderer.release()
+        print(f"  {name}: {len(cams)} views in {time.perf_counter() - t0:.1f} s", flush=True)
+
+    views = []
+    common = [np.logical_and.reduce([frames[v][k]["mask"] for v in VARIANTS]) for k in range(len(cams))]
+    for name in VARIANTS:
+        per = []
+        for k, (cam, photo) in enumerate(zip(cams, photos)):
+            f = frames[name][k]
+            mask = f["mask"]
+            per.append({"psnr_db": psnr(f["color"], photo, mask), "ssim": ssim(f["color"], photo, mask),
+                        "surface_share": float(mask.mean()), "psnr_common_db": psnr(f["color"], photo, common[k]),
+                        "psnr_matched_db": psnr_matched(f["color"], photo, mask)})
+        rows.append({"variant": name, "renderer": VARIANTS[name][0], **VARIANTS[name][1], "views": per,
+                     **{f"mean_{key}": _nanmean([v[key] for v in per])
+                        for key in ("psnr_db", "ssim", "surface_share", "psnr_common_db", "psnr_matched_db")}})
+        r = {k: (np.nan if v is None else v) for k, v in rows[-1].items() if k.startswith("mean_")}
+        print(f"  {name:20s} PSNR {r['mean_psnr_db']:.2f} dB, SSIM {r['mean_ssim']:.3f}, surface "
+              f"{r['mean_surface_share']:.1%} (pixels every variant covers: {r['mean_psnr_common_db']:.2f} dB; "
+              f"exposure-matched {r['mean_psnr_matched_db']:.2f} dB)",
+              flush=True)
+    for k, cam in enumerate(cams):
+        views.append({"photo": cam.name, "frame_size": [cam.width, cam.height],
+                      "common_share": float(common[k].mean()),
+                      "sources": {v: source_breakdown(frames[v][k], photos[k], names) for v in ("dmrt", "dmrt+gains")}})
+
+    # the report's pictures: the views with the most common surface first
+    shown = sorted(range(len(cams)), key=lambda k: -common[k].mean())[:max(0, p.shown_views)]
+    maps = {}
+    for k in shown:
+        maps[f"photo_{k}"] = photos[k]
+        for v in SHOWN:
+            maps[f"{v}_color_{k}"] = frames[v][k]["color"]
+            maps[f"{v}_mask_{k}"] = frames[v][k]["mask"]
+    if maps:
+        Path(out).mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(Path(out) / "real_views.npz", **maps)
+    meta = bundle.meta
+    return {"scene": str(Path(ws.scene_dir).resolve()), "bundle": str(path), "holdout_every": p.holdout_every,
+            "held_out": held_names, "kept": len(kept), "photos": len(scene.cameras),
+            "proxies": meta["counts"]["proxies"], "points": meta["counts"]["points"],
+            "preprocess_s": prep_s, "photometric": meta.get("photometric"),
+            "photo_gains": bundle.photo_gains.tolist(),
+            "gain_recovery": gain_recovery(ws.scene_dir, kept, bundle.photo_gains),
+            "variants": rows, "views": views, "shown_views": shown, "shown_variants": list(SHOWN),
+            "maps_file": "real_views.npz" if maps else None, "maps": sorted(maps)}
+
+
+def _nanmean(values) -> float | None:
+    a = np.asarray([np.nan if v is None else v for v in values], np.float64)
+    a = a[np.isfinite(a)]
+    return float(a.mean()) if a.size else None
