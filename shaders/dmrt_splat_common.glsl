@@ -11,11 +11,7 @@
 //
 // The list depends on the camera only, so one frame's passes (k visibility layers x 2, labeling x 2)
 // share it.
-#include "splat_depth_common.glsl"
-
-// n proxies x 8 floats: position xyz (metres, scene-origin-relative), radius (metres),
-// normal xyz, label (int bits). Plain floats: std430 would pad vec3 arrays.
-layout(std430, binding = B_PROXIES) readonly buffer Proxies { float proxies[]; };
+#include "dmrt_proxies.glsl"
 
 // Dispatch-indirect arguments of the LARGE pass, the list length, then proxy indices.
 layout(std430, binding = B_LARGE) buffer Large { uint groups_x; uint groups_y; uint groups_z; uint n_large; uint large[]; };
@@ -38,13 +34,6 @@ uniform int u_build_list; // 1: append large discs to the list in this pass
 
 // EMPTY_BITS (an untouched key, above every positive float's bits) and EMPTY_LABEL (an untouched
 // label: atomicMin keeps the smallest) come from dmrt/gl/abi.py
-
-Splat load_proxy(uint k, out int label) {
-    uint o = 8u * k;
-    label = floatBitsToInt(proxies[o + 7u]);
-    return splat_to_camera(vec3(proxies[o], proxies[o + 1u], proxies[o + 2u]),
-                           vec3(proxies[o + 4u], proxies[o + 5u], proxies[o + 6u]), proxies[o + 3u]);
-}
 
 void visit(Splat s, int label, int col, int row);
 

@@ -2,29 +2,15 @@
 // Included; no #version. The screen is cut into TILE x TILE pixel tiles, tile (tx, ty) has index
 // ty * u_tiles.x + tx. A disc goes to every tile its conservative pixel box (splat_pixel_box, the
 // box every other splat path tests) overlaps, keyed by its near depth (near_key).
-#include "splat_depth_common.glsl"
+#include "dmrt_proxies.glsl"
 
 #ifndef TILE
 #define TILE 16
 #endif
 
-// Binding points: B_PROXIES, B_LARGE, B_LAYER_DEPTH, B_LAYER_LABEL and the sentinels EMPTY_BITS,
-// EMPTY_LABEL from dmrt/gl/abi.py; B_TILE_ENTRIES, B_TILE_COUNTS, B_TILE_OFFSETS, B_TILE_STATUS
-// from dmrt/runtime/tiles.py (TILE_BINDINGS), all injected as #defines by the loader.
-//
-// n proxies x 8 floats: position xyz (metres, scene-origin-relative), radius (metres), normal xyz,
-// label (int bits); the buffer of dmrt.runtime.visibility.ProxySplats (dmrt_splat_common.glsl).
-layout(std430, binding = B_PROXIES) readonly buffer Proxies { float proxies[]; };
-
+// Binding points (B_PROXIES, B_LARGE, B_LAYER_DEPTH, B_LAYER_LABEL, B_TILE_*) and the sentinels
+// EMPTY_BITS, EMPTY_LABEL come from dmrt/gl/abi.py, injected as #defines by the loader.
 uniform ivec2 u_tiles;  // tiles per row, tile rows
-
-// The loader of dmrt_splat_common.glsl, so that every path evaluates the same disc.
-Splat load_proxy(uint k, out int label) {
-    uint o = 8u * k;
-    label = floatBitsToInt(proxies[o + 7u]);
-    return splat_to_camera(vec3(proxies[o], proxies[o + 1u], proxies[o + 2u]),
-                           vec3(proxies[o + 4u], proxies[o + 5u], proxies[o + 6u]), proxies[o + 3u]);
-}
 
 // Float bits of a lower bound of every depth splat_depth_at can return for the disc: the disc's
 // nearest camera z (centre z minus its half-extent in z), lowered by 2e-4 of its distance, which

@@ -10,6 +10,7 @@ import sys
 import typing
 from pathlib import Path
 
+from dmrt.camera import Camera
 from dmrt.errors import ConfigError, DMRTError, InputError, require
 
 
@@ -253,20 +254,9 @@ def cmd_scene_mesh(args) -> None:
 def load_pose(path) -> "Camera":
     """A camera from a JSON file in the bundle's camera format (``name, width, height, fx, fy, cx,
     cy, R, t``; world frame, COLMAP convention)."""
-    import json
+    from dmrt.io.bundle import camera_from_json, read_json
 
-    from dmrt.io.bundle import camera_from_json
-
-    path = Path(path)
-    if path.is_dir():
-        raise InputError(path, "is a folder, not a camera pose file (JSON with name, width, height, fx, fy, "
-                               "cx, cy, R, t)")
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(path, "pose file not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(path, f"not a camera pose: not valid JSON ({exc})") from None
+    doc = read_json(path, "camera pose", "JSON with name, width, height, fx, fy, cx, cy, R, t")
     return camera_from_json(doc, path)
 
 

@@ -45,6 +45,21 @@ def camera_to_json(c: Camera) -> dict:
 CAMERA_FIELDS = ("name", "width", "height", "fx", "fy", "cx", "cy", "R", "t")
 
 
+def read_json(path, kind: str, hint: str):
+    """The JSON document in file ``path``, a ``kind`` file (e.g. "camera pose"); one-line
+    :class:`InputError` naming the file when it is missing, a folder or not JSON (``hint`` says
+    what the file should be)."""
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(path, f"is a folder, not a {kind} file ({hint})")
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(path, f"{kind} file not found") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(path, f"not a {kind}: not valid JSON ({exc})") from None
+
+
 def camera_from_json(d: dict, path=None, where: str = "") -> Camera:
     """A :class:`Camera` from its JSON object (:func:`camera_to_json`), every field checked.
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from dmrt.io.bundle import camera_from_json, camera_to_json
+from dmrt.io.bundle import camera_from_json, camera_to_json, read_json
 from dmrt.camera import Camera
 from dmrt.errors import InputError
 from dmrt.io.atomic import write_text
@@ -48,14 +48,7 @@ def load_path(path) -> list[Camera]:
         list, an empty path, a malformed camera.
     """
     path = Path(path)
-    if path.is_dir():
-        raise InputError(path, "is a folder, not a camera path file (JSON written by dmrt path)")
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(path, "camera path file not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(path, f"not a camera path: not valid JSON ({exc})") from None
+    doc = read_json(path, "camera path", "JSON written by dmrt path")
     if not isinstance(doc, dict) or "cameras" not in doc:
         raise InputError(path, "not a camera path: expected a JSON object {\"cameras\": [...]} (dmrt path writes one)")
     if not isinstance(doc["cameras"], list):
