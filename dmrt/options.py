@@ -1,6 +1,6 @@
 """Configuration fields declared once: a stage's configuration is one dataclass whose fields carry
 their help text, choices (``Literal`` types) and bounds. The ``dmrt`` command turns every field into
-``--field-name`` with that help (``dmrt.app.cli.add_config_args``), and :func:`validate` turns a bad
+``--field-name`` with that help (``dmrt.app.args.add_config_args``), and :func:`validate` turns a bad
 value into a :class:`~dmrt.errors.ConfigError` that names the option.
 
     @dataclass
