@@ -38,6 +38,11 @@ def test_bundle_contents(tiny_bundle, tiny_scene):
     assert b.image(0, low=True).shape == (171, 256, 3)
     assert len(b.meta["labeling"]["energy_per_sweep"]) >= 2
     assert "preprocess" in b.meta["parameters"] and b.meta["timings"]["total_s"] > 0
+    # every phase's peak anonymous memory (Linux RssAnon) and peak resident set, MiB; the anonymous
+    # part is at most the resident set (it excludes the memory-mapped arrays' file pages)
+    anon, rss = b.meta["peak_anon_mb_per_phase"], b.meta["peak_rss_mb_after"]
+    assert set(anon) == set(rss) and {"octree_s", "depthmaps_s", "labeling_s"} <= set(anon)
+    assert all(0 < anon[k] <= rss[k] for k in anon)
 
 
 def test_depth_maps_match_embree(tiny_bundle, tiny_scene):

@@ -30,6 +30,7 @@ from tqdm import tqdm
 from dmrt.io.bundle import BundleWriter, camera_to_json
 from dmrt.io.exr import read_depth_exr, write_depth_exr
 from dmrt.preprocess.config import PreprocessConfig
+from dmrt.preprocess.memory import AnonPeak
 from dmrt.preprocess.labeling import LabelingConfig
 from dmrt.preprocess.parallel import InProcess, check_gpu_worker, split
 from dmrt.preprocess.photometric import solve_for_proxies
@@ -148,13 +149,17 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
     cams_local = [c.relative_to(origin) for c in scene.cameras]
 
     peak_rss: dict[str, float] = {}
+    peak_anon: dict[str, float | None] = {}
+    anon = AnonPeak()
 
     def tic(name, t0):
         timings[name] = round(time.perf_counter() - t0, 3)
-        # peak resident memory so far (MiB), so the phase that raised it can be read off
+        # peak resident memory so far (MiB), so the phase that raised it can be read off, and the
+        # phase's own peak of anonymous memory (what --memory-limit-mb governs: dmrt.preprocess.memory)
         peak_rss[name] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+        peak_anon[name] = anon.take()
 
-    with BundleWriter(out, force=force) as bw:
+    with BundleWriter(out, force=force) as bw, anon:
         work = Path(bw.tmp).resolve() / "work"
         # 1. octree (positions relative to the origin keep float32 safe later; float64 here)
         t0 = time.perf_counter()
@@ -210,8 +215,10 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         proxies = label_proxies(proxy, cams_local, _DepthFiles(work.parent, depth_files), _Photos(scene),
                                 config, labeling, progress=progress, executor=executor)
         timings.update(proxies.timings, proxies_s=round(proxies.timings["proxies_s"] + read_s, 3))
+        peak = anon.take()
         for name in ("proxies_s", "candidates_s", "labeling_s"):
             peak_rss[name] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+            peak_anon[name] = peak
 
         # 6b. photometric adjustment: one gain per photo and channel from the proxies' colours in
         # the photos that share them (dmrt.preprocess.photometric)
@@ -246,6 +253,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
             "parameters": {"preprocess": asdict(config), "labeling": asdict(labeling)},
             "timings": timings,
             "peak_rss_mb_after": peak_rss,
+            "peak_anon_mb_per_phase": peak_anon,
             "counts": {
                 "points": octree.n_points, "photos": len(scene.cameras), **proxies.counts(),
                 "proxy_levels": k, "octree_level_counts": list(octree.level_counts),
