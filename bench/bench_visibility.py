@@ -55,7 +55,7 @@ def main(argv=None) -> None:
             r = Renderer(bundle, RenderConfig(layers=k, method=method.split("-")[0], max_thread_pixels=mtp,
                                               kbuffer_slots=slots, cache_mb=0))
             if method == "tiles-lagged":
-                r.visibility._tiles.check = "lagged"
+                r.visibility.tiles.check = "lagged"
             for cam in path[:3]:
                 r.render(cam)
             t, labels, overflow = [], [], 0
@@ -68,7 +68,7 @@ def main(argv=None) -> None:
             row["labeling_ms"] = float(np.median([x["labeling"] for x in t]))
             row["n_large"] = int(np.frombuffer(r.splats.large.read(16), np.uint32)[3])
             if method.startswith("tiles"):  # the last frame's list length, pending-list length, overflows
-                row[f"tiles_{k}"] = {**r.visibility._tiles.stats(), "bytes": r.visibility.nbytes}
+                row[f"tiles_{k}"] = {**r.visibility.tiles.stats(), "bytes": r.visibility.nbytes}
             r.release()
         if reference is None:
             reference = labels  # the first configuration: compute peeling

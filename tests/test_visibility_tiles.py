@@ -100,10 +100,10 @@ def test_tiles_match_peeling(ctx, bundle, splats):
             for k in (1, 3, 5):
                 got = _layers(ctx, tiles, cam, k)
                 _assert_agree(ref, got, k, f"{cam.name}, {k} layers")
-                stats = tiles._tiles.stats()
+                stats = tiles.tiles.stats()
                 assert not stats["dropped"] and stats["long_tiles"] == 0
                 assert stats["entries"] > 0 and tiles.read_overflow() == stats["overflow_pixels"]
-        assert tiles.nbytes >= 8 * tiles._tiles.capacity
+        assert tiles.nbytes >= 8 * tiles.tiles.capacity
     finally:
         peel.release()
         tiles.release()
@@ -186,7 +186,10 @@ def test_pending_list_grows_with_splat_overlap(ctx, bundle):
 def test_renderer_frames_match_compute(ctx, bundle):
     """Whole frames with ``method="tiles"`` against ``method="compute"``: the raytracing pass starts
     from the layers, so where they agree the frames are the same computation; allow the 0.5 % of
-    pixels the layers may differ in (measured: 0), depths elsewhere within 1e-6 relative."""
+    pixels the layers may differ in (measured: 0), depths elsewhere within 1e-6 relative. The
+    labeling pass of the tiles path walks the tile lists (dmrt_tiles_labeling.glsl) instead of
+    splatting the proxies again: the same discs, the same cover test and distance, so the final
+    labels are the same wherever the depths are (ties: the smallest label in both)."""
     from dmrt.runtime.renderer import RenderConfig, Renderer
 
     cfg = {"layers": 3, "async_photos": False, "max_uploads_per_frame": 0}
@@ -199,9 +202,36 @@ def test_renderer_frames_match_compute(ctx, bundle):
             close = np.abs(a["depth"] - b["depth"]) <= 1e-6 * np.maximum(a["depth"], 1e-3)
             assert close.mean() >= AGREE
             assert (a["label"] == b["label"]).mean() >= AGREE
+            assert (a["label"] == b["label"])[close].all()
+            assert (a["label_raw"] != a["label"]).any()  # the labeling pass did relabel pixels
             la, lb = peel.layers(), tiles.layers()
             assert (la["label"] == lb["label"]).mean() >= AGREE
         assert tiles.visibility.nbytes > 0
     finally:
         tiles.release()
         peel.release()
+
+
+def test_tile_labeling_packed_layout(ctx, bundle):
+    """The tiles labeling pass writes the 64-bit (label, distance bits) keys of the NVIDIA path the
+    same as the portable pair of buffers (dmrt_label_finalize.glsl reads either)."""
+    from dmrt.runtime.renderer import RenderConfig, Renderer
+
+    r = Renderer(bundle, RenderConfig(method="tiles", layers=3, async_photos=False), ctx)
+    try:
+        cam = bundle.cameras[3].resized(W)
+        r.render(cam)
+        b = r._buffers
+        npix = cam.width * cam.height
+        bits = np.frombuffer(b["key"].read(), np.uint32)[:npix].copy()
+        label = np.frombuffer(b["vlabel"].read(), np.int32)[:npix].copy()
+        assert (label >= 0).mean() > 0.5
+        local = cam.relative_to(r.origin)
+        uniforms = {"u_R": local.R.T.ravel(), "u_t": local.t, "u_K": (local.fx, local.fy, local.cx, local.cy),
+                    "u_size": (cam.width, cam.height)}
+        r.visibility.tiles.label_pass(uniforms, b["hits"], b["key"], b["vlabel"], packed=True)
+        packed = np.frombuffer(b["key"].read(), np.uint32)[:2 * npix].reshape(npix, 2)
+        np.testing.assert_array_equal(packed[:, 0].view(np.int32), label)
+        np.testing.assert_array_equal(packed[:, 1], bits)
+    finally:
+        r.release()

@@ -297,17 +297,21 @@ class Renderer:
                 ctx.memory_barrier(_BARRIER)
 
         with timer.section("labeling"):
-            fill_u32(ctx, b["key"], EMPTY_BITS, 2 * npix if self.int64 else npix)
-            if not self.int64:
-                fill_u32(ctx, b["vlabel"], EMPTY_LABEL, npix)
-            ctx.memory_barrier(_BARRIER)
-            if cfg.labeling and self.int64:
-                self.splats.run("dmrt_labeling", {"INT64": 1}, cam_uniforms,
-                                {abi.B_KEY: b["key"], abi.B_HITS: b["hits"]})
-            elif cfg.labeling:
-                for resolve in (0, 1):
-                    self.splats.run("dmrt_labeling", {"RESOLVE": resolve}, cam_uniforms,
-                                    {abi.B_KEY: b["key"], abi.B_VLABEL: b["vlabel"], abi.B_HITS: b["hits"]})
+            tiles = self.visibility.tiles
+            if cfg.labeling and tiles is not None:  # the visibility stage's tile lists: no splatting
+                tiles.label_pass(cam_uniforms, b["hits"], b["key"], b["vlabel"], self.int64)
+            else:
+                fill_u32(ctx, b["key"], EMPTY_BITS, 2 * npix if self.int64 else npix)
+                if not self.int64:
+                    fill_u32(ctx, b["vlabel"], EMPTY_LABEL, npix)
+                ctx.memory_barrier(_BARRIER)
+                if cfg.labeling and self.int64:
+                    self.splats.run("dmrt_labeling", {"INT64": 1}, cam_uniforms,
+                                    {abi.B_KEY: b["key"], abi.B_HITS: b["hits"]})
+                elif cfg.labeling:
+                    for resolve in (0, 1):
+                        self.splats.run("dmrt_labeling", {"RESOLVE": resolve}, cam_uniforms,
+                                        {abi.B_KEY: b["key"], abi.B_VLABEL: b["vlabel"], abi.B_HITS: b["hits"]})
 
         # image management: the final labels here, then the histogram pass and the uploads (timed on
         # the GPU); the readback between them waits for the frame so far and is CPU time

@@ -124,6 +124,7 @@ class TileVisibility:
         self.capacity = max(2 * n, 4096)
         self.entries = ctx.buffer(reserve=ENTRY_BYTES * self.capacity)
         self.dropped_frames = 0
+        self._grow_to = 0  # list length to make room for at the next frame (this one's list is kept)
 
     # -- sizes ------------------------------------------------------------------------------
     def _raster_program(self):
@@ -188,6 +189,7 @@ class TileVisibility:
         """
         w, h = size
         grid = (-(-w // self.tile), -(-h // self.tile))
+        self._fit(self._grow_to)
         first = grid != self._grid
         if first:
             self._allocate_tiles(grid)
@@ -220,7 +222,8 @@ class TileVisibility:
                 else:
                     break
                 self._raster_pass(*raster)
-            self._fit(total)  # headroom for the next frames (the list's content is spent)
+            # headroom for the next frames, made then: the labeling pass still walks this list
+            self._grow_to = total
         self._status_run[slot] = (self.capacity, self.pending, w * h)
         self._frame += 1
 
@@ -257,6 +260,28 @@ class TileVisibility:
         self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label, status=status,
                    entries=self.entries, offsets=self.offsets)
         set_uniforms(program, u_capacity=self.capacity, u_layers=int(layers), **tile_uniforms)
+        program.run(*self._grid)
+        self.ctx.memory_barrier(_BARRIER)
+
+    def label_pass(self, uniforms: dict, hits, key, vlabel, packed: bool) -> None:
+        """The labeling pass on this frame's tile lists (``shaders/dmrt_tiles_labeling.glsl``): the
+        labels of ``dmrt_labeling.glsl`` without splatting the proxies again.
+
+        Parameters
+        ----------
+        uniforms : dict, the frame's camera (as :meth:`run`'s, at the same size).
+        hits : moderngl.Buffer, the frame's ``Hit`` records (read: each pixel's raytraced depth).
+        key, vlabel : moderngl.Buffer, written for every pixel in the layout
+            ``dmrt_label_finalize.glsl`` reads: ``packed`` - ``key`` (h x w) uvec2 (label, distance
+            bits); else ``key`` (h x w) uint distance bits and ``vlabel`` (h x w) int label.
+        """
+        program = load_program(self.ctx, "dmrt_tiles_labeling", {**self._defines, "PACKED_LABELS": int(packed)})
+        self._bind(proxies=self.splats.buffer, entries=self.entries, offsets=self.offsets)
+        hits.bind_to_storage_buffer(abi.B_HITS)
+        key.bind_to_storage_buffer(abi.B_KEY)
+        if not packed:
+            vlabel.bind_to_storage_buffer(abi.B_VLABEL)
+        set_uniforms(program, u_capacity=self.capacity, u_tiles=self._grid, **uniforms)
         program.run(*self._grid)
         self.ctx.memory_barrier(_BARRIER)
 

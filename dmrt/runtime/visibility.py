@@ -150,7 +150,7 @@ class VisibilityStage:
         self.int64 = bool(int64) and method == "compute"
         self._size = None
         self._packed = None
-        self._tiles = TileVisibility(ctx, splats) if method == "tiles" else None
+        self.tiles = TileVisibility(ctx, splats) if method == "tiles" else None
         if method == "kbuffer":
             label_bits = max(1, int(n_labels - 1).bit_length())
             if label_bits > 16:
@@ -174,8 +174,8 @@ class VisibilityStage:
 
     def run(self, uniforms: dict, size: tuple[int, int], layers: int, layer_depth, layer_label) -> None:
         """Fill ``layers`` label layers for the camera in ``uniforms`` (u_R, u_t, u_K, u_size)."""
-        if self._tiles is not None:  # writes every layer of every pixel: nothing to clear
-            self._tiles.run(uniforms, size, layers, layer_depth, layer_label)
+        if self.tiles is not None:  # writes every layer of every pixel: nothing to clear
+            self.tiles.run(uniforms, size, layers, layer_depth, layer_label)
             return
         w, h = size
         fill_u32(self.ctx, layer_depth, EMPTY_BITS, layers * w * h)
@@ -230,15 +230,15 @@ class VisibilityStage:
     def read_overflow(self) -> int:
         """Pixels of the last k-buffer frame whose list ran out before the k-th layer (tiles: pixels
         that may differ from peeling, :meth:`dmrt.runtime.tiles.TileVisibility.read_overflow`)."""
-        if self._tiles is not None:
-            return self._tiles.read_overflow()
+        if self.tiles is not None:
+            return self.tiles.read_overflow()
         return int(np.frombuffer(self._overflow.read(), np.uint32)[0]) if self.method == "kbuffer" else 0
 
     @property
     def nbytes(self) -> int:
         """GPU bytes of the stage's own buffers (the k-buffer list; the tiles path's buffers)."""
-        if self._tiles is not None:
-            return self._tiles.nbytes
+        if self.tiles is not None:
+            return self.tiles.nbytes
         kbuf = getattr(self, "_kbuf", None)
         return kbuf.size if kbuf is not None else 0
 
@@ -287,8 +287,8 @@ class VisibilityStage:
 
     def release(self) -> None:
         self._release_targets()
-        if self._tiles is not None:
-            self._tiles.release()
+        if self.tiles is not None:
+            self.tiles.release()
         for name in ("_vao_points", "_vao_quads", "_packed", "_kbuf", "_overflow"):
             obj = self.__dict__.pop(name, None)
             if obj is not None:

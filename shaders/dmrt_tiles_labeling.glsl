@@ -1,0 +1,85 @@
+// DMRT labeling pass on the tile lists (dmrt/runtime/tiles.py): the geometry-aware Voronoi labels of
+// dmrt_labeling.glsl - each pixel with a raytraced point q takes the label of the covering proxy
+// disc nearest to q in 3D, ties to the smallest label - without splatting the proxies again and
+// without a global atomic. The visibility stage's tile lists already hold, per TILE x TILE tile,
+// every disc whose pixel box (splat_pixel_box, the box of every splat path) overlaps it; one
+// workgroup walks its tile's list, THREADS discs at a time through shared memory, and each
+// invocation keeps its pixel's nearest (distance bits, label) in registers. A disc covers a pixel
+// by the same test (splat_depth_at), so the labels equal dmrt_labeling.glsl's to the bit.
+//
+// Output as dmrt_label_finalize.glsl reads it: PACKED_LABELS 1 -> Key uvec2 (label, distance bits),
+// else Key uint distance bits and Label int label; EMPTY_BITS / EMPTY_LABEL where no disc covers.
+#include "dmrt_tiles_common.glsl"
+#include "dmrt_frame.glsl"
+
+#if defined COMPUTE_SHADER
+
+#ifndef PACKED_LABELS
+#define PACKED_LABELS 0
+#endif
+#define THREADS (TILE * TILE)
+
+layout(local_size_x = TILE, local_size_y = TILE) in;
+
+layout(std430, binding = B_TILE_ENTRIES) readonly buffer Entries { uvec2 entries[]; };
+layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
+#if PACKED_LABELS
+layout(std430, binding = B_KEY) writeonly buffer Key { uvec2 key[]; };
+#else
+layout(std430, binding = B_KEY) writeonly buffer Key { uint key[]; };
+layout(std430, binding = B_VLABEL) writeonly buffer Label { int vlabel[]; };
+#endif
+
+uniform uint u_capacity;  // entries the list holds (a slice past it was lost: see tiles.py)
+
+shared Splat s_disc[THREADS];
+shared int s_label[THREADS];
+shared ivec4 s_box[THREADS];
+
+void main() {
+    uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
+    uint lid = gl_LocalInvocationIndex;
+    ivec2 px = ivec2(gl_WorkGroupID.xy) * TILE + ivec2(gl_LocalInvocationID.xy);
+    bool inside = px.x < u_size.x && px.y < u_size.y;
+    uint pix = uint(px.y * u_size.x + px.x);
+    vec2 uv = vec2(px) + 0.5;
+    float z = inside ? hits[pix].depth : 0.0;
+    vec3 q = z * camera_ray(uv);
+    uint best = EMPTY_BITS;
+    int best_label = EMPTY_LABEL;
+    uint start = offsets[tile];
+    uint end = min(offsets[tile + 1u], u_capacity);
+    for (uint base = start; base < end; base += uint(THREADS)) {
+        if (base + lid < end) {
+            int label;
+            Splat s = load_proxy(entries[base + lid].y, label);
+            s_disc[lid] = s;
+            s_label[lid] = label;
+            s_box[lid] = splat_pixel_box(s);
+        }
+        barrier();
+        uint n = min(uint(THREADS), end - base);
+        if (z > 0.0) {
+            for (uint j = 0u; j < n; ++j) {
+                ivec4 b = s_box[j];
+                if (px.x < b.x || px.x > b.z || px.y < b.y || px.y > b.w) continue;
+                if (splat_depth_at(s_disc[j], uv) <= 0.0) continue;
+                uint bits = floatBitsToUint(distance(q, s_disc[j].pc));
+                if (bits < best || (bits == best && s_label[j] < best_label)) {
+                    best = bits;
+                    best_label = s_label[j];
+                }
+            }
+        }
+        barrier();
+    }
+    if (!inside) return;
+#if PACKED_LABELS
+    key[pix] = uvec2(uint(best_label), best);
+#else
+    key[pix] = best;
+    vlabel[pix] = best_label;
+#endif
+}
+
+#endif
