@@ -50,7 +50,8 @@ def build_test_bundle(scene_root, out, voxel: float = VOXEL, seed: int = 0):
 
     from dmrt.io.bundle import BundleWriter, camera_to_json, read_bundle
     from dmrt.io.scene import load_scene
-    from dmrt.preprocess.depthmaps import depth_map_size, write_depth_exr
+    from dmrt.io.exr import write_depth_exr
+    from dmrt.preprocess.depthmaps import depth_map_size
     from dmrt.preprocess.normals import estimate_normals, splat_radii
     from reference.raycast import MeshRaycaster
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from dmrt.camera import Camera
-from dmrt.preprocess.depthmaps import (DepthMapConfig, DepthMapRenderer, depth_map_size, read_depth_exr,
-                            write_depth_exr)
+from dmrt.io.exr import read_depth_exr, write_depth_exr
+from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer, depth_map_size
 from dmrt.errors import InputError
 from dmrt.gl import GpuTimer
 from reference.twins import splat_depth_map

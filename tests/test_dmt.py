@@ -368,7 +368,7 @@ def two_map_bundle(out, cameras, depths, colors):
     from PIL import Image
 
     from dmrt.io.bundle import BundleWriter, camera_to_json, read_bundle
-    from dmrt.preprocess.depthmaps import write_depth_exr
+    from dmrt.io.exr import write_depth_exr
 
     src = out.parent / f"{out.name}-photos"
     src.mkdir(parents=True, exist_ok=True)

@@ -42,7 +42,6 @@ from dmrt.gl.abi import EMPTY_BITS, EMPTY_Z, SPLAT_FLOATS
 from dmrt.gl.kernels import fill_u32
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
-from dmrt.io.exr import read_depth_exr, write_depth_exr  # noqa: F401  (the maps it renders are stored so)
 
 _LARGE_GROUPS = 1024  # workgroups of the large-disc compute pass (they stride over the list)
 
