@@ -176,3 +176,18 @@ def representable(points: np.ndarray, cameras, depthmaps, threshold: float = 0.2
         ok &= np.abs(1.0 / iz - z) <= slack + 2 * np.abs(z) / c.fx
         out |= ok
     return out
+
+
+def assert_bundles_equal(a, b) -> None:
+    """Two bundles of one scene and configuration, bit for bit: metadata, depth maps, proxies."""
+    for key in ("parameters", "cameras", "counts", "origin", "depthmaps", "depthmap_sizes", "images",
+                "images_low"):
+        assert a.meta[key] == b.meta[key], key
+    for key in ("energy_per_sweep", "data_energy", "smooth_energy", "edges"):
+        assert a.meta["labeling"][key] == b.meta["labeling"][key], key
+    for i in range(len(a.cameras)):
+        da, db = a.depth_map(i), b.depth_map(i)
+        assert da.dtype == db.dtype and da.tobytes() == db.tobytes(), a.meta["depthmaps"][i]
+    for name in ("positions", "normals", "radii", "labels", "hd_radii"):
+        pa, pb = a.proxy[name], b.proxy[name]
+        assert pa.dtype == pb.dtype and np.array_equal(pa, pb), name

@@ -12,6 +12,7 @@ from dmrt.errors import ConfigError
 from dmrt.io.bundle import read_bundle
 from dmrt.preprocess.parallel import open_executor, split
 from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
+from helpers import assert_bundles_equal
 
 
 @pytest.fixture(scope="module")
@@ -41,18 +42,21 @@ def test_dask_bundle_equals_in_process(tiny_scene, tiny_bundle, executor, tmp_pa
     # everything is computed by the same code on the same inputs, only in other processes: no
     # floating-point order differs (the photos are cut into groups, each map still rendered whole;
     # candidates are joined in photo order before the rim rule; labeling is global), so bit for bit
-    for key in ("parameters", "cameras", "counts", "origin", "depthmaps", "depthmap_sizes", "images",
-                "images_low"):
-        assert a.meta[key] == b.meta[key], key
-    for key in ("energy_per_sweep", "data_energy", "smooth_energy", "edges"):
-        assert a.meta["labeling"][key] == b.meta["labeling"][key], key
+    assert_bundles_equal(a, b)
     assert b.meta["dask"] == {"spec": "local:2", "workers": 2} and "dask" not in a.meta
-    for i in range(len(a.cameras)):
-        da, db = a.depth_map(i), b.depth_map(i)
-        assert da.dtype == db.dtype and da.tobytes() == db.tobytes(), a.meta["depthmaps"][i]
-    for name in ("positions", "normals", "radii", "labels", "hd_radii"):
-        pa, pb = a.proxy[name], b.proxy[name]
-        assert pa.dtype == pb.dtype and np.array_equal(pa, pb), name
+
+
+@pytest.mark.slow
+@pytest.mark.e2e
+def test_process_pool_bundle_equals_in_process(tiny_scene, tiny_bundle, tmp_path):
+    """The default on one machine: the CPU phases in 2 spawned processes, depth maps here."""
+    with open_executor(None, workers=2) as ex:
+        assert ex.distributed and not ex.gpu_tasks
+        out = preprocess(tiny_scene, tmp_path / "tiny", PreprocessConfig(depthmap_width=256), progress=False,
+                         executor=ex)
+    a, b = read_bundle(tiny_bundle), read_bundle(out)
+    assert_bundles_equal(a, b)  # as on Dask: the same code on the same inputs
+    assert b.meta["processes"] == {"spec": "processes:2", "workers": 2} and "processes" not in a.meta
 
 
 @pytest.mark.slow

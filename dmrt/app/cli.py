@@ -61,10 +61,11 @@ def cmd_preprocess(args) -> None:
     from dmrt.preprocess.parallel import open_executor
 
     config, labeling = config_from_args(PreprocessConfig, args), config_from_args(LabelingConfig, args)
+    check_positive(args, "workers")
     check_output(args.out, folder=True)
     if args.out.exists() and not args.force:  # refused before the scene is read (minutes on big clouds)
         raise InputError(args.out, "bundle exists (use --force to replace it)")
-    with open_executor(args.dask) as executor:
+    with open_executor(args.dask, workers=args.workers) as executor:
         out = preprocess(args.scene, args.out, config, labeling, force=args.force, progress=not args.quiet,
                          executor=executor)
     print(f"wrote {out}")
@@ -331,6 +332,9 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("--dask", metavar="SPEC", help="run the parallel phases as Dask tasks: local:N (a LocalCluster "
                      "of N worker processes) or tcp://HOST:PORT (a running scheduler; workers with --nthreads 1 "
                      "that see the scene and --out at the same paths); needs dmrt[dask]")
+    pre.add_argument("--workers", type=int, help="without --dask: local processes for the CPU phases (octree, "
+                     "normals/radii, candidates; default: CPU cores; 1 = all in this process); the bundle does "
+                     "not depend on it")
     add_config_args(pre, PreprocessConfig)
     add_config_args(pre, LabelingConfig)
     pre.set_defaults(func=cmd_preprocess)

@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 from dmrt.preprocess.octree import (_Appender, _chunk_source, _iter_normalized, _merge_counts, _progress,
                          _in_sorted, _read_records, _unique_counts, compute_bbox)
 from dmrt.io.atomic import atomic_file
+from dmrt.preprocess.parallel import default_workers
 from dmrt.morton import morton_encode
 
 __all__ = ["estimate_normals", "splat_radii", "orient_normals", "process_chunked", "ChunkedResult",
@@ -35,6 +36,23 @@ __all__ = ["estimate_normals", "splat_radii", "orient_normals", "process_chunked
 
 # rows per batch of covariance matrices: (b, k, 3) float64 neighbourhoods are the largest temporaries
 _BATCH = 65536
+
+
+def _batches(n: int, work) -> None:
+    """``work(start, stop)`` over ``range(n)`` in batches of ``_BATCH`` rows, on one thread per
+    core: kNN queries, einsum and eigh release the GIL, so threads scale without copying the tree
+    to processes. Each call writes its own rows of the caller's output."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    starts = range(0, n, _BATCH)
+    threads = min(len(starts), default_workers())
+    if threads <= 1:
+        for s in starts:
+            work(s, min(n, s + _BATCH))
+        return
+    with ThreadPoolExecutor(threads) as pool:
+        for f in [pool.submit(work, s, min(n, s + _BATCH)) for s in starts]:
+            f.result()
 
 
 def _kdtree(c: np.ndarray) -> cKDTree:
@@ -141,9 +159,12 @@ def estimate_normals(positions, k: int = 16, viewpoints=None, *, per_point: bool
     tree = tree if tree is not None else _kdtree(c)
     k = min(int(k), n)
     out = np.empty((n, 3), np.float64)
-    for s in range(0, n, _BATCH):
-        _, idx = tree.query(c[s:s + _BATCH], k=k, workers=-1)
-        out[s:s + _BATCH] = _pca_normals(c, idx.reshape(-1, k))
+
+    def work(a, b):
+        _, idx = tree.query(c[a:b], k=k)
+        out[a:b] = _pca_normals(c, idx.reshape(-1, k))
+
+    _batches(n, work)
     return orient_normals(out, p, viewpoints, per_point).astype(np.float32)
 
 
@@ -188,9 +209,11 @@ def splat_radii(positions, k: int = 8, scale: float = 1.0, *, tree: cKDTree | No
     tree = tree if tree is not None else _kdtree(c)
     k = min(int(k), n - 1)
     out = np.empty(n, np.float64)
-    for s in range(0, n, _BATCH):
-        d, _ = tree.query(c[s:s + _BATCH], k=[k + 1], workers=-1)  # +1: the point itself
-        out[s:s + _BATCH] = d[:, 0]
+
+    def work(a, b):
+        out[a:b] = tree.query(c[a:b], k=[k + 1])[0][:, 0]  # k + 1: the point itself
+
+    _batches(n, work)
     return (out * (scale * radius_factor(k))).astype(np.float32)
 
 

@@ -4,7 +4,9 @@
 runs a module-level function over items, results in item order:
 
 ``None``
-    :class:`InProcess`: a plain loop in this process (the default; preprocessing as it always ran).
+    :class:`ProcessPool` of ``workers`` local processes (the default: one per CPU core) for the CPU
+    phases; the GPU phase (depth maps) stays in this process, on its one GL context. With
+    ``workers=1``, :class:`InProcess`: a plain loop in this process.
 ``"local:N"``
     A ``LocalCluster`` of ``N`` worker processes with one thread each, closed on exit.
 ``"tcp://HOST:PORT"``
@@ -27,7 +29,7 @@ from typing import Callable, Iterator, Sequence
 
 from dmrt.errors import ConfigError, DMRTError, require
 
-__all__ = ["InProcess", "DaskExecutor", "open_executor", "split"]
+__all__ = ["InProcess", "ProcessPool", "DaskExecutor", "open_executor", "split"]
 
 _SPEC_HELP = "expected local:N (a LocalCluster of N worker processes) or tcp://HOST:PORT (a running scheduler)"
 
@@ -44,7 +46,10 @@ class InProcess:
 
     spec = None
     workers = 1
+    # distributed: tasks run in other processes (they read the work folder, results come back
+    # pickled); gpu_tasks: those processes also run the GPU phase, each on its own GL context
     distributed = False
+    gpu_tasks = False
 
     def map(self, fn: Callable, items: Sequence, desc: str | None = None, progress: bool = False,
             **shared) -> list:
@@ -60,6 +65,64 @@ class InProcess:
         return None
 
 
+class ProcessPool:
+    """Runs tasks in ``workers`` local processes (``concurrent.futures``, spawned: the parent may
+    hold a GL context or Embree threads that a fork would copy half-alive). The GPU phase stays
+    in the calling process (``gpu_tasks`` False): one GPU is best fed by one context.
+
+    ``shared`` keyword arguments of :meth:`map` travel with every task (pickled each time), so
+    they should be small: paths, configurations, cameras.
+    """
+
+    spec = None
+    distributed = True
+    gpu_tasks = False
+
+    def __init__(self, workers: int):
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self.workers = int(workers)
+        self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def record(self) -> dict:
+        return {"spec": f"processes:{self.workers}", "workers": self.workers}
+
+    def imap(self, fn: Callable, items: Sequence, desc: str | None = None, progress: bool = False,
+             **shared) -> Iterator:
+        """``fn(item, **shared)`` per item, results in item order, at most ``2 * workers`` tasks
+        queued ahead of the one handed over (results are not all held at once)."""
+        from concurrent.futures.process import BrokenProcessPool
+        from functools import partial
+
+        from tqdm import tqdm
+
+        task, items = partial(fn, **shared), list(items)
+        window, pending = 2 * self.workers, []
+        try:
+            with tqdm(total=len(items), desc=desc, unit="task", disable=not progress) as bar:
+                for i in range(len(items)):
+                    while len(pending) < window and i + len(pending) < len(items):
+                        pending.append(self._pool.submit(task, items[i + len(pending)]))
+                    result = pending.pop(0).result()
+                    bar.update()
+                    yield result
+        except BrokenProcessPool:
+            raise DMRTError(f"a worker process of {desc or 'a parallel phase'} died (out of memory?): "
+                            "try fewer --workers or a lower --memory-limit-mb") from None
+        finally:
+            for f in pending:
+                f.cancel()
+
+    def map(self, fn: Callable, items: Sequence, desc: str | None = None, progress: bool = False,
+            **shared) -> list:
+        """:meth:`imap` as a list."""
+        return list(self.imap(fn, items, desc, progress, **shared))
+
+
 class DaskExecutor:
     """Runs tasks on a ``dask.distributed`` cluster through ``client``.
 
@@ -68,6 +131,7 @@ class DaskExecutor:
     """
 
     distributed = True
+    gpu_tasks = True
 
     def __init__(self, client, spec: str):
         self.client, self.spec = client, spec
@@ -152,9 +216,18 @@ def _spread_gpus(client) -> None:
         client.run(_pin_gpu, rank, workers=[address])
 
 
+def default_workers() -> int:
+    """Local worker processes by default: the CPU cores this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover (not Linux)
+        return max(1, os.cpu_count() or 1)
+
+
 @contextmanager
-def open_executor(spec: str | None, progress: bool = False):
-    """The executor of ``spec`` (see the module docstring), closed on exit.
+def open_executor(spec: str | None, progress: bool = False, workers: int | None = 1):
+    """The executor of ``spec`` (see the module docstring), closed on exit. Without a spec,
+    ``workers`` local processes (None: :func:`default_workers`; 1: :class:`InProcess`).
 
     Raises
     ------
@@ -164,7 +237,17 @@ def open_executor(spec: str | None, progress: bool = False):
         ``dask[distributed]`` is not installed.
     """
     if spec is None:
-        yield InProcess()
+        workers = default_workers() if workers is None else int(workers)
+        if workers < 1:
+            raise ConfigError("workers", f"{workers}: needs at least 1 process")
+        if workers == 1:
+            yield InProcess()
+            return
+        pool = ProcessPool(workers)
+        try:
+            yield pool
+        finally:
+            pool.close()
         return
     spec = str(spec).strip()
     local = re.fullmatch(r"local:(\d+)", spec)

@@ -44,6 +44,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from dmrt.options import option, validate
+from dmrt.preprocess.parallel import default_workers
 
 
 @dataclass
@@ -285,12 +286,14 @@ def patch_colors(positions: np.ndarray, normals: np.ndarray, radii: np.ndarray, 
     radii : (n,) float, the proxies' splat radii, metres.
     point, photo : (k,) int, the (proxy, photo) pairs to sample (e.g. the candidates' entries).
     cameras : list of Camera, origin-relative, photo resolution.
-    photos : callable ``j -> (H, W, 3) uint8`` photo ``j``.
+    photos : callable ``j -> (H, W, 3) uint8`` photo ``j``, called from several threads.
 
     Returns
     -------
     (k, 3) float32, RGB 0..1 (NaN where the box misses the photo).
     """
+    from concurrent.futures import ThreadPoolExecutor
+
     from tqdm import tqdm
 
     positions = np.asarray(positions, np.float64)
@@ -302,10 +305,11 @@ def patch_colors(positions: np.ndarray, normals: np.ndarray, radii: np.ndarray, 
     out = np.full((len(point), 3), np.nan, np.float32)
     order = np.argsort(photo, kind="stable")
     bounds = np.searchsorted(photo[order], np.arange(len(cameras) + 1))
-    for j in tqdm(range(len(cameras)), desc="photometric", unit="photo", disable=not progress):
+
+    def one(j):  # photo j's rows of ``out`` (the photos' rows are disjoint: threads may share ``out``)
         sel = order[bounds[j]:bounds[j + 1]]
         if len(sel) == 0:
-            continue
+            return
         cam, img = cameras[j], np.asarray(photos(j), np.float64) / 255.0
         h, w = img.shape[:2]
         sat = np.zeros((h + 1, w + 1, 3))
@@ -329,6 +333,12 @@ def patch_colors(positions: np.ndarray, normals: np.ndarray, radii: np.ndarray, 
                  - _sat_at(sat, hi[:, 0], lo[:, 1]) + _sat_at(sat, lo[:, 0], lo[:, 1]))
         mean = total / np.maximum(area, 1e-12)[:, None]
         out[sel[ok]] = mean[ok]
+
+    # numpy's array work and the photo decoding release the GIL: one thread per core
+    with ThreadPoolExecutor(max(1, min(len(cameras), default_workers()))) as pool:
+        for _ in tqdm(pool.map(one, range(len(cameras))), total=len(cameras), desc="photometric", unit="photo",
+                      disable=not progress):
+            pass
     return out
 
 

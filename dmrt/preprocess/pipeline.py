@@ -21,6 +21,7 @@ import shlex
 import shutil
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
 
@@ -30,9 +31,9 @@ from tqdm import tqdm
 from dmrt.io.bundle import BundleWriter, camera_to_json
 from dmrt.io.exr import read_depth_exr, write_depth_exr
 from dmrt.preprocess.config import PreprocessConfig
-from dmrt.preprocess.memory import AnonPeak
+from dmrt.preprocess.memory import AnonPeak, cpu_seconds
 from dmrt.preprocess.labeling import LabelingConfig
-from dmrt.preprocess.parallel import InProcess, check_gpu_worker, split
+from dmrt.preprocess.parallel import InProcess, check_gpu_worker, default_workers, split
 from dmrt.preprocess.photometric import solve_for_proxies
 from dmrt.preprocess.proxies import choose_proxy_levels, label_proxies
 from dmrt.io.scene import Scene, load_scene
@@ -64,10 +65,10 @@ class _Photos:
         self.scene, self._cache = scene, {}
 
     def __call__(self, j: int) -> np.ndarray:
-        if j not in self._cache:
-            self._cache.clear()
-            self._cache[j] = self.scene.read_image(j)
-        return self._cache[j]
+        cache = self._cache  # replaced whole, never changed in place: safe from several threads
+        if j not in cache:
+            cache = self._cache = {j: self.scene.read_image(j)}
+        return cache[j]
 
     def __getstate__(self):
         return {"scene": self.scene, "_cache": {}}
@@ -109,16 +110,20 @@ def render_depth_group(js, cameras, names, work, out_dir, has_normals: bool, con
     renderer = DepthMapRenderer(ctx, DepthMapConfig(width=config.depthmap_width, method=config.depthmap_method,
                                                     chunk_points=config.chunk_points), timer=timer)
     js = list(js)
-    rels, sizes = [], []
-    try:
-        for i, depth in renderer.render_many([cameras[j] for j in js], hd_chunks, resident_mb=config.resident_mb,
-                                             progress=progress):
-            rel = f"depthmaps/{Path(names[js[i]]).stem}.exr"
-            write_depth_exr(out_dir / rel, depth)
-            rels.append(rel)
-            sizes.append([depth.shape[1], depth.shape[0]])
-    finally:
-        renderer.release()
+    rels, sizes, writes = [], [], []
+    # EXR compression (~40 ms a map) runs on threads while the GPU renders the next maps
+    with ThreadPoolExecutor(default_workers()) as pool:
+        try:
+            for i, depth in renderer.render_many([cameras[j] for j in js], hd_chunks,
+                                                 resident_mb=config.resident_mb, progress=progress):
+                rel = f"depthmaps/{Path(names[js[i]]).stem}.exr"
+                writes.append(pool.submit(write_depth_exr, out_dir / rel, depth))
+                rels.append(rel)
+                sizes.append([depth.shape[1], depth.shape[0]])
+        finally:
+            renderer.release()
+        for f in writes:
+            f.result()  # a failed write raises here
     return rels, sizes, dict(timer.ms), _gl_renderer_string()
 
 
@@ -127,11 +132,11 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                executor=None) -> Path:
     """Preprocess ``scene_dir`` into the bundle ``out``; returns its path.
 
-    ``executor`` (:func:`dmrt.preprocess.parallel.open_executor`) runs the parallel phases as Dask
-    tasks: normals/radii per spatial bucket (when the cloud exceeds the memory budget), depth maps
-    and candidates per group of photos (one contiguous group per worker). The octree build and the
-    (global) labeling run here. The bundle equals the in-process one; bundle.json records the
-    cluster under ``dask``. None: everything in this process.
+    ``executor`` (:func:`dmrt.preprocess.parallel.open_executor`) runs the parallel phases as tasks
+    in other processes: octree buckets, normals/radii per spatial bucket, candidates per group of
+    photos (one contiguous group per worker), and on Dask also the depth maps. The (global)
+    labeling runs here. The bundle equals the in-process one; bundle.json records the workers under
+    ``dask`` or ``processes``. None: everything in this process.
     """
     from PIL import Image
 
@@ -151,9 +156,17 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
     peak_rss: dict[str, float] = {}
     peak_anon: dict[str, float | None] = {}
     anon = AnonPeak()
+    cpu_s: dict[str, float] = {}  # CPU seconds per phase, worker processes included
+    cpu_mark = [cpu_seconds()]
+
+    def cpu_tic(name):
+        now = cpu_seconds()
+        cpu_s[name] = round(now - cpu_mark[0], 2)
+        cpu_mark[0] = now
 
     def tic(name, t0):
         timings[name] = round(time.perf_counter() - t0, 3)
+        cpu_tic(name)
         # peak resident memory so far (MiB), so the phase that raised it can be read off, and the
         # phase's own peak of anonymous memory (what --memory-limit-mb governs: dmrt.preprocess.memory)
         peak_rss[name] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
@@ -186,7 +199,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         t0 = time.perf_counter()
         task = dict(cameras=cams_local, names=[c.name for c in scene.cameras], work=str(work),
                     out_dir=str(work.parent), has_normals=has_normals, config=config)
-        if executor.distributed:
+        if executor.gpu_tasks:
             parts = executor.map(render_depth_group, split(len(cams_local), executor.workers), desc="depth maps",
                                  progress=progress, **task)
         else:
@@ -216,6 +229,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                                 config, labeling, progress=progress, executor=executor)
         timings.update(proxies.timings, proxies_s=round(proxies.timings["proxies_s"] + read_s, 3))
         peak = anon.take()
+        cpu_tic("proxies_candidates_labeling_s")
         for name in ("proxies_s", "candidates_s", "labeling_s"):
             peak_rss[name] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
             peak_anon[name] = peak
@@ -229,13 +243,18 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
 
         # 7. photos and their low-resolution copies
         t0 = time.perf_counter()
-        images, images_low = [], []
-        for j, cam in enumerate(tqdm(scene.cameras, desc="photos", unit="photo", disable=not progress)):
-            images.append(bw.add_image(scene.image_paths[j], cam.name))
+        images = [bw.add_image(scene.image_paths[j], cam.name) for j, cam in enumerate(scene.cameras)]
+
+        def low_copy(j):  # decoding, resizing and PNG encoding release the GIL: threads scale
+            cam = scene.cameras[j]
             low_h = max(1, round(config.lowres_width * cam.height / cam.width))
             rel = f"images_low/{Path(cam.name).stem}.png"
             Image.fromarray(scene.read_image(j)).resize((config.lowres_width, low_h), Image.BOX).save(bw.tmp / rel)
-            images_low.append(rel)
+            return rel
+
+        with ThreadPoolExecutor(default_workers()) as pool:
+            images_low = list(tqdm(pool.map(low_copy, range(len(scene.cameras))), total=len(scene.cameras),
+                                   desc="photos", unit="photo", disable=not progress))
         tic("photos_s", t0)
 
         bw.write_proxy(**proxies.proxy)
@@ -254,6 +273,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
             "timings": timings,
             "peak_rss_mb_after": peak_rss,
             "peak_anon_mb_per_phase": peak_anon,
+            "cpu_s_per_phase": cpu_s,
             "counts": {
                 "points": octree.n_points, "photos": len(scene.cameras), **proxies.counts(),
                 "proxy_levels": k, "octree_level_counts": list(octree.level_counts),
@@ -264,7 +284,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
             "photo_gains": photometric.gains.tolist(),
             "photometric": photometric.meta(),
         }
-        if executor.distributed:  # outside "parameters": a cluster does not change the bundle
-            meta["dask"] = executor.record()
+        if executor.distributed:  # outside "parameters": workers do not change the bundle
+            meta["dask" if executor.gpu_tasks else "processes"] = executor.record()
         return bw.finish(meta)
 
