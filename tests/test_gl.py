@@ -154,6 +154,14 @@ def test_timer_measures_draw_and_dispatch(ctx, shader_dir):
         with timer.section("outer"):
             with timer.section("inner"):
                 pass
+    # parts of a stage ("stage:part") add up to the stage and stay apart in part_ms
+    timer.reset()
+    with ctx.scope(fbo):
+        for part in ("a", "b"):
+            with timer.section(f"draw:{part}"):
+                vao.render(moderngl.TRIANGLES)
+    parts = timer.part_ms
+    assert set(parts) == {"draw:a", "draw:b"} and timer.ms == {"draw": parts["draw:a"] + parts["draw:b"]}
     timer.reset()
     assert timer.ms == {}
     for obj in (vao, vbo, fbo, buf):

@@ -75,7 +75,9 @@ def test_frame_contract(renderers, bundle):
         np.testing.assert_array_equal(again[key], frame[key], err_msg=key)
     # a frame left on the GPU (timing runs) returns its timings only, and changes nothing after it
     kept = renderer.render(bundle.cameras[1], W, readback=False)
-    assert set(kept) == {"timings", "cpu_ms"} and set(kept["timings"]) == set(frame["timings"])
+    assert set(kept) == {"timings", "part_timings", "cpu_ms"} and set(kept["timings"]) == set(frame["timings"])
+    # the timed parts of stages are named "stage:part" after stages of the frame
+    assert kept["part_timings"] and {k.split(":")[0] for k in kept["part_timings"]} <= set(frame["timings"])
     after = renderer.render(cam, W)
     for key in ("depth", "label", "color"):
         np.testing.assert_array_equal(after[key], frame[key], err_msg=key)

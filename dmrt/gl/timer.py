@@ -6,6 +6,8 @@ Usage::
     with timer.section("visibility"):
         ...  # draws / dispatches
     timer.ms  # {"visibility": 0.41}, summed over every use of the section
+    with timer.section("image_management:histogram"):
+        ...  # a part of a stage: counted in ``ms["image_management"]``, alone in ``part_ms``
 
 Results are read lazily (reading :attr:`ms` waits for the GPU), so timing a frame does not stall it.
 There is deliberately no CPU-clock fallback: a context without timer queries raises.
@@ -21,7 +23,7 @@ Caveats, both measured:
 
 from __future__ import annotations
 
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 
 import moderngl
 
@@ -102,7 +104,17 @@ class GpuTimer:
 
     @property
     def ms(self) -> dict[str, float]:
-        """``{stage name: accumulated GPU milliseconds}`` (waits for outstanding sections)."""
+        """``{stage name: accumulated GPU milliseconds}`` (waits for outstanding sections); a
+        section ``"stage:part"`` counts toward ``stage``."""
+        out: dict[str, float] = {}
+        for name, v in self.part_ms.items():
+            stage = name.split(":", 1)[0]
+            out[stage] = out.get(stage, 0.0) + v
+        return out
+
+    @property
+    def part_ms(self) -> dict[str, float]:
+        """``{section name: accumulated GPU milliseconds}``, parts of stages (``"stage:part"``) apart."""
         self._resolve()
         return dict(self._ms)
 
@@ -123,3 +135,8 @@ class GpuTimer:
         self._resolve()
         self._ms.clear()
         self._counts.clear()
+
+
+def timed(timer: "GpuTimer | None", name: str):
+    """``timer.section(name)``, or nothing to time without a timer."""
+    return nullcontext() if timer is None else timer.section(name)

@@ -92,6 +92,10 @@ class RenderConfig:
                  "kept in registers: dmrt/runtime/tiles.py), compute (depth peeling by atomicMin splatting, a "
                  "pass per layer), kbuffer (one splat pass into a per-pixel list of the nearest fragments in "
                  "global memory) or raster (the paper's GL_POINTS depth peeling); the same layers")
+    tile_check: Literal["frame", "lagged"] = option(
+        "frame", "tiles: frame (the stage ends by reading back its list length and overflow, and redoes what "
+                 "the frame outgrew: every frame exact) or lagged (reads the status of two frames back and never "
+                 "waits; a frame whose list outgrew the buffer loses the disks past its end)")
     kbuffer_slots: int = option(0, "k-buffer fragments kept per pixel; 0 = 6 per layer + 2 (>= 99.9 % of the "
                                    "peeled layers' pixels); a pixel with more fragments in front of its k-th layer "
                                    "loses its deepest layers", minimum=0)
@@ -199,7 +203,8 @@ class Renderer:
                                                         f"but the bundle has {n} photos")
         self.splats = ProxySplats(self.ctx, bundle.proxy, self.config.max_thread_pixels)
         self.visibility = VisibilityStage(self.ctx, self.splats, self.config.method, self.int64,
-                                          self.config.kbuffer_slots or 6 * self.config.layers + 2, n)
+                                          self.config.kbuffer_slots or 6 * self.config.layers + 2, n,
+                                          self.config.tile_check)
         defines = {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
                    "SECANT": int(self.config.search == "secant"), "RAYTRACE": int(self.config.raytrace),
                    "STATISTICS": int(self.config.statistics), "ILLINOIS": int(self.config.refine == "illinois")}
@@ -271,10 +276,9 @@ class Renderer:
         timer.reset()
         self.splats.begin_frame()
 
-        with timer.section("visibility"):
-            self.visibility.run(cam_uniforms, (w, h), cfg.layers, b["layer_depth"], b["layer_label"])
+        self.visibility.run(cam_uniforms, (w, h), cfg.layers, b["layer_depth"], b["layer_label"], timer)
 
-        with timer.section("raytracing"):
+        with timer.section("raytracing:search"):
             if self.step_stats is not None:
                 fill_u32(ctx, self.step_stats, 0, 4 * cfg.layers * STEP_BINS)
                 ctx.memory_barrier(_BARRIER)
@@ -289,6 +293,7 @@ class Renderer:
                          u_depthmaps=0, **cam_uniforms)
             self._raytrace.run(*grid)
             ctx.memory_barrier(_BARRIER)
+        with timer.section("raytracing:hole_fill"):
             for fill_pass in range(cfg.fill_passes if cfg.raytrace else 0):
                 set_uniforms(self._fill, u_pass=fill_pass, u_layers=cfg.layers, u_max_steps=cfg.max_steps,
                              u_binary_steps=cfg.binary_steps, u_threshold=float(cfg.discontinuity_threshold),
@@ -315,7 +320,7 @@ class Renderer:
 
         # image management: the final labels here, then the histogram pass and the uploads (timed on
         # the GPU); the readback between them waits for the frame so far and is CPU time
-        with timer.section("image_management"):
+        with timer.section("image_management:label_finalize"):
             b["key"].bind_to_storage_buffer(abi.B_KEY)
             b["vlabel"].bind_to_storage_buffer(abi.B_VLABEL)
             b["hits"].bind_to_storage_buffer(abi.B_HITS)

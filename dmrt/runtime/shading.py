@@ -124,7 +124,7 @@ class FrameShading:
         ctx, timer = self.ctx, self.timer
         w, h = cam_uniforms["u_size"]
         counts_now = self.counts[self.frames % 2]
-        with timer.section("image_management"):
+        with timer.section("image_management:histogram"):
             fill_u32(ctx, counts_now, 0, counts_now.size // 4)
             ctx.memory_barrier(_BARRIER)
             hits.bind_to_storage_buffer(abi.B_HITS)
@@ -151,6 +151,7 @@ class FrameShading:
         timer.check_executed(what)
         ms = timer.ms
         frame["timings"] = {stage: ms.get(stage, 0.0) for stage in stages}
+        frame["part_timings"] = {k: v for k, v in timer.part_ms.items() if ":" in k}
         frame["cpu_ms"] = cpu_ms
         if self.leveler is not None:
             frame["leveling_gains"] = self.leveler.gains.copy()

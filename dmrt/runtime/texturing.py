@@ -216,7 +216,7 @@ def texture_frame(ctx, timer, images: ImageCache, counts: np.ndarray, hits, colo
     import moderngl
 
     t1 = time.perf_counter()
-    with timer.section("image_management"):
+    with timer.section("image_management:photo_uploads"):
         images.update(counts)
     t2 = time.perf_counter()
     w, h = cam_uniforms["u_size"]

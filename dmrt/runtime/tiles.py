@@ -48,6 +48,7 @@ import numpy as np
 from dmrt.gl import abi
 from dmrt.gl.kernels import fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
+from dmrt.gl.timer import timed
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 ENTRY_BYTES = 8  # (near key, disc index) uint pair
@@ -171,8 +172,11 @@ class TileVisibility:
             buf.bind_to_storage_buffer(points[name])
 
     # -- the frame --------------------------------------------------------------------------
-    def run(self, uniforms: dict, size: tuple[int, int], layers: int, layer_depth, layer_label) -> None:
-        """Fill ``layers`` label layers for the camera in ``uniforms``.
+    def run(self, uniforms: dict, size: tuple[int, int], layers: int, layer_depth, layer_label,
+            timer=None) -> None:
+        """Fill ``layers`` label layers for the camera in ``uniforms``; with ``timer``, timed as the
+        parts ``visibility:tile_lists`` (bin, scan, scatter), ``visibility:tile_raster`` and
+        ``visibility:redo`` (what a frame that outgrew the list or the pending list did again).
 
         Parameters
         ----------
@@ -206,26 +210,36 @@ class TileVisibility:
         tile_uniforms = {**uniforms, "u_tiles": grid, "u_count": self.splats.n, "u_tile_count": grid[0] * grid[1]}
         raster = (tile_uniforms, layers, layer_depth, layer_label, status)
 
-        self._build_list(tile_uniforms, status, size_after_scan=first and self.check == "lagged")
-        self._raster_pass(*raster)
+        with timed(timer, "visibility:tile_lists"):
+            self._build_list(tile_uniforms, status, size_after_scan=first and self.check == "lagged")
+        with timed(timer, "visibility:tile_raster"):
+            self._raster_pass(*raster)
         if self.check == "frame" or first:
             # wait for the stage (its GPU time is not stretched: nothing is issued after it) and redo
             # what the frame outgrew: the list (all passes), the pending list (the raster pass)
-            while True:
-                total, overflow = (int(v) for v in self._read_status(slot)[:2])
-                if total > self.capacity:
-                    self.dropped_frames += 1
-                    self._fit(total)
-                    self._build_list(tile_uniforms, status, size_after_scan=False)
-                elif self._adapt(overflow, self.pending, w * h):
-                    status.write(np.zeros(2, np.uint32).tobytes(), offset=4)  # overflow, long_tiles
-                else:
-                    break
-                self._raster_pass(*raster)
-            # headroom for the next frames, made then: the labeling pass still walks this list
-            self._grow_to = total
+            self._redo(tile_uniforms, raster, status, slot, w * h, timer)
         self._status_run[slot] = (self.capacity, self.pending, w * h)
         self._frame += 1
+
+    def _redo(self, tile_uniforms, raster, status, slot, pixels, timer) -> None:
+        """Wait for the frame's status and redo what it outgrew. The wait is outside any timed
+        section: a section open while the CPU waits would count the idle GPU."""
+        while True:
+            total, overflow = (int(v) for v in self._read_status(slot)[:2])
+            if total > self.capacity:
+                self.dropped_frames += 1
+                self._fit(total)
+                with timed(timer, "visibility:redo"):
+                    self._build_list(tile_uniforms, status, size_after_scan=False)
+                    self._raster_pass(*raster)
+            elif self._adapt(overflow, self.pending, pixels):
+                status.write(np.zeros(2, np.uint32).tobytes(), offset=4)  # overflow, long_tiles
+                with timed(timer, "visibility:redo"):
+                    self._raster_pass(*raster)
+            else:
+                break
+        # headroom for the next frames, made then: the labeling pass still walks this list
+        self._grow_to = total
 
     def _build_list(self, tile_uniforms: dict, status, size_after_scan: bool) -> None:
         """Bin (count), scan, bin (scatter): each tile's slice of the list, unsorted."""

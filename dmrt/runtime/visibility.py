@@ -45,6 +45,7 @@ from dmrt.gl import abi
 from dmrt.gl.abi import EMPTY_BITS, EMPTY_LABEL, EMPTY_Z, PROXY_FLOATS
 from dmrt.gl.kernels import fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
+from dmrt.gl.timer import timed
 from dmrt.morton import morton_order
 from dmrt.runtime.tiles import TileVisibility
 
@@ -140,17 +141,18 @@ class VisibilityStage:
     method : ``"compute"``, ``"kbuffer"``, ``"tiles"`` or ``"raster"``
     int64 : bool
         Compute path: one pass per layer with 64-bit atomics (see module doc).
+    tile_check : ``"frame"`` or ``"lagged"``, the tiles path's list check (:class:`TileVisibility`)
     """
 
     def __init__(self, ctx: moderngl.Context, splats: ProxySplats, method: str = "compute", int64: bool = False,
-                 slots: int = 16, n_labels: int = 256):
+                 slots: int = 16, n_labels: int = 256, tile_check: str = "frame"):
         if method not in ("compute", "raster", "kbuffer", "tiles"):
             raise ValueError(f"RenderConfig.method must be 'compute', 'kbuffer', 'tiles' or 'raster', not {method!r}")
         self.ctx, self.splats, self.method = ctx, splats, method
         self.int64 = bool(int64) and method == "compute"
         self._size = None
         self._packed = None
-        self.tiles = TileVisibility(ctx, splats) if method == "tiles" else None
+        self.tiles = TileVisibility(ctx, splats, check=tile_check) if method == "tiles" else None
         if method == "kbuffer":
             label_bits = max(1, int(n_labels - 1).bit_length())
             if label_bits > 16:
@@ -172,11 +174,17 @@ class VisibilityStage:
             self._vao_quads = ctx.vertex_array(self._quads, layout)
             self.max_point_size = float(ctx.info["GL_POINT_SIZE_RANGE"][1])
 
-    def run(self, uniforms: dict, size: tuple[int, int], layers: int, layer_depth, layer_label) -> None:
-        """Fill ``layers`` label layers for the camera in ``uniforms`` (u_R, u_t, u_K, u_size)."""
+    def run(self, uniforms: dict, size: tuple[int, int], layers: int, layer_depth, layer_label,
+            timer=None) -> None:
+        """Fill ``layers`` label layers for the camera in ``uniforms`` (u_R, u_t, u_K, u_size),
+        timed as the ``visibility`` stage (its parts for ``tiles``) on ``timer`` if given."""
         if self.tiles is not None:  # writes every layer of every pixel: nothing to clear
-            self.tiles.run(uniforms, size, layers, layer_depth, layer_label)
+            self.tiles.run(uniforms, size, layers, layer_depth, layer_label, timer)
             return
+        with timed(timer, "visibility"):
+            self._peel(uniforms, size, layers, layer_depth, layer_label)
+
+    def _peel(self, uniforms: dict, size: tuple[int, int], layers: int, layer_depth, layer_label) -> None:
         w, h = size
         fill_u32(self.ctx, layer_depth, EMPTY_BITS, layers * w * h)
         fill_u32(self.ctx, layer_label, EMPTY_LABEL, layers * w * h)
