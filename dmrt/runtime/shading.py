@@ -129,8 +129,8 @@ class FrameShading:
             ctx.memory_barrier(_BARRIER)
             hits.bind_to_storage_buffer(abi.B_HITS)
             counts_now.bind_to_storage_buffer(abi.B_COUNTS)
-            set_uniforms(self._histogram, u_count=w * h)
-            self._histogram.run(groups(w * h, 64 * 64))
+            set_uniforms(self._histogram, u_size=(w, h))
+            self._histogram.run(groups(w, 64), groups(h, 64))
             ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
         t0 = time.perf_counter()
         chooser = self.counts[(self.frames - min(self.latency, self.frames)) % 2]
