@@ -1,7 +1,7 @@
 """Benchmark of the out-of-core level-of-detail build (dmrt.preprocess.octree; paper Section 4.1/4.2: P_HD in an
 out-of-core octree, the proxies P_LD = its k coarsest levels, sub-sampled 87x to 2075x).
 
-    python -m bench.bench_octree --points 20000000 --memory-limit-mb 256 --out-dir /tmp/oct [--json FILE]
+    python -m bench.bench_octree --points 20000000 --memory-limit-mb 256 --out-dir /tmp/oct [--workers N] [--json FILE]
 
 The cloud is generated block by block from ``--seed`` (block ``i`` of 131072 points from
 ``default_rng([seed, i])``; a chunk is a run of whole blocks), never whole in RAM, and regenerated
@@ -20,6 +20,12 @@ and reading "Maximum resident set size (kbytes)" (install with ``apt-get install
 /usr/bin/time is missing). ``--memory-limit-mb`` bounds the point data and work arrays of the build;
 the interpreter with numpy/scipy (~60 MB resident before any point is read, printed as
 ``baseline_rss_mb``) and the generator's chunk come on top of it.
+
+``--workers N`` (N > 1) runs the bucket passes (candidates, select) in a
+:class:`~dmrt.preprocess.parallel.ProcessPool` of N processes, each within ``limit / N``; they are
+spawned before the clock starts (as the pipeline's pool is), and the largest one's peak RSS is
+printed as ``worker_peak_rss_mb``. The input is generated and read in this process, so the passes
+that read it (count, distribute) are printed with and without the generator's time.
 """
 
 from __future__ import annotations
@@ -35,8 +41,9 @@ import time
 import numpy as np
 
 from dmrt.preprocess.octree import Octree, OctreeConfig
+from dmrt.preprocess.parallel import open_executor
 
-BENCH_VERSION = 1
+BENCH_VERSION = 2
 RECORD_BYTES = 24 + 12 + 3
 BLOCK = 1 << 17  # points per generated block
 
@@ -109,8 +116,13 @@ def bbox_of_scene():
     return lo, hi
 
 
-def _rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: kB
+def _rss_mb(who=resource.RUSAGE_SELF) -> float:
+    return resource.getrusage(who).ru_maxrss / 1024.0  # Linux: kB
+
+
+def _cpu_s(who=resource.RUSAGE_SELF) -> float:
+    r = resource.getrusage(who)
+    return r.ru_utime + r.ru_stime
 
 
 def _current_rss_mb() -> float:
@@ -132,6 +144,8 @@ def main(argv=None):
                     help="points per chunk, rounded down to whole blocks of 131072; default "
                          "limit / 16 bytes worth of points (at most 1M)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=1,
+                    help="processes for the bucket passes (1: all in this process, the serial build)")
     ap.add_argument("--json", default=None, help="write the results here")
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--delete", action="store_true", help="remove the octree afterwards")
@@ -144,24 +158,43 @@ def main(argv=None):
     chunk = per_chunk * BLOCK
     n_blocks = -(-args.points // BLOCK)
     sizes = [min(BLOCK, args.points - i * BLOCK) for i in range(n_blocks)]
-    gen_s = [0.0]  # time spent generating the input, excluded from the build's own rate
+    gen_calls = []  # seconds spent generating the input, per call of chunks_fn (one per pass reading it)
 
     def chunks_fn():
+        gen_calls.append(0.0)
         for c0 in range(0, n_blocks, per_chunk):
             t = time.perf_counter()
             parts = [make_chunk(i, sizes[i], args.seed) for i in range(c0, min(n_blocks, c0 + per_chunk))]
             pos = np.concatenate([p for p, _ in parts])
             attrs = {k: np.concatenate([a[k] for _, a in parts]) for k in parts[0][1]}
             del parts
-            gen_s[0] += time.perf_counter() - t
+            gen_calls[-1] += time.perf_counter() - t
             yield pos, attrs
 
     cfg = OctreeConfig(levels=args.levels, root_cell=args.root_cell, memory_limit_mb=args.memory_limit_mb)
 
-    t0 = time.perf_counter()
-    tree = Octree.build(chunks_fn, args.out_dir, cfg, bbox=bbox_of_scene(), progress=not args.no_progress)
-    wall = time.perf_counter() - t0
+    with open_executor(None, workers=args.workers) as executor:
+        t = time.perf_counter()
+        executor.map(time.sleep, [0.2] * args.workers)  # spawn the workers before the clock starts
+        spawn_s = time.perf_counter() - t
+        t0, cpu0, workers_cpu0 = time.perf_counter(), _cpu_s(), _cpu_s(resource.RUSAGE_CHILDREN)
+        tree = Octree.build(chunks_fn, args.out_dir, cfg, bbox=bbox_of_scene(), progress=not args.no_progress,
+                            executor=executor)
+        wall, cpu = time.perf_counter() - t0, _cpu_s() - cpu0
+    # the workers' CPU time counts once they are joined (at the executor's close), spawning included
+    workers_cpu = _cpu_s(resource.RUSAGE_CHILDREN) - workers_cpu0
     peak = _rss_mb()
+    worker_peak = _rss_mb(resource.RUSAGE_CHILDREN) if args.workers > 1 else None
+    gen_s = sum(gen_calls)
+    # the passes that read the input: the first call(s) (schema, bbox) count in bbox_s, then count, distribute
+    phases = dict(tree.meta["timings"])
+    own = dict(phases)
+    reading = [k for k in ("count_s", "distribute_s") if k in phases]
+    head = gen_calls[:len(gen_calls) - len(reading)]
+    own["bbox_s"] = phases["bbox_s"] - sum(head)
+    for name, g in zip(reading, gen_calls[len(head):]):
+        own[name] = phases[name] - g
+    own["total_s"] = phases["total_s"] - gen_s
 
     f = tree.subsampling_factors()
     res = {
@@ -174,9 +207,11 @@ def main(argv=None):
         "lod_counts": tree.lod_counts(), "subsampling_factors": f,
         "bucket_level": tree.meta["bucket_level"], "n_buckets": tree.meta["n_buckets"],
         "max_bucket_points": tree.meta["max_bucket_points"], "bucket_capacity": tree.meta["bucket_capacity"],
-        "wall_s": wall, "generator_s": gen_s[0], "build_s": wall - gen_s[0],
-        "points_per_s": args.points / (wall - gen_s[0]), "phases_s": tree.meta["timings"],
-        "baseline_rss_mb": baseline, "peak_rss_mb": peak,
+        "wall_s": wall, "generator_s": gen_s, "build_s": wall - gen_s,
+        "points_per_s": args.points / (wall - gen_s), "phases_s": phases,
+        "phases_without_generator_s": own, "generator_per_pass_s": gen_calls,
+        "workers": args.workers, "worker_spawn_s": spawn_s, "cpu_s": cpu, "workers_cpu_s": workers_cpu,
+        "baseline_rss_mb": baseline, "peak_rss_mb": peak, "worker_peak_rss_mb": worker_peak,
     }
     print(f"points {args.points:,} ({res['data_mb']:.0f} MB of records), limit {args.memory_limit_mb:g} MB, "
           f"chunks of {chunk:,}")
@@ -185,11 +220,15 @@ def main(argv=None):
     print("factors " + ", ".join(f"{x:.1f}" for x in f))
     print(f"buckets {res['n_buckets']} at level {res['bucket_level']} (largest {res['max_bucket_points']:,}, "
           f"capacity {res['bucket_capacity']:,})")
-    print(f"wall    {wall:.1f} s, of which generating the input {gen_s[0]:.1f} s; build alone "
-          f"{wall - gen_s[0]:.1f} s ({res['points_per_s'] / 1e6:.2f} M points/s)")
-    print("phases  " + ", ".join(f"{k} {v:.1f}" for k, v in tree.meta["timings"].items())
-          + " (generator time included)")
-    print(f"rss     baseline {baseline:.0f} MB, peak {peak:.0f} MB (getrusage) vs limit {args.memory_limit_mb:g} MB")
+    print(f"wall    {wall:.1f} s, of which generating the input {gen_s:.1f} s; build alone "
+          f"{wall - gen_s:.1f} s ({res['points_per_s'] / 1e6:.2f} M points/s)")
+    print(f"cpu     this process {cpu:.1f} s (generator included)"
+          + (f", the {args.workers} workers {workers_cpu:.1f} s (spawned in {spawn_s:.1f} s, before the clock)"
+             if args.workers > 1 else ""))
+    print("phases  " + ", ".join(f"{k} {v:.2f}" for k, v in phases.items()) + " (generator time included)")
+    print("own     " + ", ".join(f"{k} {v:.2f}" for k, v in own.items()) + " (generator time excluded)")
+    print(f"rss     baseline {baseline:.0f} MB, peak {peak:.0f} MB (getrusage) vs limit {args.memory_limit_mb:g} MB"
+          + (f"; largest worker {worker_peak:.0f} MB" if worker_peak is not None else ""))
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(res, fh, indent=1)

@@ -7,6 +7,7 @@ input itself (every point once, attributes attached), and set identities for nes
 
 from __future__ import annotations
 
+import filecmp
 import json
 import os
 import tracemalloc
@@ -17,6 +18,7 @@ import pytest
 from dmrt.errors import InputError
 from dmrt.morton import morton_encode
 from dmrt.preprocess.octree import Octree, OctreeConfig
+from dmrt.preprocess.parallel import InProcess, ProcessPool
 
 N_BIG = 2_000_000
 CHUNK = 50_000
@@ -80,6 +82,17 @@ def reference_levels(pos, origin, root, levels):
 
 def ids_per_level(tree):
     return [np.sort(tree.read_level(lvl)["id"]) for lvl in range(tree.levels)]
+
+
+def assert_same_files(a, b):
+    """The two octrees' level files are byte-identical."""
+    assert a.level_counts == b.level_counts and a.fields == b.fields
+    for lvl in range(a.levels):
+        for k in a.fields:
+            fa, fb = a.path / f"level_{lvl:02d}" / f"{k}.bin", b.path / f"level_{lvl:02d}" / f"{k}.bin"
+            assert fa.exists() == fb.exists(), f"level {lvl} {k}"
+            if fa.exists():
+                assert filecmp.cmp(fa, fb, shallow=False), f"level {lvl} field {k} differs"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -210,6 +223,11 @@ def test_matches_naive_reference_out_of_core(tmp_path):
         a, b = pos[got[lvl]], tree2.read_level(lvl)["positions"]
         np.testing.assert_array_equal(a[np.lexsort(a.T)], b[np.lexsort(b.T)], err_msg=f"level {lvl}")
 
+    # in the same chunk order, the in-memory build writes the same bytes as the out-of-core one
+    # (whose over-full bucket took the streaming path): the level files do not depend on the buckets
+    tree3 = Octree.build(chunked(pos, ids, 3001), tmp_path / "c", cfg2, bbox=(lo, hi), progress=False)
+    assert_same_files(tree, tree3)
+
 
 def test_default_root_and_single_level(tmp_path):
     pos, ids = tricky_cloud(seed=5)
@@ -320,3 +338,54 @@ def test_memory_stays_near_the_limit(tmp_path):
     assert tree.n_points == n
     assert tree.meta["n_buckets"] > 10
     assert peak < 2 * limit * 2 ** 20, f"peak {peak / 2**20:.1f} MB for a {limit} MB limit"
+
+
+# ---------------------------------------------------------------------------------------------
+# the bucket passes in worker processes
+# ---------------------------------------------------------------------------------------------
+def parallel_cloud(seed=13):
+    """~212k points: the surface scene, a cluster inside one finest cell and a dense blob over
+    several (over-full buckets, whose remainder runs are one cell and several cells), an exact grid
+    (distance ties) and exact duplicates."""
+    rng = np.random.default_rng(seed)
+    parts = [surface_chunk(i, seed=seed)[0] for i in range(4)]
+    parts.append(rng.normal([15.0, 15.0, 1.0], 1e-4, (3000, 3)))
+    parts.append(rng.normal([4.0, 16.0, 2.0], 0.1, (6000, 3)))
+    g = np.stack(np.meshgrid(np.arange(40), np.arange(40), indexing="ij"), -1).reshape(-1, 2) * 0.05
+    parts.append(np.c_[g + 2.0, np.full(len(g), 0.5)])
+    parts.append(np.repeat(parts[0][:500], 2, axis=0))
+    pos = np.concatenate(parts)
+    return pos, np.arange(len(pos), dtype=np.int64)
+
+
+@pytest.fixture(scope="module")
+def pool():
+    p = ProcessPool(2)
+    yield p
+    p.close()
+
+
+def test_process_pool_build_is_byte_identical(tmp_path, pool):
+    """Candidates and select as tasks in 2 spawned processes (each with half the buckets'
+    capacity, so other buckets): the same level files as the serial build, byte for byte."""
+    pos, ids = parallel_cloud()
+    lo, hi = pos.min(0), pos.max(0)
+    root = float(np.linalg.norm(hi - lo)) / 3  # coarse levels span buckets: candidates run as tasks
+    cfg = OctreeConfig(levels=8, root_cell=root, memory_limit_mb=2)
+    serial = Octree.build(chunked(pos, ids, 20_000), tmp_path / "s", cfg, bbox=(lo, hi), progress=False)
+    par = Octree.build(chunked(pos, ids, 20_000), tmp_path / "p", cfg, bbox=(lo, hi), progress=False,
+                       executor=pool)
+    for t, workers in ((serial, 1), (par, 2)):
+        m = t.meta
+        assert m["workers"] == workers
+        assert m["bucket_level"] > 0 and m["n_buckets"] > 20
+        assert m["max_bucket_points"] > m["bucket_capacity"], "no over-full bucket: streaming path not run"
+    assert par.meta["bucket_capacity"] < serial.meta["bucket_capacity"]  # the budget split over 2 workers
+    assert_same_files(serial, par)
+    assert not (tmp_path / "p.partial").exists()
+    assert sorted(os.listdir(par.path)) == sorted(os.listdir(serial.path))  # no spill or select folders left
+    # an in-process executor is the serial path
+    again = Octree.build(chunked(pos, ids, 20_000), tmp_path / "i", cfg, bbox=(lo, hi), progress=False,
+                         executor=InProcess())
+    assert again.meta["workers"] == 1 and again.meta["n_buckets"] == serial.meta["n_buckets"]
+    assert_same_files(serial, again)

@@ -20,16 +20,19 @@ grids nest exactly (no second rounding). Hence
   ``LOD k+1`` is a superset of ``LOD k`` (nested), roughly 4x denser for surfaces (8x for volumes).
 
 The selection is a pure function of the *set* of input points: chunk order and chunk sizes do
-not change the octree (except the order of exact duplicate points, which follows the input).
+not change the octree (except the order of exact duplicate points, which follows the input). Each
+level file is in Morton order of its cells (the remainder: of the finest cells, duplicates in input
+order), so for a given input the level files are the same bytes whatever the memory limit, the
+buckets and the number of workers.
 
-Out-of-core build (memory ``M = memory_limit_mb``)
-------------------------------------------------
+Out-of-core build (memory ``M = memory_limit_mb``, ``W`` workers)
+---------------------------------------------------------------
 1. (only without ``bbox``) one pass for the bounding box;
 2. *count*: points per cell of a counting grid (sparse: sorted int64 Morton keys + counts; coarsened
    one level at a time while the table would exceed ``M/256`` entries, ~3/8 M with merge temporaries);
 3. choose the *bucket level* ``c`` = the coarsest level whose cells each hold at most one bucket's
-   capacity (0.4 M of records plus work arrays), and cut the Morton-sorted level-``c`` cells into
-   buckets of consecutive cells, each within capacity;
+   capacity (0.4 M / W of records plus work arrays), and cut the Morton-sorted level-``c`` cells
+   into buckets of consecutive cells, each within capacity;
 4. *distribute*: stream the points into per-bucket spill files (``M/4`` bytes of buffers);
 5. *candidates*: levels ``l < c`` have cells spanning several buckets. A level-``l`` pick is the best
    point of its cell that levels ``< l`` did not take; at most ``l`` points of the cell were taken, so
@@ -39,11 +42,25 @@ Out-of-core build (memory ``M = memory_limit_mb``)
 6. *select*: each bucket is loaded alone, the coarse picks are removed, and levels ``c .. levels-2``
    plus the remainder are selected inside it (level ``>= c`` cells never cross a bucket): one
    stable sort by the finest Morton key makes every level's cells contiguous runs, and each level
-   is a segmented minimum over them.
+   is a segmented minimum over them. A bucket's spill folder is deleted as soon as it is done.
 
 A level-``c`` cell that alone exceeds the capacity (extreme point density) is processed by streaming
 per-level reductions over its spill file; then memory is proportional to its number of occupied
-cells per level rather than to its number of points (plus one byte per point).
+cells per level rather than to its number of points (plus one byte per point). Its remainder is
+spilled once more, in runs of whole finest cells of at most half the capacity, and each run is
+sorted alone, so it is written in the same order as a bucket selected in memory.
+
+Passes 1, 2 and 4 read the input, in this process. With a distributed executor (``executor`` of
+:meth:`Octree.build`, e.g. :class:`~dmrt.preprocess.parallel.ProcessPool`), passes 5 and 6 run as
+tasks, one per bucket, in ``W = executor.workers`` processes: a task reads its bucket's spill files
+and returns the candidates (5) or writes the bucket's levels to ``select/b<bucket>/`` in the
+temporary folder and deletes the bucket's spill folder (6); this process resolves the coarse levels
+and appends the buckets' level files in bucket order, deleting each as it goes. W workers hold W
+buckets at once, hence the capacity of 0.4 M / W each; every worker process brings its own
+interpreter with numpy (~45 MB resident) on top. The level files are the serial build's, byte for
+byte. Measured (``bench/bench_octree.py``, 4M points, ``M`` = 256 MB, input generation excluded):
+serially, select takes ~70% of the build, count and distribute ~15% each, candidates nothing
+(``c`` = 0 there); so beyond a few workers the passes that read the input, here, dominate.
 
 Input chunks are processed in slices of about ``M / 8`` of work arrays, but the caller's chunk itself
 counts against the budget: keep ``chunk_size * record_bytes`` well below ``M`` (``record_bytes`` = 24
@@ -56,7 +73,7 @@ An interrupted build (exception, Ctrl-C) removes its temporary folder; a killed 
 
 On disk (written to a temporary sibling folder and renamed when complete)::
 
-    out_dir/octree.json            format, version, config, bbox, counts, fields, timings
+    out_dir/octree.json            format, version, config, bbox, counts, fields, buckets, workers, timings
     out_dir/level_XX/<field>.bin   raw little-endian arrays, one file per attribute, Morton-ordered
 """
 
@@ -344,6 +361,18 @@ class _Appender:
             np.ascontiguousarray(rec[k], dtype=self.schema[k][0]).tofile(f)
         self.count += n
 
+    def append_files(self, directory: Path, n: int):
+        """Append the ``n`` records of another folder of ``<field>.bin`` files (copied as bytes)."""
+        if n == 0:
+            return
+        if not self.files:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            self.files = {k: open(self.dir / f"{k}.bin", "ab") for k in self.schema}
+        for k, f in self.files.items():
+            with open(Path(directory) / f"{k}.bin", "rb") as src:
+                shutil.copyfileobj(src, f, 1 << 22)
+        self.count += n
+
     def close(self):
         for f in self.files.values():
             f.close()
@@ -388,15 +417,25 @@ def _in_sorted(a: np.ndarray, sorted_b: np.ndarray) -> np.ndarray:
 
 def _merge_counts(k1, c1, k2=None, c2=None):
     """Merge sorted (key, count) tables (keys may repeat): sorted unique keys and summed counts.
-    A stable sort of two sorted runs is a linear merge (timsort)."""
-    if k2 is not None:
-        k = np.concatenate([k1, k2])
-        c = np.concatenate([c1, c2])
-        o = np.argsort(k, kind="stable")
-        k, c = k[o], c[o]
-    else:
-        k, c = k1, c1
-    if len(k) == 0:
+    Two tables: the second's keys are looked up in the first (binary search of sorted keys), their
+    counts added and the new keys inserted, which is linear in the first table (a sort of both
+    took ~10x longer for a large table and a slice's keys)."""
+    k1, c1 = _reduce_runs(k1, c1)
+    if k2 is None:
+        return k1, c1
+    k2, c2 = _reduce_runs(k2, c2)
+    i = np.searchsorted(k1, k2)
+    hit = i < len(k1)
+    hit[hit] = k1[i[hit]] == k2[hit]
+    c = c1.copy()
+    c[i[hit]] += c2[hit]  # the second's keys are unique: no index repeats
+    new = ~hit
+    return np.insert(k1, i[new], k2[new]), np.insert(c, i[new], c2[new])
+
+
+def _reduce_runs(k, c):
+    """A sorted (key, count) table with each run of equal keys summed into one entry."""
+    if len(k) < 2 or not np.any(k[1:] == k[:-1]):
         return k, c
     start = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
     return k[start], np.add.reduceat(c, start)
@@ -531,7 +570,7 @@ class Octree:
     # -- building ------------------------------------------------------------------------------
     @classmethod
     def build(cls, chunks_fn, out_dir, config: OctreeConfig | None = None, bbox=None,
-              progress: bool = True) -> "Octree":
+              progress: bool = True, executor=None) -> "Octree":
         """Build the levels of detail out of core and write them to ``out_dir``.
 
         Parameters
@@ -549,6 +588,12 @@ class Octree:
             The cloud's bounding box; computed in an extra pass if omitted.
         progress : bool
             tqdm progress bars.
+        executor : optional, :mod:`dmrt.preprocess.parallel`
+            When distributed, the candidates and select passes run as tasks, one per bucket,
+            each worker within ``memory_limit_mb / executor.workers``; the workers read and write
+            the build's temporary folder beside ``out_dir``, so it must be on a file system they
+            see. The input is still read here. The level files equal those of the serial build
+            (None or an :class:`~dmrt.preprocess.parallel.InProcess`) byte for byte.
         """
         config = config or OctreeConfig()
         src = _chunk_source(chunks_fn)
@@ -557,7 +602,7 @@ class Octree:
             raise InputError(out_dir, "exists and is not an octree; refusing to overwrite it")
         out_dir.parent.mkdir(parents=True, exist_ok=True)
         with atomic_dir(out_dir, what="octree") as tmp:
-            meta = _Builder(src, tmp, config, bbox, progress).run()
+            meta = _Builder(src, tmp, config, bbox, progress, executor).run()
             (tmp / "octree.json").write_text(json.dumps(meta, indent=1))
         return cls.open(out_dir)
 
@@ -565,13 +610,16 @@ class Octree:
 class _Builder:
     """The build passes of :meth:`Octree.build` (see the module docstring)."""
 
-    def __init__(self, src, tmp: Path, config: OctreeConfig, bbox, progress):
+    def __init__(self, src, tmp: Path, config: OctreeConfig, bbox, progress, executor=None):
         self.src = src
         self.tmp = tmp
         self.config = config
         self.bbox = bbox
         self.progress = progress
         self.budget = int(config.memory_limit_mb * 2 ** 20)
+        # the bucket passes run as tasks of a distributed executor, else here (the serial path)
+        self.executor = executor if executor is not None and executor.distributed else None
+        self.workers = max(1, int(self.executor.workers)) if self.executor is not None else 1
         self.timings = {}
 
     # -- budget split -----------------------------------------------------------------------------
@@ -583,9 +631,10 @@ class _Builder:
         self.count_cap = max(4096, self.budget // 256)
         # spill buffers: a quarter of the budget
         self.buffer_bytes = max(1 << 16, self.budget // 4)
-        # one bucket in memory: its records, a copy while writing levels, and ~100 bytes/point of
-        # work arrays (int64 coordinates 24, keys 8, distances 8, lexsort 16, float temporaries 48)
-        self.capacity = max(1024, int(self.budget * 0.4 / (2 * rb + 112)))
+        # one bucket in memory per worker: its records, a copy while writing levels, and ~100
+        # bytes/point of work arrays (int64 coordinates 24, keys 8, distances 8, lexsort 16, float
+        # temporaries 48); W workers hold W buckets at once, so each gets 0.4 M / W
+        self.capacity = max(1024, int(self.budget / self.workers * 0.4 / (2 * rb + 112)))
         # input chunks are sliced so the per-slice work arrays (~ 4 * rb + 64 bytes/point) stay
         # within an eighth of the budget
         self.slice_points = max(1024, int(self.budget / 8 / (4 * rb + 64)))
@@ -668,6 +717,7 @@ class _Builder:
             "max_bucket_points": int(max(getattr(self, "bucket_counts", [0]), default=0)),
             "bucket_capacity": int(self.capacity),
             "points_outside_bbox": int(outside),
+            "workers": self.workers,
             "timings": self.timings,
         }
 
@@ -735,9 +785,10 @@ class _Builder:
         self.bucket_counts = np.asarray(counts, np.int64)
         self.bucket_offsets = np.r_[0, np.cumsum(self.bucket_counts)]
         del self.cell_keys, self.cell_counts
+        self.work = _Buckets(str(self.spill.resolve()), self.schema, self.grid, self.c, self.capacity)
 
     def _bucket_dir(self, b: int) -> Path:
-        return self.spill / f"b{b:06d}"
+        return self.work.folder(b)
 
     # pass: points -> per-bucket spill files
     def _distribute(self):
@@ -779,40 +830,18 @@ class _Builder:
                 raise RuntimeError(f"bucket {b} received {app.count} points, counted {self.bucket_counts[b]}: "
                                    "chunks_fn must yield the same points on every call")
 
-    # bucket access ------------------------------------------------------------------------------
-    def _bucket_chunks(self, b: int):
-        """Yield ``(local_start, record)`` for bucket ``b`` in slices within the capacity."""
-        n = int(self.bucket_counts[b])
-        step = n if n <= self.capacity else max(1024, self.capacity // 2)
-        for s in range(0, n, step):
-            yield s, _read_records(self._bucket_dir(b), self.schema, s, min(n, s + step))
-
     # pass: candidates for levels 0..c-1, resolved exactly in memory
     def _coarse_levels(self):
-        g, c = self.grid, self.c
-        nb = len(self.bucket_starts)
+        c, nb = self.c, len(self.bucket_starts)
         self.coarse_picks = [np.zeros(0, np.int64) for _ in range(nb)]  # local indices per bucket
         self.level_apps = [_Appender(self.tmp / f"level_{lvl:02d}", self.schema) for lvl in range(self.config.levels)]
         if c == 0:
             return
-        cand = [[] for _ in range(c)]  # per level: list of (uid, key, d2, record)
-        with _progress(self.n_total, "octree: coarse levels", self.progress) as bar:
-            for b in range(nb):
-                running = [None] * c
-                for s, rec in self._bucket_chunks(b):
-                    pos = rec["positions"]
-                    q = g.coords(pos)
-                    uid = self.bucket_offsets[b] + s + np.arange(len(pos), dtype=np.int64)
-                    for lvl in range(c):
-                        keys, d2 = g.keys_and_d2(pos, q, lvl)
-                        part = {"uid": uid, "key": keys, "d2": d2, **rec}
-                        if running[lvl] is not None:
-                            part = {k: np.concatenate([running[lvl][k], part[k]]) for k in part}
-                        t = _top_m(part["key"], part["d2"], part["positions"], lvl + 1)
-                        running[lvl] = _take(part, t)
-                    bar.update(len(pos))
-                for lvl in range(c):
-                    cand[lvl].append(running[lvl])
+        cand = [[] for _ in range(c)]  # per level: one dict (uid, key, d2, record fields) per bucket
+        items = [(b, int(self.bucket_counts[b]), int(self.bucket_offsets[b])) for b in range(nb)]
+        for per_level in self._tasks(_bucket_candidates, items, "octree: coarse levels"):
+            for lvl in range(c):
+                cand[lvl].append(per_level[lvl])
         picked = np.zeros(0, np.int64)
         for lvl in range(c):
             allc = {k: np.concatenate([p[k] for p in cand[lvl]]) for k in cand[lvl][0]}
@@ -829,26 +858,100 @@ class _Builder:
 
     # pass: levels c..levels-2 and the remainder, bucket by bucket
     def _fine_levels(self):
-        g, c = self.grid, self.c
-        rem = self.config.levels - 1
-        with _progress(self.n_total, "octree: select", self.progress) as bar:
-            for b in range(len(self.bucket_starts)):
-                n = int(self.bucket_counts[b])
-                if n <= self.capacity:
-                    rec = _read_records(self._bucket_dir(b), self.schema)
-                    self._select_in_memory(rec, self.coarse_picks[b])
-                else:
-                    self._select_streaming(b, self.coarse_picks[b])
-                shutil.rmtree(self._bucket_dir(b), ignore_errors=True)
-                bar.update(n)
+        nb = len(self.bucket_starts)
+        items = [(b, int(self.bucket_counts[b]), self.coarse_picks[b]) for b in range(nb)]
+        self.coarse_picks = None
+        if self.executor is None:
+            with _progress(self.n_total, "octree: select", self.progress) as bar:
+                for b, n, coarse_local in items:
+                    self.work.select(b, n, coarse_local, self.level_apps)
+                    shutil.rmtree(self.work.folder(b), ignore_errors=True)
+                    bar.update(n)
+        else:
+            # each task writes its bucket's levels to out/b<bucket>/level_XX and removes the
+            # bucket's spill folder; here they are appended in bucket order (the serial bytes) and
+            # removed, while the next buckets are selected
+            out = self.tmp / "select"
+            out.mkdir()
+            results = self.executor.imap(_select_bucket, items, desc="octree: select", progress=self.progress,
+                                         work=self.work, out=str(out.resolve()))
+            for (b, _, _), counts in zip(items, results):
+                folder = out / f"b{b:06d}"
+                for lvl, (app, m) in enumerate(zip(self.level_apps, counts)):
+                    app.append_files(folder / f"level_{lvl:02d}", m)
+                shutil.rmtree(folder, ignore_errors=True)
+            shutil.rmtree(out, ignore_errors=True)
         for app in self.level_apps:
             app.close()
         return [app.count for app in self.level_apps]
 
-    def _select_in_memory(self, rec, coarse_local):
-        """Levels ``c ..`` of one bucket: one stable sort by the finest Morton key, after which the
-        cells of every coarser level are contiguous runs too (their keys are prefixes). The work
-        arrays are 1-D columns compacted per level; the records are gathered once, at writing."""
+    def _tasks(self, fn, items, desc):
+        """``fn(item, work=self.work)`` per item, results in item order: as tasks of the executor
+        when it is distributed, else here (a bar over the points, ``item[1]``)."""
+        if self.executor is not None:
+            yield from self.executor.imap(fn, items, desc=desc, progress=self.progress, work=self.work)
+            return
+        with _progress(self.n_total, desc, self.progress) as bar:
+            for item in items:
+                yield fn(item, work=self.work)
+                bar.update(item[1])
+
+
+# ---------------------------------------------------------------------------------------------
+# per-bucket work (in this process, or as tasks in worker processes)
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class _Buckets:
+    """The candidates and select work of one bucket at a time. Picklable: tasks in worker
+    processes get a copy and read the bucket's spill files, so ``spill`` is an absolute path
+    that the workers see."""
+
+    spill: str
+    schema: dict
+    grid: _Grid
+    c: int  # bucket level
+    capacity: int  # points of one bucket in memory
+
+    def folder(self, b: int) -> Path:
+        return Path(self.spill) / f"b{b:06d}"
+
+    def chunks(self, b: int, n: int, schema=None):
+        """Yield ``(local_start, record)`` for bucket ``b`` (``n`` points) in slices within the
+        capacity (all fields, or those of ``schema``)."""
+        step = n if n <= self.capacity else max(1024, self.capacity // 2)
+        for s in range(0, n, step):
+            yield s, _read_records(self.folder(b), schema or self.schema, s, min(n, s + step))
+
+    def candidates(self, b: int, n: int, offset: int) -> list[dict]:
+        """Per level ``l < c``: the ``l + 1`` best points of every level-``l`` cell in bucket ``b``
+        (``uid`` = ``offset`` + index in the bucket, ``key``, ``d2`` and the record fields)."""
+        g, c = self.grid, self.c
+        running = [None] * c
+        for s, rec in self.chunks(b, n):
+            pos = rec["positions"]
+            q = g.coords(pos)
+            uid = offset + s + np.arange(len(pos), dtype=np.int64)
+            for lvl in range(c):
+                keys, d2 = g.keys_and_d2(pos, q, lvl)
+                part = {"uid": uid, "key": keys, "d2": d2, **rec}
+                if running[lvl] is not None:
+                    part = {k: np.concatenate([running[lvl][k], part[k]]) for k in part}
+                t = _top_m(part["key"], part["d2"], part["positions"], lvl + 1)
+                running[lvl] = _take(part, t)
+        return running
+
+    def select(self, b: int, n: int, coarse_local, writers):
+        """Levels ``c ..`` and the remainder of bucket ``b`` (``n`` points, minus the local indices
+        ``coarse_local`` taken by coarse levels), appended to ``writers[level]`` in Morton order."""
+        if n <= self.capacity:
+            self._select_in_memory(_read_records(self.folder(b), self.schema), coarse_local, writers)
+        else:
+            self._select_streaming(b, n, coarse_local, writers)
+
+    def _select_in_memory(self, rec, coarse_local, writers):
+        """One stable sort by the finest Morton key, after which the cells of every coarser level
+        are contiguous runs too (their keys are prefixes). The work arrays are 1-D columns
+        compacted per level; the records are gathered once, at writing."""
         g, c = self.grid, self.c
         keep = np.ones(len(rec["positions"]), bool)
         keep[coarse_local] = False
@@ -869,43 +972,103 @@ class _Builder:
             d2 = g.d2(*cols, *(a >> shift for a in qc), lvl)
             best = _best_in_runs(kf >> (3 * shift), d2, cols)
             del d2
-            self.level_apps[lvl].write(_take(rec, idx[best]))
+            writers[lvl].write(_take(rec, idx[best]))
             mask = np.ones(len(idx), bool)
             mask[best] = False
             idx, kf = idx[mask], kf[mask]
             cols = [a[mask] for a in cols]
             qc = [a[mask] for a in qc]
         if len(idx):
-            self.level_apps[-1].write(_take(rec, idx))  # the remainder, in Morton order already
+            writers[-1].write(_take(rec, idx))  # the remainder, in Morton order already
 
-    def _select_streaming(self, b, coarse_local):
-        """Levels of an over-full bucket by per-level running reductions over its spill file."""
-        g, c = self.grid, self.c
-        n = int(self.bucket_counts[b])
-        assigned = np.full(n, -1, np.int8)
-        assigned[coarse_local] = -2  # taken by a coarse level already written
-        for lvl in range(c, g.n_grid):
+    def _select_streaming(self, b, n, coarse_local, writers):
+        """Levels of an over-full bucket by per-level running reductions over its spill file; the
+        output is what :meth:`_select_in_memory` would write (so it does not depend on which
+        buckets are over-full, i.e. on the memory limit or the number of workers)."""
+        g = self.grid
+        assigned = np.full(n, -1, np.int8)  # -1: free, -2: a coarse level's, else the level
+        assigned[coarse_local] = -2
+        for lvl in range(self.c, g.n_grid):
             running = None
-            for s, rec in self._bucket_chunks(b):
+            for s, rec in self.chunks(b, n):
                 free = np.flatnonzero(assigned[s:s + len(rec["positions"])] == -1)
                 if len(free) == 0:
                     continue
-                pos = rec["positions"][free]
-                keys, d2 = g.keys_and_d2(pos, g.coords(pos), lvl)
-                part = {"idx": free + s, "key": keys, "d2": d2, "positions": pos}
+                part = _take(rec, free)
+                part["key"], part["d2"] = g.keys_and_d2(part["positions"], g.coords(part["positions"]), lvl)
+                part["idx"] = free + s
                 if running is not None:
                     part = {k: np.concatenate([running[k], part[k]]) for k in part}
-                running = _take(part, _top_m(part["key"], part["d2"], part["positions"], 1))
+                running = _take(part, _best_per_cell(part["key"], part["d2"], part["positions"]))
             if running is None:
-                break
+                return  # no point left
             assigned[running["idx"]] = lvl
-        rem = g.n_grid
-        for s, rec in self._bucket_chunks(b):
-            a = assigned[s:s + len(rec["positions"])]
-            for lvl in range(c, g.n_grid + 1):
-                sel = np.flatnonzero(a == (lvl if lvl < rem else -1))
-                if len(sel):
-                    sub = _take(rec, sel)
-                    lk = lvl if lvl < rem else g.finest
-                    keys, _ = g.keys_and_d2(sub["positions"], g.coords(sub["positions"]), lk)
-                    self.level_apps[lvl].write(_take(sub, np.argsort(keys, kind="stable")))
+            writers[lvl].write(running)  # one point per cell, in Morton order of the cells
+        self._remainder_streaming(b, n, assigned, writers[-1])
+
+    def _remainder_streaming(self, b, n, assigned, writer):
+        """The free points (``assigned == -1``) of an over-full bucket in the order of a stable sort
+        by the finest key: the finest cells are cut into runs of whole cells of at most half the
+        capacity (a cell above that alone forms a run), each run spilled to its own files in input
+        order, then sorted alone (a one-cell run is in order already and is copied as it is)."""
+        g = self.grid
+        pos_only = {"positions": self.schema["positions"]}
+        keys, cnts = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        for s, rec in self.chunks(b, n, pos_only):
+            p = rec["positions"][assigned[s:s + len(rec["positions"])] == -1]
+            keys, cnts = _merge_counts(keys, cnts, *_unique_counts(morton_encode(g.coords(p))))
+        if len(keys) == 0:
+            return
+        run_cap = max(1024, self.capacity // 2)
+        first, sizes = [], []
+        for i, m in enumerate(cnts.tolist()):
+            if not first or sizes[-1] + m > run_cap:
+                first.append(i)
+                sizes.append(0)
+            sizes[-1] += m
+        one_cell = np.diff(np.r_[first, len(keys)]) == 1
+        run_keys = keys[first]
+        del keys, cnts
+        folder = self.folder(b) / "remainder"
+        runs = [_Appender(folder / f"r{r:06d}", self.schema) for r in range(len(first))]
+        for s, rec in self.chunks(b, n):
+            sub = _take(rec, np.flatnonzero(assigned[s:s + len(rec["positions"])] == -1))
+            run = np.searchsorted(run_keys, morton_encode(g.coords(sub["positions"])), side="right") - 1
+            o = np.argsort(run, kind="stable")
+            run = run[o]
+            sub = _take(sub, o)
+            cuts = np.flatnonzero(np.r_[True, run[1:] != run[:-1], True])
+            for a, e in zip(cuts[:-1], cuts[1:]):
+                runs[run[a]].write({k: v[a:e] for k, v in sub.items()})
+                runs[run[a]].close()  # never hold many handles
+        for r, app in enumerate(runs):
+            if one_cell[r]:
+                writer.append_files(app.dir, app.count)
+            else:
+                rec = _read_records(app.dir, self.schema)
+                kf = morton_encode(g.coords(rec["positions"]))
+                writer.write(_take(rec, np.argsort(kf, kind="stable")))
+                del rec, kf
+            shutil.rmtree(app.dir, ignore_errors=True)
+
+
+def _bucket_candidates(item, work: _Buckets) -> list[dict]:
+    """Task: :meth:`_Buckets.candidates` of ``item = (bucket, points, uid offset)``."""
+    b, n, offset = item
+    return work.candidates(b, n, offset)
+
+
+def _select_bucket(item, work: _Buckets, out: str) -> list[int]:
+    """Task: :meth:`_Buckets.select` of ``item = (bucket, points, coarse picks)`` into
+    ``out/b<bucket>/level_XX/``; removes the bucket's spill folder. Returns the points per level."""
+    b, n, coarse_local = item
+    folder = Path(out) / f"b{b:06d}"
+    folder.mkdir(exist_ok=True)  # not its parents: a build that failed meanwhile removed them
+    writers = [_Appender(folder / f"level_{lvl:02d}", work.schema) for lvl in range(work.grid.n_grid + 1)]
+    try:
+        work.select(b, n, coarse_local, writers)
+    finally:
+        for w in writers:
+            w.close()
+    shutil.rmtree(work.folder(b), ignore_errors=True)
+    return [w.count for w in writers]

@@ -181,7 +181,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                 yield pc.positions - origin, {"normals": pc.normals, "colors": pc.colors}
         octree = Octree.build(scene_chunks, work / "octree",
                               OctreeConfig(levels=config.octree_levels, memory_limit_mb=config.memory_limit_mb),
-                              progress=progress)
+                              progress=progress, executor=executor)
         tic("octree_s", t0)
 
         # 2. normals (if missing) and splat radii over P_HD, in octree order (coarsest level first)
