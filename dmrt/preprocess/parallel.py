@@ -65,6 +65,9 @@ class InProcess:
         return None
 
 
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 class ProcessPool:
     """Runs tasks in ``workers`` local processes (``concurrent.futures``, spawned: the parent may
     hold a GL context or Embree threads that a fork would copy half-alive). The GPU phase stays
@@ -83,7 +86,20 @@ class ProcessPool:
         from concurrent.futures import ProcessPoolExecutor
 
         self.workers = int(workers)
-        self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
+        # one BLAS/OpenMP thread per worker: N workers each spinning N threads made the candidates
+        # phase spend 15x its serial CPU time on 16 cores. The variables must be in the workers'
+        # environment before they import numpy, so the workers start now, with them set.
+        saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+        os.environ.update({k: "1" for k in _THREAD_VARS})
+        try:
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
+            self._pool.submit(int).result()  # spawns every worker (spawned pools start them all at once)
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
