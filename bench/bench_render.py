@@ -66,6 +66,7 @@ def main(argv=None) -> None:
     p.add_argument("--layers", type=int, nargs="+", default=[1, 3, 5, 7, 9, 11])
     p.add_argument("--methods", nargs="+", default=["compute", "raster"])
     p.add_argument("--refine", nargs="+", default=["illinois"], help="hit refinements (RenderConfig.refine)")
+    p.add_argument("--tile-check", nargs="+", default=["frame"], help="tiles list checks (RenderConfig.tile_check)")
     p.add_argument("--leveling", action=argparse.BooleanOptionalAction, default=True,
                    help="screen-space leveling, as the paper's texturing pass (default: on)")
     p.add_argument("--frames", type=int, default=30, help="walkthrough frames per configuration")
@@ -82,13 +83,15 @@ def main(argv=None) -> None:
     for size in args.sizes:
         w, h = (int(v) for v in size.lower().split("x"))
         path = camera_path(keys, args.frames, w, h)
-        for method, refine, k in itertools.product(args.methods, args.refine, args.layers):
-            config = RenderConfig(layers=k, method=method, leveling=args.leveling, refine=refine)
+        for method, refine, check, k in itertools.product(args.methods, args.refine, args.tile_check, args.layers):
+            if check != "frame" and method != "tiles":
+                continue
+            config = RenderConfig(layers=k, method=method, leveling=args.leveling, refine=refine, tile_check=check)
             r = measure_walkthrough(bundle, config, path, f"{method} k={k} {w}x{h}")
             r.pop("stage_ms_per_frame")
-            runs.append({"method": method, "refine": refine, "layers": k, **r})
-            stages = "  ".join(f"{s} {v:.3f}" for s, v in r["median_ms"].items())
-            print(f"{w}x{h} {method:8s} {refine:9s} k={k:2d}  {stages}"
+            runs.append({"method": method, "refine": refine, "tile_check": check, "layers": k, **r})
+            stages = "  ".join(f"{s} {v:.3f}" for s, v in {**r["median_ms"], **r["median_part_ms"]}.items())
+            print(f"{w}x{h} {method:8s} {refine:9s} {check:6s} k={k:2d}  {stages}"
                   + f"  | GPU median {r['median_total_ms']:.3f} p95 {r['p95_total_ms']:.3f} ms, wall median "
                     f"{r['median_wall_ms']:.3f} p95 {r['p95_wall_ms']:.3f} ms, sustained {r['sustained_ms']:.3f} "
                     f"ms/frame, {r['mean_iterations']:.2f} steps, "

@@ -77,7 +77,8 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
     Returns
     -------
     dict
-        ``median_ms`` {stage: median GPU ms}, ``median_total_ms``, ``p95_total_ms``,
+        ``median_ms`` {stage: median GPU ms}, ``median_part_ms`` {``stage:part``: median GPU ms
+        of the stages' timed parts, e.g. ``image_management:histogram``}, ``median_total_ms``, ``p95_total_ms``,
         ``mean_total_ms`` (the paper's Table 2 averages), ``median_wall_ms``, ``p95_wall_ms``,
         ``frame_size`` (w, h), ``sustained_ms`` (wall ms per frame of the sustained pass),
         ``gpu_clocks`` {``before``, ``after``, ``sustained``: :func:`gpu_clocks` around the timed
@@ -102,12 +103,13 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
                 on_frame(f)
         uploads0 = renderer.images.uploads
         clocks_before = gpu_clocks()  # the statistics pass just ran back to back: clocks are up
-        timings, cpu, wall = [], [], []
+        timings, parts, cpu, wall = [], [], [], []
         for cam in tqdm(cameras, desc=desc, unit="frame", leave=False, disable=not progress):
             t0 = time.perf_counter()
             f = renderer.render(cam, readback=False)
             wall.append((time.perf_counter() - t0) * 1e3)
             timings.append(f["timings"])
+            parts.append(f.get("part_timings", {}))
             cpu.append(f.get("cpu_ms", {}))
         clocks = {"before": clocks_before, "after": gpu_clocks()}
         renderer.timer.enabled = False
@@ -121,7 +123,9 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         clocks["sustained"] = gpu_clocks()
         stages = list(timings[0])
         totals = [float(sum(t.values())) for t in timings]
+        part_names = sorted({k for t in parts for k in t})
         return {"median_ms": {s: float(np.median([t[s] for t in timings])) for s in stages},
+                "median_part_ms": {k: float(np.median([t.get(k, 0.0) for t in parts])) for k in part_names},
                 "median_total_ms": float(np.median(totals)), "mean_total_ms": float(np.mean(totals)),
                 "p95_total_ms": float(np.percentile(totals, 95)), "p95_wall_ms": float(np.percentile(wall, 95)),
                 "frame_size": [cameras[0].width, cameras[0].height], "sustained_ms": sustained,
@@ -278,6 +282,11 @@ class Table2Params:
     walk: Walk
     # The paper's texturing pass includes screen-space leveling: on, reported as its own stage.
     leveling: bool = True
+    # the same walkthrough at these frame sizes, LARGE_LAYERS layers, every method but raster
+    large_frames: tuple[tuple[int, int], ...] = ()
+
+
+LARGE_LAYERS = 5
 
 
 def run_table2(ws: Workspace, p: Table2Params, out: Path) -> dict:
@@ -285,21 +294,26 @@ def run_table2(ws: Workspace, p: Table2Params, out: Path) -> dict:
 
     b = ws.bundle()
     cams = walkthrough_cameras(ws, p.walk)
-    runs = []
-    for method in p.methods:
-        for k in p.layers:
-            r = measure_walkthrough(b, RenderConfig(layers=k, method=method, leveling=p.leveling), cams,
-                                    f"{method} k={k}", progress=ws.progress)
-            runs.append({"method": method, "layers": k, **r})
-            print(f"  {method:8s} k={k:2d} " + " ".join(f"{s} {v:.3f}" for s, v in r["median_ms"].items())
-                  + f" | total {r['median_total_ms']:.3f} ms, {r['mean_iterations']:.2f} steps", flush=True)
+
+    def measure(method, k, cameras):
+        r = measure_walkthrough(b, RenderConfig(layers=k, method=method, leveling=p.leveling), cameras,
+                                f"{method} k={k}", progress=ws.progress)
+        w, h = r["frame_size"]
+        print(f"  {method:8s} k={k:2d} {w}x{h} " + " ".join(f"{s} {v:.3f}" for s, v in r["median_ms"].items())
+              + f" | total {r['median_total_ms']:.3f} ms, sustained {r['sustained_ms']:.3f} ms/frame, "
+              f"{r['mean_iterations']:.2f} steps", flush=True)
+        return {"method": method, "layers": k, **r}
+
+    runs = [measure(method, k, cams) for method in p.methods for k in p.layers]
+    large = [measure(method, LARGE_LAYERS, [c.resized(w, h) for c in cams])
+             for w, h in p.large_frames for method in p.methods if method != "raster"]
     ratios = {}
     for a, b_ in VISIBILITY_PAIRS:
         for k in p.layers:
             by = {r["method"]: r["median_ms"]["visibility"] for r in runs if r["layers"] == k}
             if a in by and b_ in by:
                 ratios.setdefault(f"{a}/{b_}", {})[str(k)] = by[a] / max(by[b_], 1e-9)
-    return {"bundle": bundle_summary(b), "runs": runs, "visibility_ratios": ratios}
+    return {"bundle": bundle_summary(b), "runs": runs, "visibility_ratios": ratios, "large_runs": large}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -313,14 +327,32 @@ class Table3Params:
     walk: Walk
     # DMRT's side as in the paper: 5 layers on the main proxy set
     layers: int = 5
-    # DMT's per-texel labeling: "graphcut" (as the paper's DMT) or "wta"
+    # DMT's per-texel labeling: "graphcut" (as the paper's DMT: timed against DMRT's), or "wta" /
+    # "own" (frame rates only, no labeling time to compare)
     labeler: str = "graphcut"
+    # Graph cuts: wall-clock seconds per resolution; when all maps do not fit, a seeded random
+    # subset that does is labelled and its per-map CPU time extrapolated to every map (None: all)
+    dmt_budget_s: float | None = None
+    # labeling processes (None: every CPU core) and the subset's seed
+    dmt_workers: int | None = None
+    dmt_seed: int = 0
+
+    def __post_init__(self):
+        from dmrt.errors import ConfigError
+
+        if self.labeler not in ("graphcut", "wta", "own"):
+            raise ConfigError("labeler", f"must be one of 'graphcut', 'wta', 'own', not {self.labeler!r}")
+        if self.dmt_budget_s is not None and not self.dmt_budget_s >= 0:
+            raise ConfigError("dmt_budget_s", f"must be >= 0 seconds or None, not {self.dmt_budget_s}")
+        if self.dmt_workers is not None and self.dmt_workers < 1:
+            raise ConfigError("dmt_workers", f"must be >= 1 or None (every core), not {self.dmt_workers}")
 
 
 def run_table3_fig12(ws: Workspace, p: Table3Params, out: Path) -> dict:
-    """:func:`bench.bench_dmt.run` (DMT labeling per depth-map width, DMT and DMRT walkthroughs) on
-    the main bundle and the walkthrough of the other experiments; its result is stored unchanged
-    under ``dmt`` (:func:`bench.report.table3_rows` reads it)."""
+    """:func:`bench.bench_dmt.run` (DMT labeling per depth-map width, timed in wall and CPU seconds
+    against DMRT's labeling run again; DMT and DMRT walkthroughs) on the main bundle and the
+    walkthrough of the other experiments; its result is stored unchanged under ``dmt``
+    (:func:`bench.report.table3_rows` reads it)."""
     from bench.bench_dmt import run as dmt_run
     from dmrt.runtime.walkthrough import save_path
 
@@ -330,7 +362,8 @@ def run_table3_fig12(ws: Workspace, p: Table3Params, out: Path) -> dict:
     w, h = p.walk.frame_size
     warmup = len(cams) if p.walk.warmup_frames < 0 else p.walk.warmup_frames
     result = dmt_run(ws.bundle_path(), resolutions=tuple(p.resolutions), frames=len(cams), width=w, height=h,
-                     labeler=p.labeler, layers=p.layers, warmup=warmup, path=path, progress=ws.progress)
+                     labeler=p.labeler, layers=p.layers, warmup=warmup, path=path, progress=ws.progress,
+                     budget_s=p.dmt_budget_s, workers=p.dmt_workers, seed=p.dmt_seed)
     return {"bundle": bundle_summary(ws.bundle()), "dmt": result}
 
 
@@ -675,10 +708,13 @@ EXPERIMENTS: dict[str, Experiment] = {
     "table1": Experiment("Table 1: scene characteristics and preprocessing", 1, run_table1,
                          lambda pr: Table1Params()),
     "table2": Experiment("Table 2: GPU ms per stage and layer count, compute vs raster visibility", 1, run_table2,
-                         lambda pr: Table2Params(tuple(pr.layers), tuple(pr.methods), walk_of(pr))),
-    "table3_fig12": Experiment("Table 3 / Fig. 12: DMT vs DMRT labeling time and fps", 1, run_table3_fig12,
+                         lambda pr: Table2Params(tuple(pr.layers), tuple(pr.methods), walk_of(pr),
+                                                    large_frames=tuple(pr.large_frames))),
+    # version 2: DMT's graph cuts always timed (in parallel, wall and CPU seconds, a subset within
+    # the preset's budget), DMRT's labeling timed again in the same run
+    "table3_fig12": Experiment("Table 3 / Fig. 12: DMT vs DMRT labeling time and fps", 2, run_table3_fig12,
                                lambda pr: Table3Params(tuple(pr.dmt_resolutions), walk_of(pr),
-                                                       labeler=pr.dmt_labeler)),
+                                                       dmt_budget_s=pr.dmt_budget_s)),
     "fig7": Experiment("Fig. 7: proxy count vs labeling time, layers needed, fps, holes", 1, run_fig7,
                        lambda pr: Fig7Params(tuple(pr.proxy_levels), max_layers=pr.max_layers,
                                              hole_rate_target=0.005, converge_tolerance=0.001,

@@ -100,6 +100,8 @@ def load_results(results_dir) -> list[ResultSet]:
             if not files:
                 continue
             commit, _, preset = sdir.name.rpartition("-")
+            if not commit:  # not <commit>-<preset>: e.g. the results/ of a report kept beside them
+                continue
             rs = ResultSet(sdir, mdir.name, commit, preset)
             for f in files:
                 if f.name.endswith(".failed.json"):
@@ -367,6 +369,20 @@ def section_table2(rs: ResultSet, out: Path) -> Section:
     s.table("table2_ratios", f"Ratios: ours ({main} visibility, the default) vs paper; visibility stage of the "
                              f"paper's peeling by rasterization (raster) vs peeling by compute splatting (compute) "
                              f"vs the one-pass k-buffer (kbuffer)", ratio_rows)
+    large_rows = []
+    for r in m.get("large_runs", []):
+        base = runs.get((r["method"], r["layers"]))
+        large_rows.append({
+            "frame": "x".join(map(str, r["frame_size"])), "method": r["method"], "layers": r["layers"],
+            **{st: r["median_ms"].get(st) for st in stages}, "total (ms)": r["median_total_ms"],
+            "p95 total (ms)": r.get("p95_total_ms"), "sustained ms/frame (back to back)": r.get("sustained_ms"),
+            "median wall ms (render call)": r.get("median_wall_ms"),
+            "total / same path at " + ("x".join(map(str, base["frame_size"])) if base else "the main size"):
+                _ratio(r["median_total_ms"], base and base["median_total_ms"]),
+            "SM clock MHz (after)": ((r.get("gpu_clocks") or {}).get("after") or {}).get("sm_mhz")})
+    if large_rows:
+        s.table("table2_large", "Larger frames: the same walkthrough resized, GPU ms per stage (medians) and the "
+                                "sustained wall ms per frame; the paper has no such rows", large_rows)
 
     # stacked bars: one bar per (layer count, source)
     fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(layers) * (len(methods) + 1)), 4.2))
@@ -395,10 +411,47 @@ def section_table2(rs: ResultSet, out: Path) -> Section:
     return s
 
 
+def _dmt_labeling_cells(e: dict, pp: dict | None) -> dict:
+    """The labeling columns of one DMT row (results of version 1 have ``seconds`` and one ratio)."""
+    lab = e["labeling"]
+    ratio = e.get("labeling_ratio_dmt_over_dmrt")
+    ratio = ratio if isinstance(ratio, dict) else {"wall": ratio, "cpu": None}
+    per_map = lab.get("cpu_s_per_map") or {}
+    return {"maps labelled": f"{lab['maps']} of {lab['maps_total']}" if "maps" in lab else None,
+            "labeling wall (s)": lab.get("wall_s_all", lab.get("seconds")), "labeling CPU (s)": lab.get("cpu_s_all"),
+            "CPU s per map median/p10/p90": "/".join(fmt(per_map[k]) for k in ("median", "p10", "p90"))
+            if per_map else None,
+            "paper labeling (s)": pp and pp["labeling_s"],
+            "CPU DMT / DMRT": ratio.get("cpu"), "wall DMT / DMRT": ratio.get("wall"),
+            "paper DMT / DMRT": pp and _ratio(pp["labeling_s"], paper.TABLE3_DMRT["labeling_s"])}
+
+
+def _dmt_notes(d: dict, e: dict) -> list[str]:
+    lab = e["labeling"]
+    labeler = lab.get("labeler", d.get("labeler"))
+    notes = []
+    if lab.get("extrapolated"):
+        notes.append(f"extrapolated from {lab['maps']} of {lab['maps_total']} maps (seeded random subset, seed "
+                     f"{lab.get('seed')}: mean CPU s per map x {lab['maps_total']}; wall = that / the parallelism "
+                     f"{fmt(lab.get('parallelism'))} measured on the subset)")
+    if lab.get("cached"):
+        notes.append("labels cached: their recorded times")
+    if labeler in ("wta", "own"):
+        notes.append(f"{labeler} labels: labeling time not comparable")
+    render = e.get("render_labeler")
+    if render and render != labeler:
+        notes.append(f"fps with {render} labels (graph cuts labelled a subset; frame rates do not depend on "
+                     f"the labels' values)")
+    return notes
+
+
 def table3_rows(m: dict) -> tuple[list[dict], dict]:
     """Table 3 rows and Fig. 12's fps per frame from :func:`bench.bench_dmt.run`'s result (``m["dmt"]``).
 
     DMT rows are matched to the paper's by position (the ci preset's 64/128/256 stand for 256/512/1024).
+    Labeling: wall-clock and summed CPU seconds of every map (extrapolated where a subset was
+    labelled); the DMT / DMRT ratios against DMRT's labeling run again in the same run. The paper's
+    ratio is of CPU time: the CPU ratio is the one to compare with it.
     """
     d = m["dmt"]
     for key in ("dmt", "dmrt", "dmrt_labeling_s"):
@@ -406,6 +459,7 @@ def table3_rows(m: dict) -> tuple[list[dict], dict]:
             raise KeyError(f"measurements.dmt has no '{key}' (keys: {', '.join(sorted(d))}): "
                            f"bench.bench_dmt.run's result differs from what bench.report.table3_rows reads")
     dmrt = d["dmrt"]
+    dmrt_lab = dmrt.get("labeling") or {}
     pdmt, pd_ = list(paper.TABLE3_DMT.values()), paper.TABLE3_DMRT
     rows, per_frame = [], {}
     for i, e in enumerate(d["dmt"]):
@@ -413,28 +467,30 @@ def table3_rows(m: dict) -> tuple[list[dict], dict]:
         row = {"method": f"DMT {e['size'][0]}x{e['size'][1]}",
                "paper row": pp and f"DMT {pp['size'][0]}x{pp['size'][1]}"}
         if "error" in e:
-            rows.append({**row, "labeling (s)": None, "note": f"not measured: {e['error']}"})
+            rows.append({**row, "note": f"not measured: {e['error']}"})
             continue
         fps = e["fps_min_avg_max"]
-        rows.append({**row, "labeling (s)": e["labeling"]["seconds"], "paper labeling (s)": pp and pp["labeling_s"],
-                     "labeling DMT / DMRT": e.get("labeling_ratio_dmt_over_dmrt"),
-                     "paper DMT / DMRT": pp and _ratio(pp["labeling_s"], pd_["labeling_s"]),
-                     "fps min": fps[0], "fps avg": fps[1], "fps max": fps[2],
+        rows.append({**row, **_dmt_labeling_cells(e, pp), "fps min": fps[0], "fps avg": fps[1], "fps max": fps[2],
                      "paper fps min/avg/max": pp and "/".join(map(str, pp["fps"])),
                      "avg fps DMRT / DMT": d.get("fps_ratio_dmrt_over_dmt", {}).get(str(e["width"])),
                      "paper DMRT / DMT": pp and _ratio(pd_["fps"][1], pp["fps"][1]),
-                     "note": "; ".join(x for x in (
-                         "labels cached" if e["labeling"].get("cached") else None,
-                         f"{d.get('labeler')} labels: labeling time not comparable"
-                         if d.get("labeler") in ("wta", "own") else None)
-                         if x) or None})
+                     "note": "; ".join(_dmt_notes(d, e)) or None})
         per_frame[f"DMT {e['size'][0]}x{e['size'][1]}"] = e["fps_per_frame"]
     fps = dmrt["fps_min_avg_max"]
+    note = None
+    if dmrt_lab.get("wall_s") is not None:
+        note = (f"labeling (candidates + graph cut of the {dmrt_lab['proxies']} proxies) run again in one process "
+                f"in this run; preprocessing recorded {fmt(dmrt['labeling_s'])} s wall; labels equal to the "
+                f"bundle's for {fmt(100 * dmrt_lab['labels_equal_bundle'])} % of the proxies")
+    elif dmrt_lab.get("error"):
+        note = f"labeling not run again: {dmrt_lab['error']}"
     rows.append({"method": f"DMRT ({dmrt['layers']} layers)", "paper row": "DMRT 1024x684, 1M proxies, 5 layers",
-                 "labeling (s)": dmrt["labeling_s"], "paper labeling (s)": pd_["labeling_s"],
-                 "labeling DMT / DMRT": 1.0, "paper DMT / DMRT": 1.0, "fps min": fps[0], "fps avg": fps[1],
+                 "maps labelled": None, "labeling wall (s)": dmrt_lab.get("wall_s", dmrt["labeling_s"]),
+                 "labeling CPU (s)": dmrt_lab.get("cpu_s"), "CPU s per map median/p10/p90": None,
+                 "paper labeling (s)": pd_["labeling_s"], "CPU DMT / DMRT": 1.0, "wall DMT / DMRT": 1.0,
+                 "paper DMT / DMRT": 1.0, "fps min": fps[0], "fps avg": fps[1],
                  "fps max": fps[2], "paper fps min/avg/max": "/".join(map(str, pd_["fps"])),
-                 "avg fps DMRT / DMT": 1.0, "paper DMRT / DMT": 1.0, "note": None})
+                 "avg fps DMRT / DMT": 1.0, "paper DMRT / DMT": 1.0, "note": note})
     per_frame["DMRT"] = dmrt["fps_per_frame"]
     return rows, per_frame
 
@@ -443,9 +499,16 @@ def section_table3(rs: ResultSet, out: Path) -> Section:
     s = Section("table3_fig12", "Table 3 and Fig. 12: DMT vs DMRT")
     if _not_run(rs, s, "table3_fig12"):
         return s
-    rows, per_frame = table3_rows(_meas(rs, "table3_fig12"))
-    s.table("table3", "Labeling time and min/avg/max fps over the walkthrough; ratios DMT/DMRT labeling and "
-                      "DMRT/DMT fps, ours and the paper's", rows)
+    m = _meas(rs, "table3_fig12")
+    rows, per_frame = table3_rows(m)
+    workers = next((e["labeling"].get("workers") for e in m["dmt"]["dmt"] if "labeling" in e), None)
+    s.table("table3", "Labeling time (wall clock, and CPU seconds summed over the processes) and min/avg/max fps "
+                      "over the walkthrough; ratios DMT/DMRT labeling (CPU: the paper's comparison; wall: what a "
+                      "user waits for) and DMRT/DMT fps, ours and the paper's", rows)
+    s.text(f"DMT's graph cuts label one depth map per process ({workers} processes, machine of "
+           f"{(m['dmt'].get('machine') or {}).get('cpus')} cores); DMRT's labeling runs in one process, as "
+           f"preprocessing runs it. The paper's 26x at 1024x684 is a ratio of CPU time: compare it with the CPU "
+           f"ratio.")
     if per_frame:
         fig, ax = plt.subplots(figsize=(8, 3.8))
         for name, fps in per_frame.items():
@@ -759,44 +822,56 @@ BUILDERS = {"table1": section_table1, "table2": section_table2, "table3_fig12": 
             "memory": section_memory, "real_views": section_real_views}
 
 
-def _history_value(rs: ResultSet):
-    """(layers, median total ms, fps) of the default path's 5-layer run (or the nearest layer count)."""
-    m = _meas(rs, "table2")
-    if m is None or not m["runs"]:
-        return None
-    runs = [r for r in m["runs"] if r["method"] == m["runs"][0]["method"]]
+def _history_value(rs: ResultSet) -> dict | None:
+    """The default path's run nearest 5 layers in ``rs``'s Table 2: ``method`` (the first of the
+    run: the default of its commit, kbuffer before tiles), ``layers``, ``frame`` (WxH), ``ms``
+    (median GPU ms), ``fps`` and ``sustained_ms``; None without a Table 2."""
+    p = rs.experiments.get("table2")
+    runs = (p or {}).get("measurements", {}).get("runs")
     if not runs:
         return None
-    r = min(runs, key=lambda r: abs(r["layers"] - 5))
-    return r["layers"], r["median_total_ms"], r["fps_median"]
+    method = runs[0].get("method")
+    r = min((r for r in runs if r.get("method") == method), key=lambda r: abs(r["layers"] - 5))
+    # frame_size is in each run since the sustained pass; before, only in the parameters' walk
+    size = r.get("frame_size") or ((p.get("parameters") or {}).get("walk") or {}).get("frame_size")
+    ms = r["median_total_ms"]
+    return {"method": method, "layers": r["layers"], "frame": "x".join(map(str, size)) if size else None,
+            "ms": ms, "fps": r.get("fps_median", 1e3 / ms if ms else None), "sustained_ms": r.get("sustained_ms")}
 
 
 def section_history(sets: list[ResultSet], out: Path) -> Section | None:
+    """Frame time per result set of one machine and preset, oldest first: every set with a Table 2,
+    whatever its default visibility path and frame size (both shown), so the trend runs from the
+    paper-era pipeline to the newest."""
     rows = []
     for rs in sets:
         v = _history_value(rs)
         if v is None:
             continue
-        c = rs.info["commit"]
         lab = _meas(rs, "table1")
-        rows.append({"date": rs.date, "commit": rs.commit, "dirty": c.get("dirty"), "layers": v[0],
-                     "total GPU ms": v[1], "fps": v[2],
+        rows.append({"date": rs.date, "commit": rs.commit, "dirty": rs.info["commit"].get("dirty"),
+                     "method": v["method"], "frame": v["frame"], "layers": v["layers"], "total GPU ms": v["ms"],
+                     "fps": v["fps"], "sustained ms/frame": v["sustained_ms"],
                      "labeling (s)": lab and lab["phases_s"].get("labeling_s")})
     if len(rows) < 2:
         return None
     s = Section("history", "History (nightly trend)")
     s.table("history", "Per result set of this machine and preset, oldest first: frame time of the default "
-                       "visibility path", rows)
-    fig, axs = plt.subplots(1, 2, figsize=(11, 3.4))
+                       "visibility path of its commit (method), at its frame size", rows)
+    fig, axs = plt.subplots(1, 2, figsize=(max(11, 0.9 * len(rows)), 3.8))
     x = np.arange(len(rows))
-    labels = [f"{r['commit'][:8]}\n{r['date'][:10]}" for r in rows]
-    axs[0].plot(x, [r["total GPU ms"] for r in rows], "o-")
-    axs[0].set(ylabel=f"median frame GPU ms ({rows[-1]['layers']} layers)", title="frame time per commit")
-    axs[1].plot(x, [r["fps"] for r in rows], "o-", color="C1")
-    axs[1].set(ylabel="fps", title="fps per commit")
-    for a in axs:
-        a.set_xticks(x, labels, fontsize=6)
-    s.figure(_save(fig, out, "history.png"), "Frame time and fps along the result history")
+    labels = [f"{r['commit'][:8]}\n{r['method']}\n{r['frame'] or '?'}" for r in rows]
+    for ax, key, ylabel in ((axs[0], "total GPU ms", "median frame GPU ms (layers as in the table)"),
+                            (axs[1], "fps", "fps")):
+        ax.plot(x, [r[key] for r in rows], "-", color="0.7", zorder=1)
+        for k, method in enumerate(dict.fromkeys(r["method"] for r in rows)):  # one marker colour per method
+            idx = [i for i, r in enumerate(rows) if r["method"] == method]
+            ax.scatter(idx, [rows[i][key] for i in idx], color=f"C{k}", label=method, zorder=2)
+        ax.set(ylabel=ylabel, title=f"{key} per commit")
+        ax.set_xticks(x, labels, fontsize=6)
+        ax.legend(fontsize=7, title="visibility", title_fontsize=7)
+    s.figure(_save(fig, out, "history.png"), "Frame time and fps along the result history (commit, default "
+                                             "visibility path, frame size)")
     return s
 
 

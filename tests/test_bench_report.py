@@ -11,6 +11,7 @@ modes (missing, failed and truncated result files) are checked on small hand-mad
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 from pathlib import Path
@@ -91,7 +92,7 @@ def test_report_is_complete(ci_run):
         assert img.ndim == 3 and img[..., :3].std() > 0.05, f"{f} looks blank"
         assert f"figures/{f}" in md and f"figures/{f}" in page
     for csv in ["table1_scene", "table1_preprocessing", "table2_tiles", "table2_compute", "table2_raster",
-                "table2_ratios",
+                "table2_ratios", "table2_large",
                 "table3", "fig7", "fig7_holes", "fig8", "fig9_10", "fig13", "memory"]:
         assert (report / "csv" / f"{csv}.csv").stat().st_size > 50, csv
         assert f"csv/{csv}.csv" in md
@@ -118,6 +119,12 @@ def test_report_numbers_are_the_measured_ones(ci_run):
     k1 = t2["runs"][0]
     # the raytracing row of the default path's table starts with the 1-layer median and the paper's 1.2 ms
     assert any(r.startswith(f"| raytracing | {fmt(k1['median_ms']['raytracing'])} | 1.2 |") for r in rows)
+    # the larger frame: every path but raster at 5 layers, its total in the larger-frames table
+    large = t2["large_runs"]
+    assert [(r["method"], r["layers"], r["frame_size"]) for r in large] == [("tiles", 5, [288, 192]),
+                                                                           ("compute", 5, [288, 192])]
+    assert any(r.startswith("| 288x192 | tiles | 5 |") and f"| {fmt(large[0]['median_total_ms'])} |" in r
+               for r in rows)
     # mean search steps and the visibility ratios appear in the ratio table
     ratios = t2["visibility_ratios"]
     assert set(ratios) == {"raster/compute", "compute/tiles", "raster/tiles"}
@@ -126,14 +133,24 @@ def test_report_numbers_are_the_measured_ones(ci_run):
                for r in rows)
 
     dmt = _result(set_dir, "table3_fig12")["measurements"]["dmt"]
+    dmrt_lab = dmt["dmrt"]["labeling"]
+    assert dmrt_lab["labels_equal_bundle"] == 1.0  # the labeling run again is preprocessing's
     for e, p in zip(dmt["dmt"], paper.TABLE3_DMT.values()):
         w, h = e["size"]
-        want = (f"| DMT {w}x{h} | DMT {p['size'][0]}x{p['size'][1]} | {fmt(e['labeling']['seconds'])} | "
-                f"{fmt(p['labeling_s'])} | {fmt(e['labeling_ratio_dmt_over_dmrt'])} |")
-        assert any(r.startswith(want) for r in rows)
+        lab = e["labeling"]
+        # the tiny scene's 12 maps fit the ci budget: every map graph-cut on every core (at most 12 processes)
+        assert lab["labeler"] == "graphcut" and not lab["extrapolated"] and e["render_labeler"] == "graphcut"
+        assert lab["maps"] == lab["maps_total"] == 12 and lab["workers"] == min(os.cpu_count(), 12)
+        assert e["labeling_ratio_dmt_over_dmrt"]["cpu"] == pytest.approx(lab["cpu_s_all"] / dmrt_lab["cpu_s"])
+        assert e["labeling_ratio_dmt_over_dmrt"]["wall"] == pytest.approx(lab["wall_s_all"] / dmrt_lab["wall_s"])
+        per_map = "/".join(fmt(lab["cpu_s_per_map"][k]) for k in ("median", "p10", "p90"))
+        want = (f"| DMT {w}x{h} | DMT {p['size'][0]}x{p['size'][1]} | 12 of 12 | {fmt(lab['wall_s_all'])} | "
+                f"{fmt(lab['cpu_s_all'])} | {per_map} | {fmt(p['labeling_s'])} | "
+                f"{fmt(e['labeling_ratio_dmt_over_dmrt']['cpu'])} | {fmt(e['labeling_ratio_dmt_over_dmrt']['wall'])} |")
+        assert any(r.startswith(want) for r in rows), want
         assert any(f"| {fmt(e['fps_min_avg_max'][0])} | {fmt(e['fps_min_avg_max'][1])} | " in r for r in rows)
-    assert any(r.startswith(f"| DMRT (5 layers) | DMRT 1024x684, 1M proxies, 5 layers | "
-                            f"{fmt(dmt['dmrt']['labeling_s'])} |") for r in rows)
+    assert any(r.startswith(f"| DMRT (5 layers) | DMRT 1024x684, 1M proxies, 5 layers | — | "
+                            f"{fmt(dmrt_lab['wall_s'])} | {fmt(dmrt_lab['cpu_s'])} | — | 204 |") for r in rows)
 
     fig7 = _result(set_dir, "fig7")["measurements"]
     for s in fig7["sets"]:
@@ -311,7 +328,7 @@ def test_history_of_several_result_sets(ci_run, tmp_path):
     results, set_dir, _ = ci_run
     copy = tmp_path / "results"
     shutil.copytree(results, copy)
-    older = copy / set_dir.parent.name / f"000000000000-ci"
+    older = copy / set_dir.parent.name / "000000000000-ci"
     shutil.copytree(copy / set_dir.parent.name / set_dir.name, older)
     for f in older.glob("*.json"):
         r = json.loads(f.read_text())
@@ -322,6 +339,8 @@ def test_history_of_several_result_sets(ci_run, tmp_path):
     assert out.result_set.dir.name == set_dir.name
     md = (tmp_path / "report" / "REPORT.md").read_text()
     assert "## History" in md and "| 2000-01-01" in md
+    # each set with its default visibility path and frame size (the ci preset: tiles, 192x128, 5 layers)
+    assert sum(1 for r in _md_rows(md) if "| tiles | 192x128 | 5 |" in r) == 2
     assert (tmp_path / "report" / "figures" / "history.png").stat().st_size > 10_000
 
 
@@ -357,3 +376,51 @@ def test_a_failing_experiment_does_not_stop_the_others(tmp_path, monkeypatch, ca
     fine = json.loads((set_dir / "fine.json").read_text())
     assert fine["measurements"] == {"value": 42} and fine["preset_config"]["name"] == "ci"
     assert fine["machine"]["name"] == "test-machine"
+
+
+# ----------------------------------------------------------------------------------------------
+# History
+# ----------------------------------------------------------------------------------------------
+def _table2_payload(commit: str, date: str, method: str, ms5: float, run_size=None, walk_size=None) -> dict:
+    """A Table 2 result of 1 and 5 layers (5 layers: ``ms5`` GPU ms); the frame size in each run
+    (``run_size``, as now) or only in the parameters' walk (``walk_size``, as before the sustained pass)."""
+    runs = [{"method": method, "layers": k, "median_total_ms": ms5 * k / 5, "fps_median": 5e3 / (ms5 * k),
+             **({"frame_size": run_size} if run_size else {})} for k in (1, 5)]
+    return {"experiment": "table2", "version": 1, "date": date, "preset": "ci",
+            "commit": {"hash": commit, "date": None, "dirty": False},
+            "parameters": {"walk": {"frame_size": walk_size}} if walk_size else {},
+            "measurements": {"runs": runs, "visibility_ratios": {}}}
+
+
+def test_history_keeps_result_sets_of_every_default_path(tmp_path):
+    """A k-buffer-era result set (frame size only in its parameters) and a tiles one (frame size in
+    the run): both in the history, oldest first, each with its commit, method and frame size."""
+    from bench.report import Table, load_results, section_history
+
+    root = tmp_path / "results"
+    _write_set(root, "aaaaaaaaaaaa", table2=_table2_payload("aaaaaaaaaaaa", "2026-01-01T00:00:00+0000", "kbuffer",
+                                                            16.0, walk_size=[640, 360]))
+    _write_set(root, "bbbbbbbbbbbb", table2=_table2_payload("bbbbbbbbbbbb", "2026-02-01T00:00:00+0000", "tiles",
+                                                            5.0, run_size=[1280, 720]))
+    out = tmp_path / "out"
+    (out / "figures").mkdir(parents=True)
+    s = section_history(load_results(root), out)
+    (table,) = [b for b in s.blocks if isinstance(b, Table)]
+    got = table.df[["commit", "method", "frame", "layers", "total GPU ms", "fps"]].values.tolist()
+    assert got == [["aaaaaaaaaaaa", "kbuffer", "640x360", 5, 16.0, 62.5], ["bbbbbbbbbbbb", "tiles", "1280x720", 5, 5.0, 200.0]]
+    assert (out / "figures" / "history.png").stat().st_size > 10_000
+
+
+def test_a_report_kept_beside_the_results_is_not_read_as_results(tmp_path):
+    """The nightly keeps the newest report in the results folder (``history/report``): its
+    ``results/`` copies (machine.json among them) are not a result set of a machine "report"."""
+    from bench.report import build_report, load_results
+
+    root = tmp_path / "results"
+    _write_set(root, table1=_table1_payload())
+    (root / "test-gl" / "machine.json").write_text(json.dumps({"name": "test-gl"}))  # as dmrt bench writes it
+    build_report(root, root / "report")
+    assert (root / "report" / "results" / "machine.json").is_file()
+    r = build_report(root, tmp_path / "again")
+    assert [(s.machine, s.commit) for s in load_results(root)] == [("test-gl", "abcdef123456")]
+    assert r.result_set.machine == "test-gl"

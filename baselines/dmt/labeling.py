@@ -10,6 +10,12 @@ jumps larger than the discontinuity threshold; :func:`dmrt.preprocess.labeling.a
 Labeling time therefore grows with the number of texels (paper Table 3: 7 / 23 / 87 min at
 256 / 512 / 1024 wide), where DMRT labels a fixed set of proxies.
 
+The maps' graph cuts are independent of each other: ``workers`` local processes
+(:func:`dmrt.preprocess.parallel.open_executor`, spawned, so a parent holding a GL context is never
+forked) label one map at a time each, reading the bundle from disk once; the labels are the same
+as one process's. Every map's statistics carry the CPU seconds of the process that labelled it
+(``cpu_s``, :func:`time.process_time`), so the summed CPU time is known next to the wall clock.
+
 Cheap labelers exist for frame-rate benchmarks on large scenes, where rendering cost does not
 depend on the labels: ``"wta"`` (winner-take-all on the same data costs, no graph cut) and
 ``"own"`` (no labeling: every texel textured by its own depth map's photo, which sees it by
@@ -69,8 +75,11 @@ class DMTLabelingConfig:
     occlusion: PreprocessConfig | None = option(None, "occlusion test (occlusion_tolerance, occlusion_texels, "
                                                       "candidate_min_cos); None = the bundle's preprocessing "
                                                       "parameters, the very test DMRT's proxies were given")
-    cache_mb: float = option(2048.0, "decoded photos and stored depth maps kept in memory while labeling, MiB",
-                             minimum=0.0)
+    cache_mb: float = option(2048.0, "decoded photos and stored depth maps kept in memory while labeling, MiB "
+                                     "per process", minimum=0.0)
+    workers: int | None = option(None, "processes labeling depth maps at once (graph cuts and wta; the labels do "
+                                       "not depend on it); None = every CPU core this process may use",
+                                 minimum=1)
 
     def __post_init__(self):
         validate(self)
@@ -148,19 +157,23 @@ def label_depth_map(bundle, i: int, depth: np.ndarray, stored_depth, photos, ene
     Returns
     -------
     labels : (h, w) int32 photo index, -1 where empty or seen by no photo.
-    stats : dict of counts, energies and seconds (``candidates_s``, ``costs_s``, ``cut_s``).
+    stats : dict of counts, energies and wall seconds (``candidates_s``, ``costs_s``, ``cut_s``) and
+        ``cpu_s``: CPU seconds of this process (:func:`time.process_time`, every thread) for the map.
     """
+    c0 = time.process_time()
     t0 = time.perf_counter()
     h, w = depth.shape
     valid = (depth > 0).ravel()
     labels = np.full(h * w, -1, np.int32)
     stats = {"texels": int(valid.sum()), "edges": 0, "candidates_mean": 0.0, "energy_per_sweep": [],
-             "photos_tested": 0, "candidates_s": 0.0, "costs_s": 0.0, "cut_s": 0.0}
+             "photos_tested": 0, "candidates_s": 0.0, "costs_s": 0.0, "cut_s": 0.0, "cpu_s": 0.0}
     if not valid.any():
+        stats["cpu_s"] = time.process_time() - c0
         return labels.reshape(h, w), stats
     if labeler == "own":  # no geometry needed
         labels[valid] = i
         stats["cut_s"] = time.perf_counter() - t0
+        stats["cpu_s"] = time.process_time() - c0
         return labels.reshape(h, w), stats
     cams = [c.relative_to(bundle.origin) for c in bundle.cameras]
     cam = cams[i].scaled(w, h)
@@ -197,7 +210,8 @@ def label_depth_map(bundle, i: int, depth: np.ndarray, stored_depth, photos, ene
     t3 = time.perf_counter()
     labels[valid] = lab
     stats.update(edges=int(len(edges)), candidates_mean=float(cands.counts().mean()),
-                 unlabeled=int((lab < 0).sum()), candidates_s=t1 - t0, costs_s=t2 - t1, cut_s=t3 - t2)
+                 unlabeled=int((lab < 0).sum()), candidates_s=t1 - t0, costs_s=t2 - t1, cut_s=t3 - t2,
+                 cpu_s=time.process_time() - c0)
     return labels.reshape(h, w), stats
 
 
@@ -251,17 +265,93 @@ def _write_cache(folder: Path, labels: list[np.ndarray], meta: dict) -> None:
         (tmp / "dmt.json").write_text(json.dumps(meta, indent=1))
 
 
+def warm_imports() -> None:
+    """Import what labeling imports on first use (solver, sparse graphs, image and EXR readers), so
+    that the first map a fresh process labels is not charged for it."""
+    import importlib
+
+    from PIL import Image
+
+    for name in ("maxflow", "OpenEXR", "scipy.sparse", "scipy.spatial"):
+        importlib.import_module(name)
+    Image.preinit()  # the common image plugins
+
+
+# In an executor's worker process: the bundle and its caches of decoded photos and depth maps,
+# kept from one task to the next (a worker labels many maps, which share photos).
+_WORKER: dict = {}
+
+
 def _label_maps(maps, root, width: int, energy: LabelingConfig, occlusion: PreprocessConfig, labeler: str,
                 threshold: float, radius: float | None, cache_mb: float) -> list[tuple[np.ndarray, dict]]:
-    """:func:`label_depth_map` of the depth maps ``maps`` of the bundle at ``root`` (a Dask task:
-    the bundle is read from the shared file system)."""
-    from dmrt.io.bundle import read_bundle
+    """:func:`label_depth_map` of the depth maps ``maps`` of the bundle at ``root`` (an executor's
+    task: the bundle is read from the (shared) file system once per process)."""
+    if _WORKER.get("key") != (root, cache_mb):
+        from dmrt.io.bundle import read_bundle
 
-    bundle = read_bundle(root)
-    stored = _LRU(bundle.depth_map, cache_mb / 2)
-    photos = _LRU(bundle.image, cache_mb / 2)
+        warm_imports()
+        bundle = read_bundle(root)
+        _WORKER.update(key=(root, cache_mb), bundle=bundle, stored=_LRU(bundle.depth_map, cache_mb / 2),
+                       photos=_LRU(bundle.image, cache_mb / 2))
+    bundle, stored, photos = _WORKER["bundle"], _WORKER["stored"], _WORKER["photos"]
     return [label_depth_map(bundle, i, load_depth_map(bundle, i, width, stored(i)), stored, photos, energy,
                             occlusion, labeler, threshold, radius) for i in maps]
+
+
+def splat_radius(bundle) -> float | None:
+    """The scan's splat radius (median of the proxies' P_HD radii), metres; None without them."""
+    hd = bundle.proxy.get("hd_radii")
+    return float(np.median(hd)) if hd is not None and len(hd) else None
+
+
+def check_width(bundle, width: int) -> None:
+    """Raise :class:`InputError` naming the depth-map file when DMT width ``width`` exceeds a
+    stored depth map's resolution (``bundle.json``'s ``depthmap_sizes``, else the file's)."""
+    sizes = bundle.meta.get("depthmap_sizes")
+    for i, cam in enumerate(bundle.cameras):
+        stored = tuple(sizes[i]) if sizes else bundle.depth_map(i).shape[::-1]
+        w, h = dmt_size(cam, width)
+        if w > stored[0] or h > stored[1]:
+            raise InputError(bundle.path("depthmaps", i),
+                             f"DMT resolution {w}x{h} is higher than the stored depth map's "
+                             f"{stored[0]}x{stored[1]}: preprocess with --depthmap-width {w} or more")
+
+
+def label_maps(bundle, width: int, maps, config: DMTLabelingConfig | None = None, executor=None,
+               progress: bool = False) -> list[tuple[np.ndarray, dict]]:
+    """:func:`label_depth_map` of the depth maps ``maps`` (photo indices), in that order.
+
+    Parameters
+    ----------
+    bundle : Bundle.  width : int, DMT width.  maps : iterable of int.
+    config : DMTLabelingConfig (its ``workers`` is not read here: the executor decides).
+    executor : optional, :mod:`dmrt.preprocess.parallel` (``open_executor``): one map per task, to
+        the processes as they free up, each reading the bundle from its folder once; None = one
+        after the other in this process.
+    progress : bool, a tqdm bar over the maps.
+
+    Returns
+    -------
+    list of (labels, stats) as :func:`label_depth_map`'s; ``stats["cpu_s"]`` is the CPU time of the
+    process that labelled the map. The labels do not depend on the executor.
+    """
+    from tqdm.auto import tqdm
+
+    config = config or DMTLabelingConfig()
+    energy, occl, _ = resolve_config(bundle, config)
+    maps = [int(i) for i in maps]
+    check_width(bundle, width)  # here, before any process starts on a map
+    task = dict(width=int(width), energy=energy, occlusion=occl, labeler=config.labeler,
+                threshold=config.discontinuity_threshold, radius=splat_radius(bundle), cache_mb=config.cache_mb)
+    if executor is not None and executor.distributed:
+        parts = executor.map(_label_maps, [[i] for i in maps], desc=f"DMT labeling {width}", progress=progress,
+                             root=str(Path(bundle.root).resolve()), **task)
+        return [r for part in parts for r in part]
+    stored = _LRU(bundle.depth_map, config.cache_mb / 2)
+    photos = _LRU(bundle.image, config.cache_mb / 2)
+    return [label_depth_map(bundle, i, load_depth_map(bundle, i, width, stored(i)), stored, photos, energy, occl,
+                            config.labeler, config.discontinuity_threshold, task["radius"])
+            for i in tqdm(maps, desc=f"DMT labeling {width}", unit="map", disable=not progress)]
 
 
 def dmt_labels(bundle, width: int, config: DMTLabelingConfig | None = None, progress: bool = True,
@@ -274,18 +364,21 @@ def dmt_labels(bundle, width: int, config: DMTLabelingConfig | None = None, prog
     bundle : Bundle
     width : int, DMT depth-map width in texels (heights follow each photo's aspect); at most the
         stored depth maps' width.
-    config : DMTLabelingConfig
+    config : DMTLabelingConfig (``workers``: local processes when no ``executor`` is given)
     progress : bool, a tqdm bar over the depth maps
     recompute : bool, ignore (and replace) an existing cache
     executor : optional, :mod:`dmrt.preprocess.parallel`: the per-map labelings (graph cuts) as
-        Dask tasks, one contiguous group of maps per worker, reading the bundle from the shared
-        file system; the labels are the same (each map's cut is independent of the others)
+        its tasks (a Dask cluster's, reading the bundle from the shared file system), instead of
+        ``config.workers`` local processes (:func:`label_maps`); the labels are the same (each
+        map's cut is independent of the others)
 
     Returns
     -------
     labels : list of (h_i, w_i) int32 arrays, photo order, -1 = none.
-    meta : dict, the cache's ``dmt.json`` (``timings`` in seconds, per-map ``maps`` statistics,
-        ``config``) plus ``cached`` (True when loaded).
+    meta : dict, the cache's ``dmt.json`` (``timings`` in seconds: ``total_s`` wall clock, ``cpu_s``
+        the maps' CPU seconds summed over the processes, and the per-phase wall seconds summed over
+        the maps; ``workers``; per-map ``maps`` statistics; ``config``) plus ``cached`` (True when
+        loaded).
     """
     from tqdm.auto import tqdm
 
@@ -301,37 +394,28 @@ def dmt_labels(bundle, width: int, config: DMTLabelingConfig | None = None, prog
         if found is not None and progress:
             tqdm.write(f"{cache_dir(bundle, width, config.labeler)}: made with another configuration, recomputing")
     t_start = time.perf_counter()
-    stored = _LRU(bundle.depth_map, config.cache_mb / 2)
-    photos = _LRU(bundle.image, config.cache_mb / 2)
-    depths = [load_depth_map(bundle, i, width, stored(i)) for i in range(n)]  # size check first
-    hd = bundle.proxy.get("hd_radii")
-    radius = float(np.median(hd)) if hd is not None and len(hd) else None
-    labels, per_map = [], []
-    if executor is not None and executor.distributed:
-        from dmrt.preprocess.parallel import split
-
-        parts = executor.map(_label_maps, split(n, executor.workers), desc=f"DMT labeling {width}",
-                             progress=progress, root=str(Path(bundle.root).resolve()), width=width, energy=energy,
-                             occlusion=occl, labeler=config.labeler, threshold=config.discontinuity_threshold,
-                             radius=radius, cache_mb=config.cache_mb)
-        results = (r for part in parts for r in part)
+    if executor is not None:
+        workers = executor.workers
+        results = label_maps(bundle, width, range(n), config, executor, progress)
     else:
-        results = (label_depth_map(bundle, i, depths[i], stored, photos, energy, occl, config.labeler,
-                                   config.discontinuity_threshold, radius)
-                   for i in tqdm(range(n), desc=f"DMT labeling {width}", unit="map", disable=not progress))
-    for lab, st in results:
-        labels.append(lab)
-        per_map.append(st)
+        from dmrt.preprocess.parallel import default_workers, open_executor
+
+        # "own" labels take microseconds a map: processes would only cost their start
+        workers = 1 if config.labeler == "own" else min(config.workers or default_workers(), n)
+        with open_executor(None, workers=workers) as local:
+            results = label_maps(bundle, width, range(n), config, local, progress)
+    labels = [lab for lab, _ in results]
+    per_map = [st for _, st in results]
     total = time.perf_counter() - t_start
     meta = {
         "schema": SCHEMA, "version": SCHEMA_VERSION, "width": width, "labeler": config.labeler,
         "sizes": [list(dmt_size(c, width)) for c in bundle.cameras],
-        "config": asdict(resolved), "splat_radius_m": radius,
+        "config": asdict(resolved), "splat_radius_m": splat_radius(bundle), "workers": workers,
         "timings": {"total_s": round(total, 3),
-                    **{k: round(sum(m[k] for m in per_map), 3) for k in ("candidates_s", "costs_s", "cut_s")}},
+                    **{k: round(sum(m[k] for m in per_map), 3) for k in ("cpu_s", "candidates_s", "costs_s", "cut_s")}},
         "counts": {"texels": int(sum(m["texels"] for m in per_map)),
                    "edges": int(sum(m["edges"] for m in per_map)),
-                   "unlabeled": int(sum(((a < 0) & (d > 0)).sum() for a, d in zip(labels, depths)))},
+                   "unlabeled": int(sum(m.get("unlabeled", 0) for m in per_map))},
         "energy": {"initial": float(sum(m["energy_per_sweep"][0] for m in per_map if m["energy_per_sweep"])),
                    "final": float(sum(m["energy_per_sweep"][-1] for m in per_map if m["energy_per_sweep"]))},
         "maps": per_map,
