@@ -25,8 +25,6 @@ def label_layouts(w: int, h: int, n_photos: int) -> dict[str, np.ndarray]:
 
 
 def main(argv=None) -> None:
-    import moderngl  # noqa: F401  (the GL stack, before the program loads)
-
     from dmrt.gl import GpuTimer, abi, get_context, load_program
     from dmrt.gl.kernels import fill_u32, groups
     from dmrt.gl.shaders import set_uniforms

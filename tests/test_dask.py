@@ -1,7 +1,6 @@
 """Preprocessing on Dask (``dmrt preprocess --dask``): a real 2-worker LocalCluster (no mock) gives
 the in-process bundle, bit for bit."""
 
-import json
 import shutil
 
 import numpy as np

@@ -350,14 +350,17 @@ class _Appender:
         self.files = {}
         self.count = 0
 
+    def _open(self) -> dict:
+        if not self.files:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            self.files = {k: open(self.dir / f"{k}.bin", "ab") for k in self.schema}
+        return self.files
+
     def write(self, rec: dict):
         n = len(rec["positions"])
         if n == 0:
             return
-        if not self.files:
-            self.dir.mkdir(parents=True, exist_ok=True)
-            self.files = {k: open(self.dir / f"{k}.bin", "ab") for k in self.schema}
-        for k, f in self.files.items():
+        for k, f in self._open().items():
             np.ascontiguousarray(rec[k], dtype=self.schema[k][0]).tofile(f)
         self.count += n
 
@@ -365,10 +368,7 @@ class _Appender:
         """Append the ``n`` records of another folder of ``<field>.bin`` files (copied as bytes)."""
         if n == 0:
             return
-        if not self.files:
-            self.dir.mkdir(parents=True, exist_ok=True)
-            self.files = {k: open(self.dir / f"{k}.bin", "ab") for k in self.schema}
-        for k, f in self.files.items():
+        for k, f in self._open().items():
             with open(Path(directory) / f"{k}.bin", "rb") as src:
                 shutil.copyfileobj(src, f, 1 << 22)
         self.count += n
