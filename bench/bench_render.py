@@ -67,6 +67,8 @@ def main(argv=None) -> None:
     p.add_argument("--methods", nargs="+", default=["compute", "raster"])
     p.add_argument("--refine", nargs="+", default=["illinois"], help="hit refinements (RenderConfig.refine)")
     p.add_argument("--tile-check", nargs="+", default=["frame"], help="tiles list checks (RenderConfig.tile_check)")
+    p.add_argument("--fenced", action="store_true", help="glFinish around every timed section: each stage's "
+                   "and part's own GPU time (slower frames; see dmrt.gl.timer.GpuTimer.fenced)")
     p.add_argument("--leveling", action=argparse.BooleanOptionalAction, default=True,
                    help="screen-space leveling, as the paper's texturing pass (default: on)")
     p.add_argument("--frames", type=int, default=30, help="walkthrough frames per configuration")
@@ -87,7 +89,7 @@ def main(argv=None) -> None:
             if check != "frame" and method != "tiles":
                 continue
             config = RenderConfig(layers=k, method=method, leveling=args.leveling, refine=refine, tile_check=check)
-            r = measure_walkthrough(bundle, config, path, f"{method} k={k} {w}x{h}")
+            r = measure_walkthrough(bundle, config, path, f"{method} k={k} {w}x{h}", fenced=args.fenced)
             r.pop("stage_ms_per_frame")
             runs.append({"method": method, "refine": refine, "tile_check": check, "layers": k, **r})
             stages = "  ".join(f"{s} {v:.3f}" for s, v in {**r["median_ms"], **r["median_part_ms"]}.items())
@@ -97,6 +99,7 @@ def main(argv=None) -> None:
                     f"ms/frame, {r['mean_iterations']:.2f} steps, "
                     f"clocks {r['gpu_clocks']}", flush=True)
     result = {"benchmark": "render", "version": 2, "bundle": str(bundle.root), "preset": args.preset,
+              "fenced": args.fenced,
               "machine": {"gl": renderer_info(get_context())}, "setup_s": setup, "frames": args.frames,
               "leveling": args.leveling, "counts": bundle.meta.get("counts"), "runs": runs}
     out = args.out / f"render-{name}.json"

@@ -58,7 +58,8 @@ def fps_summary(totals_ms) -> dict:
 
 
 def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
-                        on_frame: Callable[[dict], None] | None = None, progress: bool = True) -> dict:
+                        on_frame: Callable[[dict], None] | None = None, progress: bool = True,
+                        fenced: bool = False) -> dict:
     """Render ``cameras`` three times with a fresh renderer: a statistics pass that reads every
     frame back (and warms up: the photo cache reaches its steady state), the timed pass, whose
     frames stay on the GPU as in interactive use (``Renderer.render(readback=False)``) and whose
@@ -73,6 +74,8 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
     bundle : dmrt.io.bundle.Bundle.  config : dmrt.runtime.renderer.RenderConfig.
     cameras : list of Camera (the frame size is each camera's).
     on_frame : called with every frame of the statistics pass (e.g. to collect statistics).
+    fenced : the timed pass's sections fenced by ``glFinish`` (:attr:`dmrt.gl.GpuTimer.fenced`):
+        each stage's own time, at the cost of slower frames; the sustained pass is never fenced.
 
     Returns
     -------
@@ -104,6 +107,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         uploads0 = renderer.images.uploads
         clocks_before = gpu_clocks()  # the statistics pass just ran back to back: clocks are up
         timings, parts, cpu, wall = [], [], [], []
+        renderer.timer.fenced = fenced
         for cam in tqdm(cameras, desc=desc, unit="frame", leave=False, disable=not progress):
             t0 = time.perf_counter()
             f = renderer.render(cam, readback=False)
@@ -112,6 +116,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
             parts.append(f.get("part_timings", {}))
             cpu.append(f.get("cpu_ms", {}))
         clocks = {"before": clocks_before, "after": gpu_clocks()}
+        renderer.timer.fenced = False
         renderer.timer.enabled = False
         renderer.ctx.finish()
         t0 = time.perf_counter()

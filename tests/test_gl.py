@@ -162,6 +162,14 @@ def test_timer_measures_draw_and_dispatch(ctx, shader_dir):
                 vao.render(moderngl.TRIANGLES)
     parts = timer.part_ms
     assert set(parts) == {"draw:a", "draw:b"} and timer.ms == {"draw": parts["draw:a"] + parts["draw:b"]}
+    # fenced sections (glFinish around each) time the same work, one use each
+    timer.reset()
+    timer.fenced = True
+    with ctx.scope(fbo):
+        with timer.section("draw"):
+            vao.render(moderngl.TRIANGLES)
+    timer.fenced = False
+    assert timer.counts == {"draw": 1} and 0 < timer.ms["draw"] < 4000
     timer.reset()
     assert timer.ms == {}
     for obj in (vao, vbo, fbo, buf):

@@ -59,6 +59,11 @@ class GpuTimer:
     enabled : bool
         False: sections issue no queries and :attr:`ms` stays empty, so that nothing waits for the
         GPU - frames rendered back to back for a sustained wall-clock time.
+    fenced : bool
+        True: each section starts and ends with ``glFinish``, so no earlier work finishes inside it.
+        Without the fence a section can take in the end of the work issued before it (on an H200 a
+        4K frame's histogram section read 1.75 ms where the pass alone takes 0.07 ms): the stages'
+        sum is right, their split only approximate. Fenced frames are slower; for profiling only.
     """
 
     def __init__(self, ctx: moderngl.Context):
@@ -70,6 +75,7 @@ class GpuTimer:
         self._free: list[moderngl.Query] = []  # moderngl cannot release queries: reuse them
         self._open: str | None = None
         self.enabled = True
+        self.fenced = False
         try:
             probe = ctx.query(time=True)
         except Exception as exc:
@@ -86,10 +92,14 @@ class GpuTimer:
             return
         query = self._free.pop() if self._free else self.ctx.query(time=True)
         self._open = name
+        if self.fenced:
+            self.ctx.finish()
         query.mglo.begin()
         try:
             yield self
         finally:
+            if self.fenced:
+                self.ctx.finish()
             query.mglo.end()
             self._open = None
             self._pending.append((name, query))
