@@ -114,7 +114,8 @@ def test_subset_size_fits_the_budget():
     probe = [4.0, 4.0]
     assert subset_size(probe, 4.0, 10, 100.0) == 10    # all 10: 20 s <= the 96 s left
     assert subset_size(probe, 4.0, 100, 44.0) == 22    # 200 s > 40 s left: 2 + 40 / 2
-    assert subset_size(probe, 4.0, 21, 44.0) == 20     # 42 s > 40 s: fewer than all, at most 20
+    assert subset_size(probe, 4.0, 21, 44.0) == 21     # 42 s > 40 s, but 20 fit: the last 1 < a round of 2
+    assert subset_size(probe, 4.0, 30, 44.0) == 22     # 8 left out >= a round of 2: fewer than all
     assert subset_size(probe, 4.0, 100, 1.0) == 2      # the probe spent the budget
     assert subset_size([0.0, 0.0], 1.0, 50, 0.0) == 50  # empty maps cost nothing
 
