@@ -63,12 +63,19 @@ def load_depth_map(bundle, i: int, width: int, stored: np.ndarray | None = None)
     file) when ``width`` exceeds the stored resolution.
     """
     d = bundle.depth_map(i) if stored is None else stored
+    w, h = check_dmt_size(bundle, i, width, (d.shape[1], d.shape[0]))
+    return resample_nearest(d, w, h)
+
+
+def check_dmt_size(bundle, i: int, width: int, stored: tuple[int, int]) -> tuple[int, int]:
+    """Photo ``i``'s DMT map size ``(w, h)`` at ``width``; :class:`InputError` naming the depth-map
+    file when it exceeds the stored map's ``(width, height)``."""
     w, h = dmt_size(bundle.cameras[i], width)
-    if w > d.shape[1] or h > d.shape[0]:
+    if w > stored[0] or h > stored[1]:
         raise InputError(bundle.path("depthmaps", i),
                          f"DMT resolution {w}x{h} is higher than the stored depth map's "
-                         f"{d.shape[1]}x{d.shape[0]}: preprocess with --depthmap-width {w} or more")
-    return resample_nearest(d, w, h)
+                         f"{stored[0]}x{stored[1]}: preprocess with --depthmap-width {w} or more")
+    return w, h
 
 
 def texel_points(depth: np.ndarray, camera: Camera) -> np.ndarray:

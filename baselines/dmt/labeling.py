@@ -46,7 +46,7 @@ from typing import Literal
 
 import numpy as np
 
-from baselines.dmt.geometry import (bounding_box, dmt_size, frustum_culled, grid_edges, grid_normals,
+from baselines.dmt.geometry import (bounding_box, check_dmt_size, dmt_size, frustum_culled, grid_edges, grid_normals,
                                     load_depth_map, orient_normals, texel_points)
 from dmrt.errors import InputError
 from dmrt.io.atomic import atomic_dir
@@ -308,13 +308,8 @@ def check_width(bundle, width: int) -> None:
     """Raise :class:`InputError` naming the depth-map file when DMT width ``width`` exceeds a
     stored depth map's resolution (``bundle.json``'s ``depthmap_sizes``, else the file's)."""
     sizes = bundle.meta.get("depthmap_sizes")
-    for i, cam in enumerate(bundle.cameras):
-        stored = tuple(sizes[i]) if sizes else bundle.depth_map(i).shape[::-1]
-        w, h = dmt_size(cam, width)
-        if w > stored[0] or h > stored[1]:
-            raise InputError(bundle.path("depthmaps", i),
-                             f"DMT resolution {w}x{h} is higher than the stored depth map's "
-                             f"{stored[0]}x{stored[1]}: preprocess with --depthmap-width {w} or more")
+    for i in range(len(bundle.cameras)):
+        check_dmt_size(bundle, i, width, tuple(sizes[i]) if sizes else bundle.depth_map(i).shape[::-1])
 
 
 def label_maps(bundle, width: int, maps, config: DMTLabelingConfig | None = None, executor=None,

@@ -17,7 +17,6 @@ format every user scene has (``points.ply``, ``sparse/``, ``images/``, ``mesh.pl
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -29,6 +28,7 @@ from dmrt.camera import Camera
 from dmrt.errors import ConfigError, require
 from dmrt.io.atomic import atomic_dir
 from dmrt.options import option, validate
+from dmrt.preprocess.parallel import default_workers
 from reference.raycast import MeshRaycaster, write_mesh_ply
 
 
@@ -503,7 +503,7 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
     out = Path(out)
     require("skimage", "the synthetic scenes' textures", "bench")  # before any work
     rng = np.random.default_rng(config.seed + 1)
-    workers = workers if workers is not None else (os.cpu_count() or 1)
+    workers = workers if workers is not None else default_workers()
     offset = np.asarray(config.offset, np.float64)
     with atomic_dir(out, force=force, what="scene") as tmp:
         (tmp / "images").mkdir()
