@@ -192,20 +192,23 @@ def _validated(path: Path, pc: PointCloud, start: int) -> PointCloud:
     return pc
 
 
-def _ply_chunks(path: Path, chunk_size: int) -> Iterator[PointCloud]:
+def _ply_chunks(path: Path, chunk_size: int, first: int = 0, stop: int | None = None) -> Iterator[PointCloud]:
     h = _read_ply_header(path)
     if h.n == 0:
         raise InputError(path, "empty point cloud (0 vertices)")
     _check_body_size(path, h)
     if h.fmt == "ascii":
+        if first != 0 or stop not in (None, h.n):
+            raise ValueError("ascii PLY is read whole: it has no record offsets")
         yield from _ascii_chunks(path, h, chunk_size)
         return
+    stop = h.n if stop is None else min(stop, h.n)
     with open(path, "rb") as f:
-        f.seek(h.body_offset + h.skip)
+        f.seek(h.body_offset + h.skip + first * h.dtype.itemsize)
         # Plain reads of whole records bound memory like a memmap would, without keeping a
         # mapping (and on Windows a file lock) alive after the generator is dropped.
-        for start in range(0, h.n, chunk_size):
-            count = min(chunk_size, h.n - start)
+        for start in range(first, stop, chunk_size):
+            count = min(chunk_size, stop - start)
             buf = f.read(count * h.dtype.itemsize)
             rec = np.frombuffer(buf, dtype=h.dtype, count=count)
             yield _from_record(path, rec, start)
@@ -309,6 +312,48 @@ def iter_point_chunks(path, chunk_size: int = 1_000_000) -> Iterator[PointCloud]
         yield from e57.iter_chunks(path, chunk_size)
     else:
         yield from _las_chunks(path, chunk_size)
+
+
+@dataclass(frozen=True)
+class PointRange:
+    """Records ``[start, stop)`` of a cloud file as a re-readable, picklable chunk source.
+
+    Calling it streams those records as ``iter_point_chunks`` does (same checks, same chunks for
+    the whole file). :meth:`split` cuts it into consecutive ranges that worker processes read on
+    their own: the input passes of the preprocessing run in parallel over them. Only binary PLY
+    has fixed-size records to seek to; other formats come back whole from :meth:`split`.
+    """
+
+    path: Path
+    start: int
+    stop: int
+    chunk_size: int = 1_000_000
+    seekable: bool = False
+
+    def __len__(self) -> int:
+        return self.stop - self.start
+
+    def __call__(self) -> Iterator[PointCloud]:
+        if self.seekable:
+            return _ply_chunks(self.path, self.chunk_size, self.start, self.stop)
+        return iter_point_chunks(self.path, self.chunk_size)
+
+    def split(self, parts: int) -> list["PointRange"]:
+        """At most ``parts`` consecutive ranges covering this one, in order (``[self]`` when the
+        format cannot seek)."""
+        parts = max(1, min(int(parts), len(self)))
+        if not self.seekable or parts == 1:
+            return [self]
+        cuts = [self.start + len(self) * i // parts for i in range(parts + 1)]
+        return [PointRange(self.path, a, b, self.chunk_size, True) for a, b in zip(cuts, cuts[1:]) if b > a]
+
+
+def point_range(path, chunk_size: int = 1_000_000) -> PointRange:
+    """The whole cloud at ``path`` as a :class:`PointRange` (header read, body not)."""
+    path = Path(path)
+    n = count_points(path)
+    seekable = _kind(path) == "ply" and _read_ply_header(path).fmt != "ascii"
+    return PointRange(path, 0, n, int(chunk_size), seekable)
 
 
 def read_points(path) -> PointCloud:

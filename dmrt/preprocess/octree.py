@@ -543,6 +543,16 @@ class Octree:
         for lvl in (range(self.levels) if levels is None else levels):
             yield from self.iter_level_chunks(lvl, chunk_size)
 
+    def point_range(self, levels: Iterable[int] | None = None, chunk_size: int = 1_000_000) -> "OctreeRange":
+        """The points of ``levels`` (default: all; consecutive), coarsest first, as a picklable
+        chunk source that splits into ranges for worker processes (:class:`OctreeRange`)."""
+        levels = list(range(self.levels) if levels is None else levels)
+        if levels and levels != list(range(levels[0], levels[0] + len(levels))):
+            raise ValueError(f"levels must be consecutive, got {levels}")
+        counts = np.cumsum([0] + self.level_counts)
+        start, stop = (int(counts[levels[0]]), int(counts[levels[-1] + 1])) if levels else (0, 0)
+        return OctreeRange(str(self.path), self.fields, tuple(self.level_counts), start, stop, int(chunk_size))
+
     def read_lod(self, k: int) -> dict:
         """``LOD k`` = levels ``0 .. k-1`` concatenated (the paper's proxy cloud P_LD for ``k``)."""
         parts = [self.read_level(lvl) for lvl in range(k)]
@@ -605,6 +615,39 @@ class Octree:
             meta = _Builder(src, tmp, config, bbox, progress, executor).run()
             (tmp / "octree.json").write_text(json.dumps(meta, indent=1))
         return cls.open(out_dir)
+
+
+@dataclasses.dataclass(frozen=True)
+class OctreeRange:
+    """Points ``[start, stop)`` of an octree's levels taken in order (coarsest first), as a
+    re-readable, picklable chunk source: calling it yields dicts as :meth:`Octree.read_level`, in
+    chunks of at most ``chunk_size`` that never span two levels; :meth:`split` cuts it into
+    consecutive ranges that worker processes read on their own."""
+
+    path: str
+    fields: dict
+    level_counts: tuple
+    start: int
+    stop: int
+    chunk_size: int = 1_000_000
+
+    def __len__(self) -> int:
+        return self.stop - self.start
+
+    def __call__(self) -> Iterator[dict]:
+        first = 0
+        for level, n in enumerate(self.level_counts):
+            a, b = max(self.start, first), min(self.stop, first + n)
+            folder = Path(self.path) / f"level_{level:02d}"
+            for s in range(a, b, self.chunk_size):
+                yield _read_records(folder, self.fields, s - first, min(b, s + self.chunk_size) - first)
+            first += n
+
+    def split(self, parts: int) -> list["OctreeRange"]:
+        """At most ``parts`` consecutive ranges covering this one, in order."""
+        parts = max(1, min(int(parts), len(self)))
+        cuts = [self.start + len(self) * i // parts for i in range(parts + 1)]
+        return [dataclasses.replace(self, start=a, stop=b) for a, b in zip(cuts, cuts[1:]) if b > a]
 
 
 class _Builder:
