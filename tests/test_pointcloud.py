@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from dmrt.errors import InputError
-from dmrt.io.pointcloud import (PointCloud, PointWriter, bounds, count_points, iter_point_chunks,
+from dmrt.io.pointcloud import (PointCloud, PointWriter, bounds, count_points, iter_point_chunks, point_range,
                              read_points, write_points)
 
 
@@ -67,6 +67,45 @@ def test_streamed_writer_many_chunks(tmp_path):
         for i in range(0, 500, 64):
             w.write(PointCloud(c.positions[i:i + 64], c.normals[i:i + 64], c.colors[i:i + 64]))
     _assert_same(read_points(tmp_path / "s.ply"), c)
+
+
+def test_writer_float_positions_and_trimesh_reads_the_padded_header(tmp_path):
+    import trimesh
+
+    c = _cloud(n=300)
+    with PointWriter(tmp_path / "f.ply", normals=True, colors=True, float_positions=True) as w:
+        w.write(c)
+    got = read_points(tmp_path / "f.ply")
+    # float32 of the coordinates, exactly: the same rounding numpy applies
+    np.testing.assert_array_equal(got.positions, c.positions.astype(np.float32).astype(np.float64))
+    np.testing.assert_array_equal(got.colors, c.colors)
+    # the vertex count is a space-padded field; an independent reader takes it too
+    assert len(trimesh.load(tmp_path / "f.ply").vertices) == 300
+    assert (tmp_path / "f.ply").stat().st_size == len(_ply_header_bytes(tmp_path / "f.ply")) + 300 * 27
+
+
+def _ply_header_bytes(path):
+    raw = path.read_bytes()
+    return raw[:raw.index(b"end_header\n") + len(b"end_header\n")]
+
+
+def test_point_range_splits_into_the_same_chunks(tmp_path):
+    import pickle
+
+    c = _cloud(n=1003)
+    write_points(tmp_path / "p.ply", c)
+    whole = point_range(tmp_path / "p.ply", chunk_size=100)
+    parts = pickle.loads(pickle.dumps(whole.split(3)))
+    assert [len(p) for p in parts] == [334, 334, 335]
+    joined = [x for p in parts for x in p()]
+    assert max(len(x) for x in joined) == 100
+    np.testing.assert_array_equal(np.concatenate([x.positions for x in joined]), c.positions)
+    np.testing.assert_array_equal(np.concatenate([x.colors for x in joined]), c.colors)
+    # an error in a later range names the point's index in the whole file
+    c.positions[700, 1] = np.nan
+    write_points(tmp_path / "p.ply", c)
+    with pytest.raises(InputError, match="first at point index 700"):
+        list(parts[2]())
 
 
 def test_writer_leaves_nothing_on_exception(tmp_path):

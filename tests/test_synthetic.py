@@ -120,3 +120,11 @@ def test_interrupted_generation_leaves_nothing(tmp_path):
     proc.send_signal(signal.SIGINT)
     assert proc.wait(60) != 0
     assert list(tmp_path.iterdir()) == []
+
+
+def test_float_positions_need_an_offset_near_the_origin():
+    from dmrt.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="float-positions.*offset within 1 km"):
+        SynthConfig(float_positions=True)  # the default offset is UTM-sized
+    assert SynthConfig(float_positions=True, offset=(10.0, 0.0, 0.0)).float_positions

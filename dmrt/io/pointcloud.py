@@ -9,7 +9,6 @@ naming the file, so a bad cloud fails in the loader rather than as NaNs on the G
 from __future__ import annotations
 
 import os
-import shutil
 from dataclasses import dataclass
 from itertools import islice
 from pathlib import Path
@@ -381,33 +380,38 @@ def bounds(path, chunk_size: int = 1_000_000) -> tuple[np.ndarray, np.ndarray]:
 class PointWriter:
     """Streamed binary little-endian PLY writer; the file appears only once complete.
 
-    Positions are written as double (exact float64 round trip), normals as float, colours as uchar.
-    The vertex count is known only at the end, so the body goes to a temporary file first; on a
-    clean exit the header and body are joined into ``<path>.tmp`` and renamed over ``path``. If the
-    ``with`` block raises, the temporaries are removed and ``path`` is left untouched.
+    Positions are written as double (exact float64 round trip) or, with ``float_positions``, as
+    float (12 bytes a point less: for coordinates near the origin, where float32 keeps
+    micrometres), normals as float, colours as uchar. The body is written once, into
+    ``<path>.tmp`` behind a header whose vertex count is a fixed-width field rewritten at the
+    end (no second copy of a file of tens of GB), and renamed over ``path`` on a clean exit. If
+    the ``with`` block raises, the temporary is removed and ``path`` is left untouched.
     """
 
-    def __init__(self, path, normals: bool, colors: bool):
+    _COUNT_WIDTH = 20  # digits of the largest uint64
+
+    def __init__(self, path, normals: bool, colors: bool, float_positions: bool = False):
         self.path = Path(path)
         self.normals, self.colors = bool(normals), bool(colors)
-        fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+        xyz = "<f4" if float_positions else "<f8"
+        fields = [("x", xyz), ("y", xyz), ("z", xyz)]
         if self.normals:
             fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
         if self.colors:
             fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
         self.dtype = np.dtype(fields)
         self.count = 0
-        self._body_path = self.path.with_name(self.path.name + ".body.tmp")
         self._tmp_path = self.path.with_name(self.path.name + ".tmp")
-        self._body = None
+        self._file = None
 
     def __enter__(self) -> "PointWriter":
-        self._body = open(self._body_path, "wb")
+        self._file = open(self._tmp_path, "wb")
+        self._file.write(self._header())
         return self
 
     def write(self, chunk: PointCloud) -> None:
         """Append ``chunk``; its normals/colors must be present iff the writer was made with them."""
-        if self._body is None:
+        if self._file is None:
             raise RuntimeError("PointWriter.write outside its 'with' block")
         pos = np.asarray(chunk.positions, dtype=np.float64).reshape(-1, 3)
         if (chunk.normals is not None) != self.normals or (chunk.colors is not None) != self.colors:
@@ -418,27 +422,27 @@ class PointWriter:
             rec["nx"], rec["ny"], rec["nz"] = np.asarray(chunk.normals, np.float32).reshape(-1, 3).T
         if self.colors:
             rec["red"], rec["green"], rec["blue"] = np.asarray(chunk.colors, np.uint8).reshape(-1, 3).T
-        self._body.write(rec.tobytes())
+        self._file.write(rec.tobytes())
         self.count += len(rec)
 
     def _header(self) -> bytes:
         types = {"<f8": "double", "<f4": "float", "|u1": "uchar"}
         props = "".join(f"property {types[self.dtype[n].str]} {n}\n" for n in self.dtype.names)
+        # the count padded with spaces: the same header length before and after it is known
         return (f"ply\nformat binary_little_endian 1.0\ncomment written by dmrt\n"
-                f"element vertex {self.count}\n{props}end_header\n").encode("ascii")
+                f"element vertex {self.count:<{self._COUNT_WIDTH}}\n{props}end_header\n").encode("ascii")
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        self._body.close()
-        self._body = None
         try:
             if exc_type is None:
-                with open(self._tmp_path, "wb") as out, open(self._body_path, "rb") as body:
-                    out.write(self._header())
-                    shutil.copyfileobj(body, out, 1 << 22)
+                self._file.seek(0)
+                self._file.write(self._header())
+                self._file.close()
                 os.replace(self._tmp_path, self.path)
         finally:
-            for p in (self._body_path, self._tmp_path):
-                p.unlink(missing_ok=True)
+            self._file.close()
+            self._file = None
+            self._tmp_path.unlink(missing_ok=True)
 
 
 def write_points(path, cloud: PointCloud) -> None:

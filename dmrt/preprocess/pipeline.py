@@ -57,6 +57,22 @@ class _DepthFiles:
         return read_depth_exr(self.folder / self.rels[j])
 
 
+class _LocalPoints:
+    """The scene's points relative to its origin, as octree input chunks ``(positions (n, 3)
+    float64 metres, {"normals", "colors"})``; picklable, and split into record ranges as its
+    :class:`~dmrt.io.pointcloud.PointRange` splits, so worker processes read the input in parallel."""
+
+    def __init__(self, source, origin):
+        self.source, self.origin = source, origin
+
+    def __call__(self):
+        for pc in self.source():
+            yield pc.positions - self.origin, {"normals": pc.normals, "colors": pc.colors}
+
+    def split(self, parts: int) -> list["_LocalPoints"]:
+        return [_LocalPoints(s, self.origin) for s in self.source.split(parts)]
+
+
 class _Photos:
     """``j -> (H, W, 3) uint8``: photo ``j`` of ``scene``, the last one kept (192 full photos need
     not sit in RAM); picklable, for Dask tasks."""
@@ -176,19 +192,17 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         work = Path(bw.tmp).resolve() / "work"
         # 1. octree (positions relative to the origin keep float32 safe later; float64 here)
         t0 = time.perf_counter()
-        def scene_chunks():
-            for pc in scene.iter_points(config.chunk_points):
-                yield pc.positions - origin, {"normals": pc.normals, "colors": pc.colors}
-        octree = Octree.build(scene_chunks, work / "octree",
+        # the bounds load_scene measured save the octree a pass (min(p) - o = min(p - o) exactly)
+        octree = Octree.build(_LocalPoints(scene.point_range(config.chunk_points), origin), work / "octree",
                               OctreeConfig(levels=config.octree_levels, memory_limit_mb=config.memory_limit_mb),
-                              progress=progress, executor=executor)
+                              bbox=[b - origin for b in scene.bounds], progress=progress, executor=executor)
         tic("octree_s", t0)
 
         # 2. normals (if missing) and splat radii over P_HD, in octree order (coarsest level first)
         t0 = time.perf_counter()
         has_normals = octree.read_level(0).get("normals") is not None
         centers = np.array([c.center for c in cams_local])
-        attrs = process_chunked(lambda: octree.iter_levels(chunk_size=config.chunk_points), work / "attrs",
+        attrs = process_chunked(octree.point_range(chunk_size=config.chunk_points), work / "attrs",
                                 normals=not has_normals, radii=True, k_normals=config.normals_k,
                                 k_radii=config.radius_k, scale=config.radius_scale, viewpoints=centers,
                                 memory_limit_mb=config.memory_limit_mb, progress=progress, executor=executor)
