@@ -2,6 +2,7 @@
 out-of-core octree, the proxies P_LD = its k coarsest levels, sub-sampled 87x to 2075x).
 
     python -m bench.bench_octree --points 20000000 --memory-limit-mb 256 --out-dir /tmp/oct [--workers N] [--json FILE]
+                                 [--ply FILE]
 
 The cloud is generated block by block from ``--seed`` (block ``i`` of 131072 points from
 ``default_rng([seed, i])``; a chunk is a run of whole blocks), never whole in RAM, and regenerated
@@ -24,8 +25,14 @@ the interpreter with numpy/scipy (~60 MB resident before any point is read, prin
 ``--workers N`` (N > 1) runs the bucket passes (candidates, select) in a
 :class:`~dmrt.preprocess.parallel.ProcessPool` of N processes, each within ``limit / N``; they are
 spawned before the clock starts (as the pipeline's pool is), and the largest one's peak RSS is
-printed as ``worker_peak_rss_mb``. The input is generated and read in this process, so the passes
-that read it (count, distribute) are printed with and without the generator's time.
+printed as ``worker_peak_rss_mb``. The generated input is generated and read in this process, so
+the passes that read it (count, distribute) are printed with and without the generator's time.
+
+``--ply FILE`` writes the generated cloud to a binary PLY once (unless FILE already holds
+``--points`` points; not timed) and builds from it through
+:func:`~dmrt.io.pointcloud.point_range`, as the preprocessing pipeline reads a scene: that source
+splits into record ranges, so with ``--workers N`` the passes that read the input (count,
+distribute) run in the N processes too, one range each.
 """
 
 from __future__ import annotations
@@ -40,10 +47,11 @@ import time
 
 import numpy as np
 
+from dmrt.io.pointcloud import PointCloud, PointWriter, count_points, point_range
 from dmrt.preprocess.octree import Octree, OctreeConfig
 from dmrt.preprocess.parallel import open_executor
 
-BENCH_VERSION = 2
+BENCH_VERSION = 3
 RECORD_BYTES = 24 + 12 + 3
 BLOCK = 1 << 17  # points per generated block
 
@@ -146,6 +154,9 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=1,
                     help="processes for the bucket passes (1: all in this process, the serial build)")
+    ap.add_argument("--ply", default=None,
+                    help="build from this binary PLY (written from the generated cloud first unless it "
+                         "holds --points points): a source that splits for the workers")
     ap.add_argument("--json", default=None, help="write the results here")
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--delete", action="store_true", help="remove the octree afterwards")
@@ -171,6 +182,15 @@ def main(argv=None):
             gen_calls[-1] += time.perf_counter() - t
             yield pos, attrs
 
+    source = chunks_fn
+    if args.ply:
+        if not os.path.exists(args.ply) or count_points(args.ply) != args.points:
+            with PointWriter(args.ply, normals=True, colors=True) as w:
+                for pos, attrs in chunks_fn():
+                    w.write(PointCloud(pos, attrs["normals"], attrs["colors"]))
+        gen_calls.clear()  # writing the file is not part of the build
+        source = point_range(args.ply, chunk)
+
     cfg = OctreeConfig(levels=args.levels, root_cell=args.root_cell, memory_limit_mb=args.memory_limit_mb)
 
     with open_executor(None, workers=args.workers) as executor:
@@ -178,7 +198,7 @@ def main(argv=None):
         executor.map(time.sleep, [0.2] * args.workers)  # spawn the workers before the clock starts
         spawn_s = time.perf_counter() - t
         t0, cpu0, workers_cpu0 = time.perf_counter(), _cpu_s(), _cpu_s(resource.RUSAGE_CHILDREN)
-        tree = Octree.build(chunks_fn, args.out_dir, cfg, bbox=bbox_of_scene(), progress=not args.no_progress,
+        tree = Octree.build(source, args.out_dir, cfg, bbox=bbox_of_scene(), progress=not args.no_progress,
                             executor=executor)
         wall, cpu = time.perf_counter() - t0, _cpu_s() - cpu0
     # the workers' CPU time counts once they are joined (at the executor's close), spawning included
@@ -210,6 +230,7 @@ def main(argv=None):
         "wall_s": wall, "generator_s": gen_s, "build_s": wall - gen_s,
         "points_per_s": args.points / (wall - gen_s), "phases_s": phases,
         "phases_without_generator_s": own, "generator_per_pass_s": gen_calls,
+        "input": args.ply or "generated", "input_parts": tree.meta["input_parts"],
         "workers": args.workers, "worker_spawn_s": spawn_s, "cpu_s": cpu, "workers_cpu_s": workers_cpu,
         "baseline_rss_mb": baseline, "peak_rss_mb": peak, "worker_peak_rss_mb": worker_peak,
     }
@@ -222,6 +243,7 @@ def main(argv=None):
           f"capacity {res['bucket_capacity']:,})")
     print(f"wall    {wall:.1f} s, of which generating the input {gen_s:.1f} s; build alone "
           f"{wall - gen_s:.1f} s ({res['points_per_s'] / 1e6:.2f} M points/s)")
+    print(f"input   {res['input']} in {res['input_parts']} part(s)")
     print(f"cpu     this process {cpu:.1f} s (generator included)"
           + (f", the {args.workers} workers {workers_cpu:.1f} s (spawned in {spawn_s:.1f} s, before the clock)"
              if args.workers > 1 else ""))

@@ -7,6 +7,7 @@ input itself (every point once, attributes attached), and set identities for nes
 
 from __future__ import annotations
 
+import dataclasses
 import filecmp
 import json
 import os
@@ -16,6 +17,7 @@ import numpy as np
 import pytest
 
 from dmrt.errors import InputError
+from dmrt.io.pointcloud import PointCloud, PointWriter, point_range
 from dmrt.morton import morton_encode
 from dmrt.preprocess.octree import Octree, OctreeConfig
 from dmrt.preprocess.parallel import InProcess, ProcessPool
@@ -389,3 +391,92 @@ def test_process_pool_build_is_byte_identical(tmp_path, pool):
                          executor=InProcess())
     assert again.meta["workers"] == 1 and again.meta["n_buckets"] == serial.meta["n_buckets"]
     assert_same_files(serial, again)
+
+
+# ---------------------------------------------------------------------------------------------
+# the input passes (bbox, count, distribute) in worker processes, over parts of a split source
+# ---------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class SplitChunks:
+    """A splittable, picklable chunk source over arrays: chunks ``[start, stop)`` of ``size`` points
+    each, ``(positions, {"id", "colors"})``; :meth:`split` cuts the chunks into consecutive ranges as
+    :class:`~dmrt.io.pointcloud.PointRange` cuts records. ``bad_chunk``: that chunk's ids come as
+    int32 (a schema mismatch); ``whole``: :meth:`split` returns ``[self]`` (an input that cannot
+    seek)."""
+
+    pos: np.ndarray
+    ids: np.ndarray
+    size: int
+    start: int = 0
+    stop: int | None = None
+    bad_chunk: int = -1
+    whole: bool = False
+
+    def __call__(self):
+        stop = -(-len(self.pos) // self.size) if self.stop is None else self.stop
+        for c in range(self.start, stop):
+            ids = self.ids[c * self.size:(c + 1) * self.size]
+            yield (self.pos[c * self.size:(c + 1) * self.size],
+                   {"id": ids.astype(np.int32) if c == self.bad_chunk else ids, "colors": color_of(ids)})
+
+    def split(self, parts: int) -> list["SplitChunks"]:
+        stop = -(-len(self.pos) // self.size) if self.stop is None else self.stop
+        parts = max(1, min(parts, stop - self.start))
+        if self.whole or parts == 1:
+            return [self]
+        cuts = [self.start + (stop - self.start) * i // parts for i in range(parts + 1)]
+        return [dataclasses.replace(self, start=a, stop=b) for a, b in zip(cuts, cuts[1:])]
+
+
+def test_split_ply_input_in_workers_is_byte_identical(tmp_path, pool):
+    """A binary PLY read through point_range in 2 parts: bbox, count and distribute run as tasks (each
+    part spills to its own files per bucket); the level files are the serial build's, byte for byte,
+    over-full buckets (streaming path) included."""
+    pos, ids = parallel_cloud()
+    ply = tmp_path / "cloud.ply"
+    with PointWriter(ply, normals=False, colors=True) as w:
+        w.write(PointCloud(pos, colors=color_of(ids)))
+    src = point_range(ply, 20_000)
+    lo, hi = pos.min(0), pos.max(0)
+    root = float(np.linalg.norm(hi - lo)) / 3
+    cfg = OctreeConfig(levels=8, root_cell=root, memory_limit_mb=2)
+    serial = Octree.build(src, tmp_path / "s", cfg, bbox=(lo, hi), progress=False)
+    par = Octree.build(src, tmp_path / "p", cfg, progress=False, executor=pool)  # bbox in the workers too
+    assert serial.meta["input_parts"] == 1 and par.meta["input_parts"] == 2
+    assert par.meta["bbox"] == [lo.tolist(), hi.tolist()]
+    for t in (serial, par):
+        assert t.meta["max_bucket_points"] > t.meta["bucket_capacity"], "no over-full bucket: streaming path not run"
+        assert t.meta["points_outside_bbox"] == 0
+    assert_same_files(serial, par)
+    assert sorted(os.listdir(par.path)) == sorted(os.listdir(serial.path))  # no spill folders left
+    assert not (tmp_path / "p.partial").exists()
+
+
+def test_split_input_outside_bbox_one_part_and_errors(tmp_path, pool):
+    pos, ids = tricky_cloud()
+    lo, hi = pos.min(0), pos.max(0)
+    root = float(np.linalg.norm(hi - lo)) / 3
+    cfg = OctreeConfig(levels=9, root_cell=root, memory_limit_mb=0.05)  # ~1000-point buckets, over-full ones
+    # a given bbox that leaves points out: they are clipped into the boundary cells and counted
+    box = (lo, hi - [2.0, 2.0, 0.5])
+    src = SplitChunks(pos, ids, 3001)
+    serial = Octree.build(src, tmp_path / "s", cfg, bbox=box, progress=False)
+    par = Octree.build(src, tmp_path / "p", cfg, bbox=box, progress=False, executor=pool)
+    assert par.meta["input_parts"] == 2
+    outside = int(np.count_nonzero(np.any(pos > box[1], axis=1)))
+    assert outside > 0 and serial.meta["points_outside_bbox"] == par.meta["points_outside_bbox"] == outside
+    assert par.meta["max_bucket_points"] > par.meta["bucket_capacity"]
+    assert_same_files(serial, par)
+    np.testing.assert_array_equal(np.sort(np.concatenate(ids_per_level(par))), ids)
+
+    # a source whose split returns one part is read here, as without split
+    one = Octree.build(dataclasses.replace(src, whole=True), tmp_path / "o", cfg, bbox=box, progress=False,
+                       executor=pool)
+    assert one.meta["input_parts"] == 1 and one.meta["workers"] == 2
+    assert_same_files(serial, one)
+
+    # a schema mismatch in the second part, found by a task, reaches the caller; nothing is left
+    bad = dataclasses.replace(src, bad_chunk=7)
+    with pytest.raises(ValueError, match="input part 2 of 2, chunk 3: attributes .* differ"):
+        Octree.build(bad, tmp_path / "x", cfg, bbox=box, progress=False, executor=pool)
+    assert not (tmp_path / "x").exists() and not (tmp_path / "x.partial").exists()

@@ -33,7 +33,8 @@ Out-of-core build (memory ``M = memory_limit_mb``, ``W`` workers)
 3. choose the *bucket level* ``c`` = the coarsest level whose cells each hold at most one bucket's
    capacity (0.4 M / W of records plus work arrays), and cut the Morton-sorted level-``c`` cells
    into buckets of consecutive cells, each within capacity;
-4. *distribute*: stream the points into per-bucket spill files (``M/4`` bytes of buffers);
+4. *distribute*: stream the points into per-bucket spill files (``M/4`` bytes of buffers), in input
+   order;
 5. *candidates*: levels ``l < c`` have cells spanning several buckets. A level-``l`` pick is the best
    point of its cell that levels ``< l`` did not take; at most ``l`` points of the cell were taken, so
    it is among the cell's ``l + 1`` best, hence among the union over buckets of each bucket's ``l + 1``
@@ -50,21 +51,35 @@ cells per level rather than to its number of points (plus one byte per point). I
 spilled once more, in runs of whole finest cells of at most half the capacity, and each run is
 sorted alone, so it is written in the same order as a bucket selected in memory.
 
-Passes 1, 2 and 4 read the input, in this process. With a distributed executor (``executor`` of
-:meth:`Octree.build`, e.g. :class:`~dmrt.preprocess.parallel.ProcessPool`), passes 5 and 6 run as
-tasks, one per bucket, in ``W = executor.workers`` processes: a task reads its bucket's spill files
-and returns the candidates (5) or writes the bucket's levels to ``select/b<bucket>/`` in the
-temporary folder and deletes the bucket's spill folder (6); this process resolves the coarse levels
-and appends the buckets' level files in bucket order, deleting each as it goes. W workers hold W
-buckets at once, hence the capacity of 0.4 M / W each; every worker process brings its own
-interpreter with numpy (~45 MB resident) on top. The level files are the serial build's, byte for
-byte. Measured (``bench/bench_octree.py``, 4M points, ``M`` = 256 MB, input generation excluded):
-serially, select takes ~70% of the build, count and distribute ~15% each, candidates nothing
-(``c`` = 0 there); so beyond a few workers the passes that read the input, here, dominate.
+With a distributed executor (``executor`` of :meth:`Octree.build`, e.g.
+:class:`~dmrt.preprocess.parallel.ProcessPool`; ``W = executor.workers`` processes), passes 5 and 6
+run as tasks, one per bucket: a task reads its bucket's spill files and returns the candidates (5)
+or writes the bucket's levels to ``select/b<bucket>/`` in the temporary folder and deletes the
+bucket's spill folder (6); this process resolves the coarse levels and appends the buckets' level
+files in bucket order, deleting each as it goes. W workers hold W buckets at once, hence the
+capacity of 0.4 M / W each; every worker process brings its own interpreter with numpy (~45 MB
+resident) on top.
 
-Input chunks are processed in slices of about ``M / 8`` of work arrays, but the caller's chunk itself
-counts against the budget: keep ``chunk_size * record_bytes`` well below ``M`` (``record_bytes`` = 24
-for positions plus the attributes' bytes). The interpreter with numpy (~40 MB resident) comes on
+Passes 1, 2 and 4 read the input. They run as tasks too when the source *splits*: a picklable
+callable with a method ``split(parts)`` returning at most ``parts`` consecutive sub-sources that
+together yield the same points in the same order (:class:`~dmrt.io.pointcloud.PointRange` of a
+binary PLY, :class:`OctreeRange`). The source is split into ``K <= W`` parts, one task each, and
+each task holds 1/K of the tables, buffers and slices a serial pass holds: (1) returns the part's
+box and point count; (2) returns the part's sparse counts, coarsened against ``M/256/K`` entries,
+which this process merges at the coarsest level any part reached and coarsens while over ``M/256``
+(see :meth:`_Builder._count`); (4) writes the part's points of bucket ``b`` to
+``spill/b<bucket>/p<part>/``. A bucket is then read part after part, which is the input order, so
+passes 5 and 6 see exactly what the serial build spilled. A source without ``split`` (a plain
+callable, a list), or one that returns a single part, is read in this process. Either way the
+level files are the serial build's, byte for byte. Measured (``bench/bench_octree.py``, 4M points,
+``M`` = 256 MB, input generation excluded, before the input passes ran in the workers): serially,
+select takes ~70% of the build, count and distribute ~15% each, candidates nothing (``c`` = 0
+there); so beyond a few workers the passes that read the input dominate unless they split.
+
+Input chunks are processed in slices of about ``M / 8`` (``M / 8K`` per part) of work arrays, but
+the caller's chunk itself counts against the budget: keep ``chunk_size * record_bytes`` well below
+``M`` (``M / K`` with a split source; ``record_bytes`` = 24 for positions plus the attributes'
+bytes). The interpreter with numpy (~40 MB resident) comes on
 top. Measured (``bench/bench_octree.py``, 20M points of 39 bytes = 744 MB, ``M`` = 256 MB): maximum
 RSS 174,724 kB (``/usr/bin/time -v``) including that baseline.
 
@@ -194,16 +209,18 @@ def _chunk_source(chunks_fn) -> Callable[[], Iterator]:
     raise TypeError(f"chunks_fn must be callable, got {type(chunks_fn).__name__}")
 
 
-def _iter_normalized(chunks_fn, schema=None, max_points=None):
-    """Yield ``(positions, attrs)`` from the source, checking the attribute schema, and split into
-    slices of at most ``max_points`` so working arrays stay bounded."""
+def _iter_normalized(chunks_fn, schema=None, max_points=None, where=""):
+    """Yield ``(positions, attrs)`` from the source, checking the attribute schema (``{name: (dtype
+    str, per-point shape)}``, as the first chunk's), and split into slices of at most
+    ``max_points`` so working arrays stay bounded. ``where`` prefixes the chunk in error messages
+    (e.g. ``"input part 2 of 4, "``: chunks are counted from the part's start)."""
+    want = None if schema is None else {k: (str(dt), list(s)) for k, (dt, s) in schema.items() if k != "positions"}
     for i, item in enumerate(chunks_fn()):
-        pos, attrs = _normalize_chunk(item, where=f"chunk {i}")
-        if schema is not None:
+        pos, attrs = _normalize_chunk(item, where=f"{where}chunk {i}")
+        if want is not None:
             got = {k: (str(v.dtype), list(v.shape[1:])) for k, v in attrs.items()}
-            want = {k: v for k, v in schema.items() if k != "positions"}
             if got != want:
-                raise ValueError(f"chunk {i}: attributes {got} differ from the first chunk's {want}")
+                raise ValueError(f"{where}chunk {i}: attributes {got} differ from the first chunk's {want}")
         n = len(pos)
         if n == 0:
             continue
@@ -214,20 +231,125 @@ def _iter_normalized(chunks_fn, schema=None, max_points=None):
 
 def compute_bbox(chunks_fn, progress=False) -> tuple[np.ndarray, np.ndarray, int]:
     """One streaming pass: ``(min (3,) float64, max (3,) float64, number of points)``."""
-    lo = np.full(3, np.inf)
-    hi = np.full(3, -np.inf)
-    n = 0
     with _progress(None, "octree: bbox", progress) as bar:
-        for pos, _ in _iter_normalized(_chunk_source(chunks_fn)):
-            lo = np.minimum(lo, pos.min(axis=0))
-            hi = np.maximum(hi, pos.max(axis=0))
-            n += len(pos)
-            bar.update(len(pos))
+        return _check_bbox(*_bbox_part((0, 1, _chunk_source(chunks_fn)), bar=bar))
+
+
+def _check_bbox(lo, hi, n):
     if n == 0:
         raise ValueError("the point source yielded no points")
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise ValueError("the point source contains non-finite coordinates")
     return lo, hi, n
+
+
+# ---------------------------------------------------------------------------------------------
+# the passes that read the input (bbox, count, distribute). Each reads one part of the input,
+# ``item = (part, parts, chunk source)``: the whole source in this process (the serial path,
+# ``(0, 1, source)``), or one part of a split source as a task in a worker process; module-level,
+# with picklable arguments, for the executor.
+# ---------------------------------------------------------------------------------------------
+def _where(item) -> str:
+    part, parts, _ = item
+    return f"input part {part + 1} of {parts}, " if parts > 1 else ""
+
+
+def _bbox_part(item, bar=None) -> tuple[np.ndarray, np.ndarray, int]:
+    """Bounding box of one part: ``(min (3,) float64, max (3,) float64, points)``; ``inf`` and
+    ``-inf`` without points (the neutral elements of combining parts), NaN where a coordinate is."""
+    lo, hi, n = np.full(3, np.inf), np.full(3, -np.inf), 0
+    for pos, _ in _iter_normalized(item[2], where=_where(item)):
+        lo = np.minimum(lo, pos.min(axis=0))
+        hi = np.maximum(hi, pos.max(axis=0))
+        n += len(pos)
+        if bar is not None:
+            bar.update(len(pos))
+    return lo, hi, n
+
+
+def _count_part(item, grid, schema, slice_points, cap, bbox=None, bar=None):
+    """Sparse point counts of one part's cells at the finest level whose table stays within
+    ``cap`` entries: counted at the finest grid level, coarsened one level at a time (keys
+    ``>> 3``) whenever the table exceeds ``cap``.
+
+    Returns
+    -------
+    level : int
+    keys : (m,) int64, sorted Morton keys of the occupied level-``level`` cells
+    counts : (m,) int64
+    points : int
+    outside : int, points outside ``bbox`` (``(lo (3,), hi (3,))``; 0 without)
+    """
+    level = grid.finest
+    keys = np.zeros(0, np.int64)
+    cnts = np.zeros(0, np.int64)
+    n = n_out = 0
+    for pos, _ in _iter_normalized(item[2], schema, slice_points, _where(item)):
+        if not np.isfinite(pos).all():
+            raise ValueError("the point source contains non-finite coordinates")
+        if bbox is not None:
+            n_out += int(np.count_nonzero(np.any((pos < bbox[0]) | (pos > bbox[1]), axis=1)))
+        k = morton_encode(grid.coords(pos) >> (grid.finest - level))
+        keys, cnts = _merge_counts(keys, cnts, *_unique_counts(k))
+        while len(keys) > cap and level > 0:
+            level -= 1
+            keys, cnts = _merge_counts(keys >> 3, cnts)
+        n += len(pos)
+        if bar is not None:
+            bar.update(len(pos))
+    return level, keys, cnts, n, n_out
+
+
+def _distribute_part(item, work, bucket_starts, slice_points, buffer_bytes, bar=None) -> np.ndarray:
+    """Stream one part's points into its spill files of every bucket (``work.part_folder(bucket,
+    part)``), in input order, holding at most ``buffer_bytes`` of records in buffers.
+
+    Parameters
+    ----------
+    work : _Buckets
+    bucket_starts : (buckets,) int64, the first level-``work.c`` Morton key of every bucket
+
+    Returns
+    -------
+    (buckets,) int64, the points written to each bucket
+    """
+    part, g, c, schema = item[0], work.grid, work.c, work.schema
+    record_bytes = _field_bytes(schema)
+    nb = len(bucket_starts)
+    # the bucket folders exist (made by the parent): a task still running after the build failed
+    # and removed its temporary folder fails here instead of making the folder again
+    apps = [_Appender(work.part_folder(b, part), schema, parents=False) for b in range(nb)]
+    buf = [[] for _ in range(nb)]
+    buffered = 0
+
+    def flush():
+        for b in range(nb):
+            if buf[b]:
+                parts = buf[b]
+                rec = parts[0] if len(parts) == 1 else {k: np.concatenate([p[k] for p in parts]) for k in schema}
+                apps[b].write(rec)
+                apps[b].close()  # never hold thousands of handles
+                buf[b] = []
+
+    for pos, attrs in _iter_normalized(item[2], schema, slice_points, _where(item)):
+        kc = morton_encode(g.coords(pos) >> (g.finest - c))
+        bid = np.searchsorted(bucket_starts, kc, side="right") - 1
+        o = np.argsort(bid, kind="stable")
+        bs = bid[o]
+        cuts = np.flatnonzero(np.r_[True, bs[1:] != bs[:-1], True])
+        rec = {"positions": pos, **attrs}
+        rec = {k: v[o] for k, v in rec.items()}
+        for i in range(len(cuts) - 1):
+            a, e = cuts[i], cuts[i + 1]
+            buf[bs[a]].append({k: v[a:e] for k, v in rec.items()})
+        buffered += len(pos) * record_bytes
+        if buffered > buffer_bytes:
+            flush()
+            buffered = 0
+        if bar is not None:
+            bar.update(len(pos))
+    flush()
+    return np.array([app.count for app in apps], np.int64)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -342,17 +464,19 @@ def _field_bytes(schema) -> int:
 
 
 class _Appender:
-    """Append raw arrays to ``<dir>/<field>.bin`` files (opened lazily, kept open)."""
+    """Append raw arrays to ``<dir>/<field>.bin`` files (opened lazily, kept open); ``parents``:
+    whether to make the folder's missing parents too."""
 
-    def __init__(self, directory: Path, schema):
+    def __init__(self, directory: Path, schema, parents: bool = True):
         self.dir = Path(directory)
         self.schema = schema
+        self.parents = parents
         self.files = {}
         self.count = 0
 
     def _open(self) -> dict:
         if not self.files:
-            self.dir.mkdir(parents=True, exist_ok=True)
+            self.dir.mkdir(parents=self.parents, exist_ok=True)
             self.files = {k: open(self.dir / f"{k}.bin", "ab") for k in self.schema}
         return self.files
 
@@ -395,6 +519,25 @@ def _read_records(directory: Path, schema, start=0, stop=None) -> dict:
             a = np.fromfile(f, dtype=dt, count=max(0, stop_k - start) * row)
         out[k] = a.reshape(-1, *shape)
     return out
+
+
+def _read_parts(folders, schema, start=0, stop=None) -> dict:
+    """Records ``[start, stop)`` of the records of several folders taken one after the other (as
+    :func:`_read_records`; a missing folder holds none)."""
+    rows = np.dtype(schema["positions"][0]).itemsize * int(np.prod(schema["positions"][1], dtype=np.int64))
+    pieces, first = [], 0
+    for folder in folders:
+        path = Path(folder) / "positions.bin"
+        n = path.stat().st_size // rows if path.exists() else 0
+        a, b = max(start, first), first + n if stop is None else min(stop, first + n)
+        if b > a:
+            pieces.append(_read_records(folder, schema, a - first, b - first))
+        first += n
+    if len(pieces) == 1:
+        return pieces[0]
+    if not pieces:
+        return {k: np.zeros((0, *shape), dt) for k, (dt, shape) in schema.items()}
+    return {k: np.concatenate([p[k] for p in pieces]) for k in schema}
 
 
 def _unique_counts(a: np.ndarray):
@@ -589,7 +732,10 @@ class Octree:
             Each chunk is ``(positions (n, 3) float64, {name: (n, ...) array})``, a dict with
             ``'positions'``, or a ``PointCloud``. Read 2 times (3 without ``bbox``), plus the
             first chunk once more for the attribute schema; every pass must yield the same points
-            in the same order. Attributes travel with the points.
+            in the same order, and every chunk the first chunk's attributes (dtype and shape).
+            Attributes travel with the points. A picklable callable with ``split(parts) -> list``
+            of consecutive sub-sources (:class:`~dmrt.io.pointcloud.PointRange`,
+            :class:`OctreeRange`) is read in parts by the workers of a distributed ``executor``.
         out_dir : path
             Written atomically: built in ``<out_dir>.partial`` beside it and renamed when
             complete. An existing octree there is replaced; any other non-empty folder is an error.
@@ -602,8 +748,12 @@ class Octree:
             When distributed, the candidates and select passes run as tasks, one per bucket,
             each worker within ``memory_limit_mb / executor.workers``; the workers read and write
             the build's temporary folder beside ``out_dir``, so it must be on a file system they
-            see. The input is still read here. The level files equal those of the serial build
-            (None or an :class:`~dmrt.preprocess.parallel.InProcess`) byte for byte.
+            see. When ``chunks_fn`` splits into several parts (at most ``executor.workers``), the
+            passes that read the input (bbox, count, distribute) run as tasks too, one per part,
+            each within its share of the memory; else they run here. An error in a task (e.g. a
+            chunk whose attributes differ, named by its part and its index in the part) is raised
+            here. The level files equal those of the serial build (None or an
+            :class:`~dmrt.preprocess.parallel.InProcess`) byte for byte.
         """
         config = config or OctreeConfig()
         src = _chunk_source(chunks_fn)
@@ -663,24 +813,32 @@ class _Builder:
         # the bucket passes run as tasks of a distributed executor, else here (the serial path)
         self.executor = executor if executor is not None and executor.distributed else None
         self.workers = max(1, int(self.executor.workers)) if self.executor is not None else 1
+        # the passes that read the input run as tasks, one per part, when the source splits
+        # into several (consecutive ranges of the input: PointRange, OctreeRange), else here
+        parts = src.split(self.workers) if self.executor is not None and callable(getattr(src, "split", None)) else []
+        self.parts = list(parts) if len(parts) > 1 else [src]
         self.timings = {}
 
     # -- budget split -----------------------------------------------------------------------------
     def _plan_memory(self):
         rb = _field_bytes(self.schema)
-        self.record_bytes = rb
+        # the input passes read the K = len(self.parts) parts at once (K <= W), so each part gets
+        # 1/K of the budget of the tables, buffers and slices below (serially K = 1: all of it)
+        k = len(self.parts)
         # counting table: int64 keys + int64 counts (16 B/cell); merging it with a slice's cells
         # takes ~6 temporaries of that size, so 96 B/cell at the peak: cap it at ~3/8 of the budget
+        # (count_cap: the whole table, merged here from the parts'; part_count_cap: one part's)
         self.count_cap = max(4096, self.budget // 256)
+        self.part_count_cap = max(4096, self.budget // k // 256)
         # spill buffers: a quarter of the budget
-        self.buffer_bytes = max(1 << 16, self.budget // 4)
+        self.buffer_bytes = max(1 << 16, self.budget // k // 4)
         # one bucket in memory per worker: its records, a copy while writing levels, and ~100
         # bytes/point of work arrays (int64 coordinates 24, keys 8, distances 8, lexsort 16, float
         # temporaries 48); W workers hold W buckets at once, so each gets 0.4 M / W
         self.capacity = max(1024, int(self.budget / self.workers * 0.4 / (2 * rb + 112)))
         # input chunks are sliced so the per-slice work arrays (~ 4 * rb + 64 bytes/point) stay
         # within an eighth of the budget
-        self.slice_points = max(1024, int(self.budget / 8 / (4 * rb + 64)))
+        self.slice_points = max(1024, int(self.budget / k / 8 / (4 * rb + 64)))
 
     # -- passes ------------------------------------------------------------------------------------
     def run(self) -> dict:
@@ -699,16 +857,16 @@ class _Builder:
         self.schema.update({k: (str(v.dtype), tuple(v.shape[1:])) for k, v in attrs0.items()})
         del first, pos0, attrs0
         self._plan_memory()
-        # _iter_normalized compares against lists; keep a list-shaped copy for the check
-        self._schema_for_check = {k: (dt, list(s)) for k, (dt, s) in self.schema.items()}
 
+        self.n_total = None
         if self.bbox is None:
-            lo, hi, n = compute_bbox(self.src, self.progress)
-            self.n_total = n
+            lo, hi, n = np.full(3, np.inf), np.full(3, -np.inf), 0
+            for lo_p, hi_p, n_p in self._input_pass(_bbox_part, "octree: bbox"):
+                lo, hi, n = np.minimum(lo, lo_p), np.maximum(hi, hi_p), n + n_p
+            lo, hi, self.n_total = _check_bbox(lo, hi, n)
         else:
             lo = np.asarray(self.bbox[0], np.float64).reshape(3)
             hi = np.asarray(self.bbox[1], np.float64).reshape(3)
-            self.n_total = None
         self.timings["bbox_s"] = time.perf_counter() - t0
         extent = np.maximum(hi - lo, 0.0)
         diag = float(np.linalg.norm(extent))
@@ -761,17 +919,26 @@ class _Builder:
             "bucket_capacity": int(self.capacity),
             "points_outside_bbox": int(outside),
             "workers": self.workers,
+            "input_parts": len(self.parts),
             "timings": self.timings,
         }
 
-    def _iter_checked(self):
-        return _iter_normalized(self.src, self._schema_for_check, self.slice_points)
+    def _input_pass(self, fn, desc, **shared):
+        """``fn((part, parts, source), **shared)`` per part of the input, results in part order: as
+        tasks of the executor when the source split into several parts, else here on the whole
+        source (with a bar over the points)."""
+        items = [(i, len(self.parts), src) for i, src in enumerate(self.parts)]
+        if len(items) > 1:
+            yield from self.executor.imap(fn, items, desc=desc, progress=self.progress, **shared)
+            return
+        with _progress(self.n_total, desc, self.progress) as bar:
+            yield fn(items[0], bar=bar, **shared)
 
     # pass: everything into level 0 when there are no grid levels
     def _copy_all(self):
         app = _Appender(self.tmp / "level_00", self.schema)
         with _progress(self.n_total, "octree: copy", self.progress) as bar:
-            for pos, attrs in self._iter_checked():
+            for pos, attrs in _iter_normalized(self.src, self.schema, self.slice_points):
                 app.write({"positions": pos, **attrs})
                 bar.update(len(pos))
         app.close()
@@ -780,26 +947,34 @@ class _Builder:
     # pass: sparse counts at the finest affordable level
     def _count(self):
         g = self.grid
-        level = g.finest
-        keys = np.zeros(0, np.int64)
-        cnts = np.zeros(0, np.int64)
-        n = 0
-        n_out = 0
-        lo, hi = g.origin, np.asarray(self.bbox[1]) if self.bbox is not None else None
-        with _progress(self.n_total, "octree: count", self.progress) as bar:
-            for pos, _ in self._iter_checked():
-                if not np.isfinite(pos).all():
-                    raise ValueError("the point source contains non-finite coordinates")
-                if hi is not None:
-                    n_out += int(np.count_nonzero(np.any((pos < lo) | (pos > hi), axis=1)))
-                k = morton_encode(g.coords(pos) >> (g.finest - level))
-                uk, uc = _unique_counts(k)
-                keys, cnts = _merge_counts(keys, cnts, uk, uc)
-                while len(keys) > self.count_cap and level > 0:
-                    level -= 1
-                    keys, cnts = _merge_counts(keys >> 3, cnts)
-                n += len(pos)
-                bar.update(len(pos))
+        level, keys, cnts = g.finest, np.zeros(0, np.int64), np.zeros(0, np.int64)
+        n = n_out = 0
+        bbox = (g.origin, np.asarray(self.bbox[1], np.float64)) if self.bbox is not None else None
+        results = self._input_pass(_count_part, "octree: count", grid=g, schema=self.schema,
+                                   slice_points=self.slice_points, cap=self.part_count_cap, bbox=bbox)
+        # The serial pass (one part, cap = count_cap) ends at the finest level whose table of *all*
+        # the points fits count_cap (0 if none does), L* say: a table only grows as points come, so
+        # a level that overflowed on some prefix overflows for the whole input, and at the end the
+        # table fits. That is a pure function of the point set, so the order of merging does not
+        # matter. Here the parts' tables are brought to the coarsest level any part reached
+        # (keys >> 3 per level), merged, and coarsened while over count_cap: each merged table is
+        # the table of a subset of the points, so this never coarsens past L*. The result is the
+        # serial table when every part stopped at L* or finer, i.e. when no part alone has
+        # more than count_cap / K cells at L*. A part that has (not rare: in bench_octree's 4M
+        # points, each half alone has over half of the 722k level-4 cells, so 2 parts stop at
+        # level 3) leaves the table coarser than L*: the serial table coarsened. That changes the
+        # bucket level c only where no level up to the table's has every cell within a bucket's
+        # capacity (c is then the table's level, and more buckets are over-full); the level files
+        # do not depend on the buckets, so they are the same bytes either way.
+        for level_p, keys_p, cnts_p, n_p, out_p in results:
+            lvl = min(level, level_p)
+            keys, cnts = _merge_counts(keys >> (3 * (level - lvl)), cnts, keys_p >> (3 * (level_p - lvl)), cnts_p)
+            del keys_p, cnts_p
+            level = lvl
+            while len(keys) > self.count_cap and level > 0:
+                level -= 1
+                keys, cnts = _merge_counts(keys >> 3, cnts)
+            n, n_out = n + n_p, n_out + out_p
         if self.n_total is not None and n != self.n_total:
             raise RuntimeError(f"chunks_fn yielded {n} points now and {self.n_total} before: "
                                "it must yield the same points on every call")
@@ -828,50 +1003,21 @@ class _Builder:
         self.bucket_counts = np.asarray(counts, np.int64)
         self.bucket_offsets = np.r_[0, np.cumsum(self.bucket_counts)]
         del self.cell_keys, self.cell_counts
-        self.work = _Buckets(str(self.spill.resolve()), self.schema, self.grid, self.c, self.capacity)
+        self.work = _Buckets(str(self.spill.resolve()), self.schema, self.grid, self.c, self.capacity,
+                             len(self.parts))
+        for b in range(len(self.bucket_starts)):
+            self.work.folder(b).mkdir()
 
-    def _bucket_dir(self, b: int) -> Path:
-        return self.work.folder(b)
-
-    # pass: points -> per-bucket spill files
+    # pass: points -> per-bucket spill files, one folder per bucket and part
     def _distribute(self):
-        g, c = self.grid, self.c
-        nb = len(self.bucket_starts)
-        apps = [_Appender(self._bucket_dir(b), self.schema) for b in range(nb)]
-        buf = [[] for _ in range(nb)]
-        buffered = 0
-
-        def flush():
-            for b in range(nb):
-                if buf[b]:
-                    parts = buf[b]
-                    rec = parts[0] if len(parts) == 1 else {k: np.concatenate([p[k] for p in parts]) for k in self.schema}
-                    apps[b].write(rec)
-                    apps[b].close()  # never hold thousands of handles
-                    buf[b] = []
-
-        with _progress(self.n_total, "octree: distribute", self.progress) as bar:
-            for pos, attrs in self._iter_checked():
-                kc = morton_encode(g.coords(pos) >> (g.finest - c))
-                bid = np.searchsorted(self.bucket_starts, kc, side="right") - 1
-                o = np.argsort(bid, kind="stable")
-                bs = bid[o]
-                cuts = np.flatnonzero(np.r_[True, bs[1:] != bs[:-1], True])
-                rec = {"positions": pos, **attrs}
-                rec = {k: v[o] for k, v in rec.items()}
-                for i in range(len(cuts) - 1):
-                    a, e = cuts[i], cuts[i + 1]
-                    buf[bs[a]].append({k: v[a:e] for k, v in rec.items()})
-                buffered += len(pos) * self.record_bytes
-                if buffered > self.buffer_bytes:
-                    flush()
-                    buffered = 0
-                bar.update(len(pos))
-        flush()
-        for b, app in enumerate(apps):
-            if app.count != self.bucket_counts[b]:
-                raise RuntimeError(f"bucket {b} received {app.count} points, counted {self.bucket_counts[b]}: "
-                                   "chunks_fn must yield the same points on every call")
+        got = np.zeros(len(self.bucket_starts), np.int64)
+        for counts in self._input_pass(_distribute_part, "octree: distribute", work=self.work,
+                                       bucket_starts=self.bucket_starts, slice_points=self.slice_points,
+                                       buffer_bytes=self.buffer_bytes):
+            got += counts
+        for b in np.flatnonzero(got != self.bucket_counts)[:1]:
+            raise RuntimeError(f"bucket {b} received {got[b]} points, counted {self.bucket_counts[b]}: "
+                               "chunks_fn must yield the same points on every call")
 
     # pass: candidates for levels 0..c-1, resolved exactly in memory
     def _coarse_levels(self):
@@ -954,16 +1100,26 @@ class _Buckets:
     grid: _Grid
     c: int  # bucket level
     capacity: int  # points of one bucket in memory
+    parts: int = 1  # parts of the input, each distributed to its own folder of every bucket
 
     def folder(self, b: int) -> Path:
         return Path(self.spill) / f"b{b:06d}"
+
+    def part_folder(self, b: int, part: int) -> Path:
+        return self.folder(b) / f"p{part:03d}"
+
+    def read(self, b: int, schema=None, start=0, stop=None) -> dict:
+        """Records ``[start, stop)`` of bucket ``b`` (all fields, or those of ``schema``): its parts'
+        records in part order, which is the input order, as the serial build spilled them."""
+        folders = [self.part_folder(b, p) for p in range(self.parts)]
+        return _read_parts(folders, schema or self.schema, start, stop)
 
     def chunks(self, b: int, n: int, schema=None):
         """Yield ``(local_start, record)`` for bucket ``b`` (``n`` points) in slices within the
         capacity (all fields, or those of ``schema``)."""
         step = n if n <= self.capacity else max(1024, self.capacity // 2)
         for s in range(0, n, step):
-            yield s, _read_records(self.folder(b), schema or self.schema, s, min(n, s + step))
+            yield s, self.read(b, schema, s, min(n, s + step))
 
     def candidates(self, b: int, n: int, offset: int) -> list[dict]:
         """Per level ``l < c``: the ``l + 1`` best points of every level-``l`` cell in bucket ``b``
@@ -987,7 +1143,7 @@ class _Buckets:
         """Levels ``c ..`` and the remainder of bucket ``b`` (``n`` points, minus the local indices
         ``coarse_local`` taken by coarse levels), appended to ``writers[level]`` in Morton order."""
         if n <= self.capacity:
-            self._select_in_memory(_read_records(self.folder(b), self.schema), coarse_local, writers)
+            self._select_in_memory(self.read(b), coarse_local, writers)
         else:
             self._select_streaming(b, n, coarse_local, writers)
 
