@@ -15,6 +15,7 @@ Embree ray casts of the scene's reference mesh (:mod:`reference`).
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -266,6 +267,8 @@ def run_table1(ws: Workspace, p: Table1Params, out: Path) -> dict:
             "phases_s": {ph: t.get(ph) for ph in p.phases},
             "preprocess_total_s": float(sum(t.get(ph) or 0.0 for ph in p.phases)),
             "depthmaps_gpu_ms": t.get("depthmaps_gpu_ms"), "peak_rss_mb": meta.get("peak_rss_mb_after"),
+            "peak_anon_mb": meta.get("peak_anon_mb_per_phase"), "cpu_s_per_phase": meta.get("cpu_s_per_phase"),
+            "cores": os.cpu_count(), "octree": meta.get("octree"), "radii": meta.get("normals_radii"),
             "derived_from_base": meta.get("derived_from") is not None,
             "scene_generation_s": ws.setup_s.get("scene_generation"), "labeling": meta.get("labeling")}
 

@@ -281,8 +281,9 @@ def _not_run(rs: ResultSet, s: Section, name: str) -> bool:
 # ----------------------------------------------------------------------------------------------
 # Sections
 # ----------------------------------------------------------------------------------------------
-def section_table1(rs: ResultSet, out: Path) -> Section:
-    s = Section("table1", "Table 1: scene characteristics and preprocessing")
+def section_table1(rs: ResultSet, out: Path, key: str = "table1",
+                   title: str = "Table 1: scene characteristics and preprocessing") -> Section:
+    s = Section(key, title)
     if _not_run(rs, s, "table1"):
         return s
     m = _meas(rs, "table1")
@@ -299,12 +300,18 @@ def section_table1(rs: ResultSet, out: Path) -> Section:
         {"quantity": "photo size", "ours": "x".join(map(str, m["photo_size"])), "paper (Scene 2)": None,
          "ours / paper": None},
     ]
-    s.table("table1_scene", "Scene characteristics (paper Table 1)", rows)
+    s.table(f"{key}_scene", "Scene characteristics (paper Table 1)", rows)
     phases = [{"phase": k.removesuffix("_s"), "seconds": v} for k, v in m["phases_s"].items()]
     phases.append({"phase": "total (these phases)", "seconds": m["preprocess_total_s"]})
     if m.get("scene_generation_s") is not None:
         phases.append({"phase": "scene generation (not preprocessing)", "seconds": m["scene_generation_s"]})
-    s.table("table1_preprocessing", "Preprocessing wall-clock seconds per phase", phases)
+    s.table(f"{key}_preprocessing", "Preprocessing wall-clock seconds per phase", phases)
+    cpu = m.get("cpu_s_per_phase")
+    if cpu:
+        total = m["preprocess_total_s"]
+        s.text(f"{c['points'] / total / 1e6:.2f}M points per second of these phases; CPU seconds per phase "
+               f"(worker processes included): " + ", ".join(f"{k.removesuffix('_s')} {fmt(v)}" for k, v in cpu.items())
+               + f"; {m.get('cores')} cores.")
     if m.get("derived_from_base"):
         s.text("The proxies, candidates and labeling phases were run for this proxy set on the depth maps of "
                "the preset's one preprocessing (bench.harness.derive_proxy_bundle), exactly as `dmrt preprocess` "
@@ -817,6 +824,7 @@ def section_real_views(rs: ResultSet, out: Path) -> Section:
     return s
 
 
+FULL_PRESET = "paper-full"
 BUILDERS = {"table1": section_table1, "table2": section_table2, "table3_fig12": section_table3,
             "fig7": section_fig7, "fig8": section_fig8, "fig9_10": section_fig9, "fig13": section_fig13,
             "memory": section_memory, "real_views": section_real_views}
@@ -920,6 +928,13 @@ def build_report(results_dir, out, preset: str | None = None, machine: str | Non
             except (KeyError, TypeError, ValueError, IndexError) as exc:
                 raise InputError(rs.dir / f"{key}.json", f"cannot build the {key} section: "
                                                          f"{type(exc).__name__}: {exc}") from exc
+        # Table 1 at the paper's own Scene 2 size is a preset of its own (bench/scale_run.sh): its
+        # newest result on this machine stands beside this preset's
+        full = [f for f in sets if f.machine == rs.machine and f.preset == FULL_PRESET and "table1" in f.experiments]
+        if full and rs.preset != FULL_PRESET:
+            sections.insert(1, section_table1(full[-1], tmp, "table1_full", f"Table 1 at Scene 2's size: the "
+                                              f"`{FULL_PRESET}` preset (commit {full[-1].commit}, {full[-1].date})"))
+            shutil.copy2(full[-1].dir / "table1.json", tmp / "results" / f"{FULL_PRESET}-table1.json")
         hist = section_history(history, tmp)
         if hist is not None:
             sections.append(hist)

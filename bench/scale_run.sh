@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Table 1 at the paper's Scene 2 size (bench preset `paper-full`: 683M points, 192 photos of
+# 1024x684): the scene generated and preprocessed end to end on one GPU machine, with
+# /usr/bin/time -v and a sampler of disk, memory and load every 5 s (results/samples.tsv).
+# For a rented machine whose commands are time-limited: start it detached, poll done.txt.
+#
+#   setsid nohup bench/scale_run.sh /tmp/scale >/dev/null 2>&1 </dev/null &
+#   cat /tmp/scale/done.txt      # "table1 rc=STATUS SECONDS s", then "finished"
+#
+# The environment (EGL vendor file, PYTHONPATH with the wheels, DMRT_COMMIT) is the caller's:
+# see ../shared/GPU.md.
+set -u
+out=${1:?usage: bench/scale_run.sh OUT_DIR}
+mkdir -p "$out/results"
+echo -e "unix_s\tdisk_used_mb\tmem_used_mb\tload_1min" >"$out/results/samples.tsv"
+( while true; do
+    echo -e "$(date +%s)\t$(df -B1M --output=used "$out" | tail -1 | tr -d ' ')\t$(free -m | awk '/Mem:/{print $3}')\t$(cut -d' ' -f1 /proc/loadavg)"
+    sleep 5
+  done >>"$out/results/samples.tsv" ) &
+sampler=$!
+nvidia-smi --query-gpu=name,clocks.sm,clocks.max.sm,memory.total --format=csv >"$out/results/gpus.csv" 2>&1
+df -h "$out" >"$out/results/df_before.txt" 2>&1
+t0=$(date +%s)
+/usr/bin/time -v -o "$out/results/time_v.txt" python3 -m dmrt.app.cli bench --preset paper-full \
+    --out "$out/results" --work "$out/work" --only table1 >>"$out/log.txt" 2>&1
+echo "table1 rc=$? $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
+cp "$out"/work/bundle-base/bundle.json "$out/results/bundle.json" 2>/dev/null
+kill $sampler
+tar czf "$out/results.tgz" -C "$out" results log.txt
+echo finished >>"$out/done.txt"
