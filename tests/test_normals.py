@@ -236,3 +236,103 @@ def test_chunked_results_feed_the_octree_and_per_lod_radii(tmp_path):
                           normals=False, memory_limit_mb=1, progress=False)
     np.testing.assert_allclose(lod.radii, splat_radii(tree.read_lod(k)["positions"]), rtol=1e-5)
     assert np.median(lod.radii) / np.median(res.radii) > 0.7 * np.sqrt(f[k - 1])
+
+
+# ---------------------------------------------------------------------------------------------
+# out of core, the input passes as tasks over the parts of a splittable source
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def pool():
+    """Two spawned worker processes (the local default executor)."""
+    from dmrt.preprocess.parallel import ProcessPool
+
+    ex = ProcessPool(2)
+    yield ex
+    ex.close()
+
+
+class WholeSource:
+    """A splittable source that stays whole (as a PointRange of a format that cannot seek)."""
+
+    def __init__(self, src):
+        self.src = src
+
+    def __call__(self):
+        return self.src()
+
+    def split(self, parts):
+        return [self]
+
+
+def assert_same_result(a, b):
+    assert (a.n_points, a.n_buckets, a.margin, a.n_unverified, a.max_bucket_points) == \
+           (b.n_points, b.n_buckets, b.margin, b.n_unverified, b.max_bucket_points)
+    for x, y in ((a.normals, b.normals), (a.radii, b.radii)):
+        assert (x is None) == (y is None)
+        if x is not None:
+            assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
+
+
+@pytest.fixture(scope="module")
+def octree_50k(tmp_path_factory):
+    p = scene(30_000, 20_000)
+    out = tmp_path_factory.mktemp("oct") / "oct"
+    return Octree.build(lambda: ((p[s:s + 10_000], {}) for s in range(0, len(p), 10_000)), out,
+                        OctreeConfig(levels=5, memory_limit_mb=4), progress=False)
+
+
+@pytest.mark.parametrize("given_bbox", [False, True])
+def test_input_passes_as_tasks_equal_serial(octree_50k, pool, tmp_path, given_bbox):
+    from dmrt.preprocess.normals import _split_source
+
+    src = octree_50k.point_range(chunk_size=3000)
+    assert len(_split_source(src, pool)) == 2  # the input passes run as 2 tasks each
+    # a bbox larger than the cloud's shifts the grids: buckets, halos and part boundaries differ
+    p = octree_50k.read_lod(octree_50k.levels)["positions"]
+    bbox = (p.min(0) - 0.3, p.max(0) + 0.1) if given_bbox else None
+    # 1 MiB: a count cap of 4096 cells that each part's table (25k points) exceeds, and ~40 buckets
+    kw = dict(viewpoints=[[3, 3, 2.5]], memory_limit_mb=1, bbox=bbox, progress=False)
+    serial = process_chunked(src, tmp_path / "serial", **kw)
+    assert serial.n_buckets > 10 and serial.n_unverified == 0 and serial.n_points == octree_50k.n_points
+    par = process_chunked(src, tmp_path / "par", executor=pool, **kw)
+    assert_same_result(serial, par)  # bit for bit
+    assert sorted(x.name for x in (tmp_path / "par").iterdir()) == ["normals.npy", "radii.npy"]
+
+
+def test_source_that_stays_whole_and_plain_callables_with_a_pool(octree_50k, pool, tmp_path):
+    src = octree_50k.point_range(chunk_size=3000)
+    kw = dict(normals=False, memory_limit_mb=1, progress=False)
+    serial = process_chunked(src, tmp_path / "serial", **kw)
+    # one part (input passes here, buckets as tasks), and a plain callable without split
+    assert_same_result(serial, process_chunked(WholeSource(src), tmp_path / "whole", executor=pool, **kw))
+    assert_same_result(serial, process_chunked(lambda: src(), tmp_path / "plain", executor=pool, **kw))
+    # a cloud within the budget: the bbox pass as tasks, then processed whole here
+    whole = dict(kw, memory_limit_mb=64)
+    a = process_chunked(src, tmp_path / "whole-serial", **whole)
+    b = process_chunked(src, tmp_path / "whole-par", executor=pool, **whole)
+    assert b.n_buckets == 1
+    assert_same_result(a, b)
+
+
+def test_cell_counts_of_parts_add_up_to_the_serial_table():
+    """The count pass's merge rule (per-part tables at their own shifts, aligned and coarsened while
+    over the cap) gives the serial table, also for uneven parts that stop at different shifts."""
+    from dmrt.preprocess.normals import _add_counts, _count_cells
+
+    p = scene(20_000, 10_000)
+    lo, cell0 = p.min(0), float(np.ptp(p, axis=0).max()) / ((1 << 20) - 1)
+    grid = dict(lo=lo, cell0=cell0, cap=300, slice_points=1024)
+    keys, cnts, shift, n = _count_cells(lambda: iter([(p, {})]), **grid)
+    assert n == len(p) and shift > 0 and len(keys) <= 300
+    part_shifts = set()
+    for cuts in ([0, 300, 9_000, len(p)], [0, 15_000, len(p)], [0, 1, 2, 29_000, len(p)]):
+        k, c, s = np.zeros(0, np.int64), np.zeros(0, np.int64), 0
+        for a, b in zip(cuts, cuts[1:]):
+            kp, cp, sp, m = _count_cells(lambda: iter([(p[a:b], {})]), **grid)
+            assert m == b - a
+            part_shifts.add(sp)
+            k, c, s = _add_counts(k, c, s, kp, cp, sp, grid["cap"])
+        assert s == shift
+        np.testing.assert_array_equal(k, keys)
+        np.testing.assert_array_equal(c, cnts)
+    assert len(part_shifts) > 2  # the parts stopped at different shifts

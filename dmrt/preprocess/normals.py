@@ -9,7 +9,11 @@
   distance to the k-th nearest neighbour (see :func:`splat_radii` for the factor).
 * :func:`process_chunked`: both for a cloud too large for memory, by spatial buckets with a halo;
   equal to the in-memory results wherever the neighbourhood fits inside the halo (counted and
-  reported otherwise).
+  reported otherwise). With a distributed executor the buckets' kNN work runs as tasks, and so do
+  the input passes (bounding box, cell counts, distribution into per-bucket spill files) over the
+  consecutive parts of a splittable source (``split``, e.g. ``Octree.point_range``): each part
+  spills into its own files per bucket, read back in part order, i.e. in input order, so the
+  results equal the serial ones bit for bit.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ import math
 import os
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
@@ -240,6 +244,9 @@ class ChunkedResult:
         Core + halo points of the largest bucket.
     seconds : float
         Wall time.
+    timings : dict
+        Wall seconds per pass of the bucketed path: ``bbox_s`` (0 with a given bbox), ``count_s``,
+        ``distribute_s``, ``buckets_s``; empty for a cloud processed whole.
 
     Limitations: the halo's share of a bucket grows with ``margin`` / bucket size, so tiny budgets
     with sparse clouds process many halo points; a single grid cell denser than the bucket capacity
@@ -254,6 +261,7 @@ class ChunkedResult:
     n_buckets: int
     max_bucket_points: int
     seconds: float
+    timings: dict = field(default_factory=dict)
 
 
 def _margin_from_counts(keys, cnts, cell, k, extent):
@@ -291,11 +299,19 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
     in-memory :func:`estimate_normals` / :func:`splat_radii` up to floating-point noise; the others
     are counted in ``n_unverified``.
 
+    Passes over the input: bounding box (without ``bbox``), point counts per grid cell, and the
+    distribution of core and halo copies into per-bucket spill files in ``work_dir``; then the kNN
+    work per bucket.
+
     Parameters
     ----------
     chunks_fn : callable returning an iterator of chunks (as :meth:`dmrt.preprocess.octree.Octree.build`;
         e.g. ``lambda: octree.iter_levels(range(k))`` for the radii of a level of detail)
-        Read 2 or 3 times, in the same order each time.
+        Read 2 or 3 times, in the same order each time. A *splittable* source (a picklable
+        callable with ``split(parts)`` returning consecutive sub-sources that together yield the
+        same points in the same order, e.g. :meth:`dmrt.preprocess.octree.Octree.point_range` or
+        :class:`dmrt.io.pointcloud.PointRange`) lets a distributed ``executor`` run the input
+        passes too.
     work_dir : path
         Receives ``normals.npy`` / ``radii.npy`` (renamed into place when complete) and temporary
         spill files.
@@ -307,11 +323,15 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
         When neither ``margin`` nor ``bbox`` is given and the cloud fits in the memory budget, it is
         processed whole, in memory (no buckets).
     memory_limit_mb : float
-        Budget for the points of one bucket with its halo and the kNN work arrays.
-    executor : optional, :mod:`dmrt.preprocess.parallel`: the buckets' kNN work as tasks, one per
-        bucket (workers read the spill files in ``work_dir``, so it must be on a file system they
-        share); results are written here, as without it, and equal bit for bit. A cloud processed
-        whole (above) stays in this process.
+        Budget for the points of one bucket with its halo and the kNN work arrays (per task when
+        tasks run at once: see ``executor``).
+    executor : optional, :mod:`dmrt.preprocess.parallel`
+        When distributed: the buckets' kNN work as tasks, one per bucket, and, for a splittable
+        source, the input passes as tasks, one per part of ``chunks_fn.split(executor.workers)``
+        (each counting task may hold a cell table as large as the serial pass's; the spill
+        buffers are shared out). Workers read and write the spill files in ``work_dir``, so it
+        must be on a file system they share. Results are written here, as without it, and equal
+        the serial ones bit for bit. A cloud processed whole (above) stays in this process.
 
     Returns
     -------
@@ -330,9 +350,19 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
     capacity = max(4096, int(budget * 0.5 / 150))
     slice_points = max(1024, budget // 8 // 256)
     knn_rows = max(1024, int(budget * 0.25 / (kmax * 3 * 8 * 3 + kmax * 16)))
+    # the input passes run as tasks over consecutive parts of a splittable source, else here
+    parts = _split_source(src, executor)
+    timings = {}
 
+    tic = time.perf_counter()
     if bbox is None:
-        lo, hi, n = compute_bbox(src, progress)
+        if parts is None:
+            lo, hi, n = compute_bbox(src, progress)
+        else:
+            boxes = executor.map(compute_bbox, parts, desc="normals: bbox", progress=progress)
+            lo = np.min([b[0] for b in boxes], axis=0)
+            hi = np.max([b[1] for b in boxes], axis=0)
+            n = sum(b[2] for b in boxes)
     else:
         lo, hi = (np.asarray(b, np.float64).reshape(3) for b in bbox)
         n = None
@@ -341,30 +371,38 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
         return _process_in_memory(src, n, work, normals, radii, k_normals, k_radii, scale, viewpoints,
                                   progress, t0)
     extent = float(np.max(hi - lo)) or 1.0
-
-    def qcoords(p, c):
-        q = np.floor((p - lo) / c)
-        np.clip(q, 0, (1 << 21) - 1, out=q)
-        return q.astype(np.int64)
+    timings["bbox_s"], tic = time.perf_counter() - tic, time.perf_counter()
 
     # count points per cell of a fine grid, coarsened (cells doubled) while the table is large.
     # Coarser cells are always the fine grid's integer coordinates shifted right (never a second
     # floor() with a doubled cell), so every pass assigns a point to exactly the same cell.
     count_cap = max(4096, budget // 256)
     cell0 = extent / ((1 << 20) - 1)
-    cell, shift = cell0, 0
-    keys = np.zeros(0, np.int64)
-    cnts = np.zeros(0, np.int64)
-    n_seen = 0
-    with _progress(n, "normals: count", progress) as bar:
-        for pos, _ in _iter_normalized(src, None, slice_points):
-            uk, uc = _unique_counts(morton_encode(qcoords(pos, cell0) >> shift))
-            keys, cnts = _merge_counts(keys, cnts, uk, uc)
-            while len(keys) > count_cap:
-                cell, shift = cell * 2, shift + 1
-                keys, cnts = _merge_counts(keys >> 3, cnts)
-            n_seen += len(pos)
-            bar.update(len(pos))
+    grid = dict(lo=lo, cell0=cell0, slice_points=slice_points)
+    if parts is None:
+        with _progress(n, "normals: count", progress) as bar:
+            keys, cnts, shift, n_seen = _count_cells(src, cap=count_cap, bar=bar, **grid)
+        part_n = [n_seen]
+    else:
+        # Each part's table is coarsened by the serial rule against the same cap, and the parent
+        # adds them up by that rule (_add_counts): this gives the serial table. The serial pass
+        # ends at S, the smallest shift whose table of *all* points fits the cap (a pure function
+        # of the point set): it coarsens past a shift s only when the table of the points read so
+        # far, hence that of all points, exceeds the cap at s, so it ends at a shift <= S; and it
+        # ends with all points' table fitting, so at S. The same holds for a part and for a sum of
+        # parts: each coarsens past s only when a subset's table, hence all points', is over the
+        # cap at s, so every shift reached is <= S, and the final sum, all points' table coarsened
+        # while over the cap, ends at S with the same cells and counts. (A part capped at a share
+        # cap / W could stop past S, which no later step undoes; so each part gets the whole cap,
+        # and its table never has more cells than the part has points.)
+        keys, cnts, shift, part_n = np.zeros(0, np.int64), np.zeros(0, np.int64), 0, []
+        for k, c, s, m in executor.imap(_count_cells, parts, desc="normals: count", progress=progress,
+                                        cap=count_cap, **grid):
+            keys, cnts, shift = _add_counts(keys, cnts, shift, k, c, s, count_cap)
+            part_n.append(m)
+        n_seen = sum(part_n)
+    cell = cell0 * 2.0 ** shift  # exactly the serial pass's repeated doubling
+    timings["count_s"], tic = time.perf_counter() - tic, time.perf_counter()
     if n is not None and n_seen != n:
         raise RuntimeError("chunks_fn must yield the same points on every call")
     n = n_seen
@@ -397,66 +435,31 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
     spill = work / f".spill-{os.getpid()}"
     if spill.exists():
         shutil.rmtree(spill)
-    schema = {"positions": ("float64", (3,)), "gidx": ("int64", ()), "core": ("uint8", ())}
     names = {"normals": work / "normals.npy", "radii": work / "radii.npy"}
     tmp_names = {k: work / f".{k}.npy.tmp-{os.getpid()}" for k in names}
     try:
-        # distribute: core copy to the own bucket, halo copies to the other buckets in the margin box
-        apps = [_Appender(spill / f"b{b:06d}", schema) for b in range(nb)]
-        buf = [[] for _ in range(nb)]
-        buffered = 0
-        offsets = np.array([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], np.int64)
-
-        def flush():
-            for b in range(nb):
-                if buf[b]:
-                    rec = {k: np.concatenate([p[k] for p in buf[b]]) for k in schema}
-                    apps[b].write(rec)
-                    apps[b].close()
-                    buf[b] = []
-
-        g = 0
-        with _progress(n, "normals: distribute", progress) as bar:
-            for pos, _ in _iter_normalized(src, None, slice_points):
-                m = len(pos)
-                gidx = np.arange(g, g + m, dtype=np.int64)
-                g += m
-                own = np.searchsorted(starts, morton_encode(qcoords(pos, cell0) >> shift), side="right") - 1
-                # the margin box [p - margin, p + margin] spans at most 2 cells per axis (cell >= 2
-                # margin): its cells are the 8 combinations of its low and high corner cells
-                qlo = qcoords(pos - margin, cell0) >> shift
-                qhi = qcoords(pos + margin, cell0) >> shift
-                # (only occupied cells: a bucket's key range also spans empty cells, which must not
-                # draw halos)
-                bb, pi = [own], [np.arange(m)]  # the core copy, always
-                for off in offsets:
-                    kk = morton_encode(np.where(off, qhi, qlo))
-                    occ = np.flatnonzero(_in_sorted(kk, cell_keys))
-                    bb.append(np.searchsorted(starts, kk[occ], side="right") - 1)
-                    pi.append(occ)
-                bb, pi = np.concatenate(bb), np.concatenate(pi)
-                pair = bb * m + pi
-                pair, _ = _unique_counts(pair)  # one copy per (bucket, point), sorted by bucket
-                bb, ii = pair // m, pair % m
-                core = (bb == own[ii]).astype(np.uint8)
-                cuts = np.flatnonzero(np.r_[True, bb[1:] != bb[:-1], True])
-                for j in range(len(cuts) - 1):
-                    a, e = cuts[j], cuts[j + 1]
-                    sel = ii[a:e]
-                    buf[bb[a]].append({"positions": pos[sel], "gidx": gidx[sel], "core": core[a:e]})
-                buffered += len(bb) * 33
-                if buffered > budget // 4:
-                    flush()
-                    buffered = 0
-                bar.update(m)
-        flush()
+        # distribute: core copy to the own bucket, halo copies to the other buckets in the margin
+        # box; each part into its own spill folder per bucket, a share of the buffer budget each
+        n_parts = 1 if parts is None else len(parts)
+        plan = dict(spill=str(spill), shift=shift, margin=margin, starts=starts, cell_keys=cell_keys,
+                    buffer_bytes=budget // 4 // n_parts, **grid)
+        if parts is None:
+            with _progress(n, "normals: distribute", progress) as bar:
+                written = [_distribute((0, src, 0), bar=bar, **plan)]
+        else:
+            firsts = np.cumsum([0] + part_n[:-1]).tolist()  # each part's first global point index
+            written = executor.map(_distribute, list(zip(range(n_parts), parts, firsts)),
+                                   desc="normals: distribute", progress=progress, **plan)
+        if written != part_n:
+            raise RuntimeError("chunks_fn must yield the same points on every call")
+        timings["distribute_s"], tic = time.perf_counter() - tic, time.perf_counter()
 
         out_n = np.lib.format.open_memmap(tmp_names["normals"], "w+", np.float32, (n, 3)) if normals else None
         out_r = np.lib.format.open_memmap(tmp_names["radii"], "w+", np.float32, (n,)) if radii else None
         n_unverified = 0
         max_bucket = 0
-        task = dict(spill=str(spill), normals=normals, radii=radii, k_normals=k_normals, k_radii=k_radii,
-                    scale=scale, viewpoints=viewpoints, margin=margin, knn_rows=knn_rows)
+        task = dict(spill=str(spill), n_parts=n_parts, normals=normals, radii=radii, k_normals=k_normals,
+                    k_radii=k_radii, scale=scale, viewpoints=viewpoints, margin=margin, knn_rows=knn_rows)
         if executor is None or not executor.distributed:
             results = (_bucket_attrs(b, **task) for b in range(nb))
         else:
@@ -474,6 +477,7 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
             if arr is not None:
                 arr.flush()
         del out_n, out_r
+        timings["buckets_s"] = time.perf_counter() - tic
         shutil.rmtree(spill, ignore_errors=True)
         for k, path in names.items():
             if tmp_names[k].exists():
@@ -487,22 +491,164 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
         normals=np.load(names["normals"], mmap_mode="r") if normals else None,
         radii=np.load(names["radii"], mmap_mode="r") if radii else None,
         n_points=n, margin=margin, n_unverified=n_unverified, n_buckets=nb,
-        max_bucket_points=max_bucket, seconds=time.perf_counter() - t0)
+        max_bucket_points=max_bucket, seconds=time.perf_counter() - t0,
+        timings={k: round(v, 3) for k, v in timings.items()})
 
 
-def _bucket_attrs(b: int, spill: str, normals: bool, radii: bool, k_normals: int, k_radii: int, scale: float,
-                  viewpoints, margin: float, knn_rows: int):
+# the input passes: each runs over the whole source here, or as one task per part of a split one
+def _split_source(src, executor) -> list | None:
+    """The parts of ``src`` to run the input passes on as tasks of ``executor``, or None to run
+    them here: no distributed executor, a source without ``split``, or one that stays whole."""
+    if executor is None or not executor.distributed or not hasattr(src, "split"):
+        return None
+    parts = src.split(max(1, int(executor.workers)))
+    return parts if len(parts) > 1 else None
+
+
+def _qcoords(p: np.ndarray, lo: np.ndarray, cell0: float) -> np.ndarray:
+    """(m, 3) int64 coordinates of points ``p`` (m, 3) on the fine grid (cell ``cell0`` from ``lo``)."""
+    q = np.floor((p - lo) / cell0)
+    np.clip(q, 0, (1 << 21) - 1, out=q)
+    return q.astype(np.int64)
+
+
+def _shifted(keys: np.ndarray, levels: int) -> np.ndarray:
+    """Morton ``keys`` of cells ``levels`` doublings coarser (still sorted, now with repeats)."""
+    return keys >> (3 * levels) if levels else keys
+
+
+def _add_counts(keys, cnts, shift, keys2, cnts2, shift2, cap):
+    """Add a (key, count) table at ``shift2`` to one at ``shift``: both coarsened to the coarser
+    shift, merged, then coarsened while over ``cap`` cells.
+
+    Parameters
+    ----------
+    keys, keys2 : (m,) int64 sorted Morton keys of grid cells at ``fine cell * 2**shift``.
+    cnts, cnts2 : (m,) int64 points per cell.
+
+    Returns
+    -------
+    keys : (m',) int64.  cnts : (m',) int64.  shift : int, the sum's shift.
+    """
+    s = max(shift, shift2)
+    keys, cnts = _merge_counts(_shifted(keys, s - shift), cnts, _shifted(keys2, s - shift2), cnts2)
+    while len(keys) > cap:
+        s += 1
+        keys, cnts = _merge_counts(keys >> 3, cnts)
+    return keys, cnts, s
+
+
+def _count_cells(src, lo, cell0, cap, slice_points, bar=None):
+    """Points per occupied cell of the fine grid, coarsened while over ``cap`` cells.
+
+    Returns
+    -------
+    keys : (m,) int64 sorted Morton keys at the final shift.  cnts : (m,) int64.
+    shift : int, doublings of ``cell0``.  n : int, points read.
+    """
+    keys, cnts, shift, n = np.zeros(0, np.int64), np.zeros(0, np.int64), 0, 0
+    for pos, _ in _iter_normalized(src, None, slice_points):
+        uk, uc = _unique_counts(morton_encode(_qcoords(pos, lo, cell0) >> shift))
+        keys, cnts, shift = _add_counts(keys, cnts, shift, uk, uc, shift, cap)
+        n += len(pos)
+        if bar is not None:
+            bar.update(len(pos))
+    return keys, cnts, shift, n
+
+
+# spill records: a point's position, its index in the input, and whether it is the bucket's own
+_SPILL = {"positions": ("float64", (3,)), "gidx": ("int64", ()), "core": ("uint8", ())}
+# the 8 corners of a margin box, as (low 0 / high 1) per axis
+_CORNERS = np.array([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], np.int64)
+
+
+def _part_folder(spill, b: int, part: int) -> Path:
+    return Path(spill) / f"b{b:06d}" / f"p{part:04d}"
+
+
+def _distribute(item, spill, lo, cell0, shift, margin, starts, cell_keys, slice_points, buffer_bytes,
+                bar=None) -> int:
+    """Append one part's core and halo copies to the spill folders ``<spill>/b<bucket>/p<part>``.
+
+    Parameters
+    ----------
+    item : (part, src, first)
+        The part's number, its chunk source and the global index of its first point.
+    starts : (nb,) int64 sorted first Morton key of each bucket (bucket grid, ``shift``).
+    cell_keys : (m,) int64 sorted occupied cells of the bucket grid.
+    buffer_bytes : int
+        Records buffered before they are written.
+
+    Returns
+    -------
+    int, the points read.
+    """
+    part, src, first = item
+    nb = len(starts)
+    apps = [_Appender(_part_folder(spill, b, part), _SPILL) for b in range(nb)]
+    buf = [[] for _ in range(nb)]
+    buffered = 0
+
+    def flush():
+        for b in range(nb):
+            if buf[b]:
+                apps[b].write({k: np.concatenate([p[k] for p in buf[b]]) for k in _SPILL})
+                apps[b].close()
+                buf[b] = []
+
+    g = first
+    for pos, _ in _iter_normalized(src, None, slice_points):
+        m = len(pos)
+        gidx = np.arange(g, g + m, dtype=np.int64)
+        g += m
+        own = np.searchsorted(starts, morton_encode(_qcoords(pos, lo, cell0) >> shift), side="right") - 1
+        # the margin box [p - margin, p + margin] spans at most 2 cells per axis (cell >= 2
+        # margin): its cells are the 8 combinations of its low and high corner cells
+        qlo = _qcoords(pos - margin, lo, cell0) >> shift
+        qhi = _qcoords(pos + margin, lo, cell0) >> shift
+        # (only occupied cells: a bucket's key range also spans empty cells, which must not
+        # draw halos)
+        bb, pi = [own], [np.arange(m)]  # the core copy, always
+        for corner in _CORNERS:
+            kk = morton_encode(np.where(corner, qhi, qlo))
+            occ = np.flatnonzero(_in_sorted(kk, cell_keys))
+            bb.append(np.searchsorted(starts, kk[occ], side="right") - 1)
+            pi.append(occ)
+        bb, pi = np.concatenate(bb), np.concatenate(pi)
+        pair, _ = _unique_counts(bb * m + pi)  # one copy per (bucket, point), sorted by bucket, then point
+        bb, ii = pair // m, pair % m
+        core = (bb == own[ii]).astype(np.uint8)
+        cuts = np.flatnonzero(np.r_[True, bb[1:] != bb[:-1], True])
+        for j in range(len(cuts) - 1):
+            a, e = cuts[j], cuts[j + 1]
+            sel = ii[a:e]
+            buf[bb[a]].append({"positions": pos[sel], "gidx": gidx[sel], "core": core[a:e]})
+        buffered += len(bb) * 33
+        if buffered > buffer_bytes:
+            flush()
+            buffered = 0
+        if bar is not None:
+            bar.update(m)
+    flush()
+    return g - first
+
+
+def _bucket_attrs(b: int, spill: str, n_parts: int, normals: bool, radii: bool, k_normals: int, k_radii: int,
+                  scale: float, viewpoints, margin: float, knn_rows: int):
     """The normals and radii of bucket ``b``'s core points (its spill folder is removed).
+
+    The bucket's parts are read in part order, i.e. its points in input order, as one serial
+    distribute pass writes them: the kd-tree and the results do not depend on the parts.
 
     Returns
     -------
     gidx : (m,) int64 the core points' indices in the input.  normals : (m, 3) float32 or None.
     radii : (m,) float32 or None.  n_unverified : int.  size : int, core + halo points.
     """
-    folder = Path(spill) / f"b{b:06d}"
-    schema = {"positions": ("float64", (3,)), "gidx": ("int64", ()), "core": ("uint8", ())}
-    rec = _read_records(folder, schema)
-    shutil.rmtree(folder, ignore_errors=True)
+    pieces = [_read_records(_part_folder(spill, b, p), _SPILL) for p in range(n_parts)]
+    shutil.rmtree(Path(spill) / f"b{b:06d}", ignore_errors=True)
+    rec = pieces[0] if n_parts == 1 else {k: np.concatenate([r[k] for r in pieces]) for k in _SPILL}
+    del pieces
     pos, gidx, core = rec["positions"], rec["gidx"], rec["core"].astype(bool)
     qi = np.flatnonzero(core)
     out_n = np.empty((len(qi), 3), np.float32) if normals else None
