@@ -2,7 +2,9 @@
 
 The truths here are independent of the implementation: a naive in-memory reference of the level
 definition (per level, per cell, the free point closest to the cell centre, ties by x, y, z), the
-input itself (every point once, attributes attached), and set identities for nesting/coverage.
+input itself (every point once, attributes attached, positions rounded to float32), and set
+identities for nesting/coverage. The octree stores float32 positions: it is the octree of the
+input rounded to float32, so the references take the rounded input.
 """
 
 from __future__ import annotations
@@ -82,6 +84,11 @@ def reference_levels(pos, origin, root, levels):
     return level
 
 
+def rounded(pos):
+    """The input positions as the octree stores them: rounded to float32 (nearest), (n, 3) float32."""
+    return np.asarray(pos, np.float64).astype(np.float32)
+
+
 def ids_per_level(tree):
     return [np.sort(tree.read_level(lvl)["id"]) for lvl in range(tree.levels)]
 
@@ -102,13 +109,15 @@ def assert_same_files(a, b):
 # ---------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def big(tmp_path_factory):
+    """The octree of 2M float64 points (their exact float64 bbox given) and the input positions
+    rounded to float32, (n, 3) float32."""
     out = tmp_path_factory.mktemp("oct") / "big"
     # the test keeps the input in RAM only to check the result; the build sees 50k-point chunks
     data = [surface_chunk(i) for i in range(N_BIG // CHUNK)]
     pos = np.concatenate([p for p, _ in data])
     cfg = OctreeConfig(levels=8, memory_limit_mb=8)
     tree = Octree.build(lambda: iter(data), out, cfg, bbox=(pos.min(0), pos.max(0)), progress=False)
-    return tree, pos
+    return tree, rounded(pos)
 
 
 def test_partition_every_point_once_with_attributes(big):
@@ -117,14 +126,14 @@ def test_partition_every_point_once_with_attributes(big):
     ids, got_pos = [], []
     for lvl in range(tree.levels):
         d = tree.read_level(lvl)
-        assert d["positions"].dtype == np.float64 and d["positions"].shape == (tree.level_counts[lvl], 3)
+        assert d["positions"].dtype == np.float32 and d["positions"].shape == (tree.level_counts[lvl], 3)
         assert d["colors"].dtype == np.uint8 and d["id"].dtype == np.int64
         np.testing.assert_array_equal(d["colors"], color_of(d["id"]))  # attributes travel with points
         ids.append(d["id"])
         got_pos.append(d["positions"])
     ids = np.concatenate(ids)
     np.testing.assert_array_equal(np.sort(ids), np.arange(N_BIG))  # each input point exactly once
-    np.testing.assert_array_equal(np.concatenate(got_pos), pos[ids])  # bit-exact positions
+    np.testing.assert_array_equal(np.concatenate(got_pos), pos[ids])  # bit-exact float32 roundings
     # and, independent of the ids, the sorted coordinate arrays agree
     a = np.concatenate(got_pos)
     for axis in range(3):
@@ -134,7 +143,11 @@ def test_partition_every_point_once_with_attributes(big):
 def test_levels_even_nested_and_covering(big):
     tree, pos = big
     origin, root, L = tree.bbox[0], tree.meta["root_cell"], tree.levels
-    lod = np.zeros((0, 3))
+    # the given float64 box, rounded as the points are: the box of the rounded points
+    np.testing.assert_array_equal(tree.bbox[0], pos.min(0))
+    np.testing.assert_array_equal(tree.bbox[1], pos.max(0))
+    assert tree.meta["points_outside_bbox"] == 0
+    lod = np.zeros((0, 3), np.float32)
     for lvl in range(L - 1):
         p = tree.read_level(lvl)["positions"]
         # spatially even: no two points of level l share a level-l cell
@@ -174,7 +187,12 @@ def test_reopen_gives_same_data(big):
         for k in a:
             np.testing.assert_array_equal(np.concatenate([c[k] for c in chunks]), a[k])
     streamed = list(again.iter_levels(range(3), chunk_size=5000))
-    np.testing.assert_array_equal(np.concatenate([c["id"] for c in streamed]), again.read_lod(3)["id"])
+    lod = again.read_lod(3)
+    np.testing.assert_array_equal(np.concatenate([c["id"] for c in streamed]), lod["id"])
+    ranged = list(again.point_range(range(3), chunk_size=5000)())
+    np.testing.assert_array_equal(np.concatenate([c["positions"] for c in ranged]), lod["positions"])
+    for c in chunks + streamed + ranged + [lod]:
+        assert c["positions"].dtype == np.float32 and c["positions"].shape[1:] == (3,)
     assert again.meta["n_buckets"] > 10  # the 8 MB limit really split the cloud
 
 
@@ -209,7 +227,9 @@ def test_matches_naive_reference_out_of_core(tmp_path):
     tree = Octree.build(chunked(pos, ids, 3001), tmp_path / "a", cfg, bbox=(lo, hi), progress=False)
     assert tree.meta["bucket_level"] > 0, "the coarse-candidate path was not exercised"
     assert tree.meta["max_bucket_points"] > tree.meta["bucket_capacity"], "no over-full bucket"
-    ref = reference_levels(pos, lo, root, cfg.levels)
+    # the reference on the rounded points, whose box's minimum is the rounded minimum
+    r = rounded(pos)
+    ref = reference_levels(r.astype(np.float64), r.min(0).astype(np.float64), root, cfg.levels)
     got = ids_per_level(tree)
     for lvl in range(cfg.levels):
         np.testing.assert_array_equal(got[lvl], np.flatnonzero(ref == lvl), err_msg=f"level {lvl}")
@@ -222,7 +242,7 @@ def test_matches_naive_reference_out_of_core(tmp_path):
     for lvl in range(cfg.levels):
         # compare positions: which of several exact duplicates lands in which level follows the
         # input order, which the shuffle changed
-        a, b = pos[got[lvl]], tree2.read_level(lvl)["positions"]
+        a, b = r[got[lvl]], tree2.read_level(lvl)["positions"]
         np.testing.assert_array_equal(a[np.lexsort(a.T)], b[np.lexsort(b.T)], err_msg=f"level {lvl}")
 
     # in the same chunk order, the in-memory build writes the same bytes as the out-of-core one
@@ -234,13 +254,68 @@ def test_matches_naive_reference_out_of_core(tmp_path):
 def test_default_root_and_single_level(tmp_path):
     pos, ids = tricky_cloud(seed=5)
     tree = Octree.build(chunked(pos, ids, 5000), tmp_path / "d", OctreeConfig(levels=6), progress=False)
-    diag = float(np.linalg.norm(pos.max(0) - pos.min(0)))
-    assert tree.meta["root_cell"] == pytest.approx(diag / 64)
-    ref = reference_levels(pos, pos.min(0), diag / 64, 6)
+    r = rounded(pos).astype(np.float64)
+    diag = float(np.linalg.norm(r.max(0) - r.min(0)))  # of the rounded points' box
+    assert tree.meta["root_cell"] == diag / 64
+    ref = reference_levels(r, r.min(0), diag / 64, 6)
     for lvl, got in enumerate(ids_per_level(tree)):
         np.testing.assert_array_equal(got, np.flatnonzero(ref == lvl))
+    # no grid level: the rounded input, in input order
     one = Octree.build(chunked(pos, ids, 5000), tmp_path / "e", OctreeConfig(levels=1), progress=False)
     assert one.level_counts == [len(pos)] and one.subsampling_factors() == [1.0]
+    np.testing.assert_array_equal(one.read_level(0)["positions"], rounded(pos))
+
+
+# ---------------------------------------------------------------------------------------------
+# float32 positions: the octree of the input rounded to float32
+# ---------------------------------------------------------------------------------------------
+def test_levels_hold_the_float32_rounding_of_the_input(tmp_path):
+    """The levels hold exactly the input rounded to float32 (as a multiset of rows), and the build
+    of float64 input is the build of that input rounded beforehand, byte for byte: every pass
+    (bbox, cells, coarse candidates, over-full buckets' streaming) sees the rounded values."""
+    pos, ids = tricky_cloud()
+    r = rounded(pos)
+    assert np.count_nonzero(r != pos) > len(pos)  # rounding moved most coordinates
+    root = float(np.linalg.norm(pos.max(0) - pos.min(0))) / 3
+    cfg = OctreeConfig(levels=9, root_cell=root, memory_limit_mb=0.05)  # ~1000-point buckets
+    f64 = Octree.build(chunked(pos, ids, 3001), tmp_path / "a", cfg, progress=False)
+    assert f64.meta["bucket_level"] > 0 and f64.meta["max_bucket_points"] > f64.meta["bucket_capacity"]
+    assert f64.fields["positions"] == ("float32", (3,))
+    got = f64.read_lod(f64.levels)["positions"]
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got[np.lexsort(got.T)], r[np.lexsort(r.T)])
+    assert f64.meta["bbox"] == [r.min(0).astype(np.float64).tolist(), r.max(0).astype(np.float64).tolist()]
+
+    f32 = Octree.build(chunked(r, ids, 3001), tmp_path / "b", cfg, progress=False)
+    assert f32.meta["bbox"] == f64.meta["bbox"]
+    assert_same_files(f64, f32)
+
+
+def test_given_bbox_is_rounded_as_the_points(tmp_path):
+    """Points on the faces of the exact float64 box of the input, which rounding to float32 moves
+    just outside it: the given box is rounded too, so they stay inside, are not counted outside,
+    and the octree is the one built without a bbox. A point really outside is still counted."""
+    v = 8 * (1 + 2.0 ** -23 - 2.0 ** -30)  # rounds up to 8 (1 + 2**-23), away from the box
+    rng = np.random.default_rng(1)
+    pos = np.concatenate([rng.uniform(-7, 7, (5000, 3)), [[v, v, v], [-v, -v, -v]]])
+    ids = np.arange(len(pos), dtype=np.int64)
+    lo, hi = pos.min(0), pos.max(0)
+    r = rounded(pos)
+    assert np.all(r.max(0) > hi) and np.all(r.min(0) < lo)  # rounded, they leave the given box
+    cfg = OctreeConfig(levels=5, memory_limit_mb=0.05)
+    given = Octree.build(chunked(pos, ids, 1000), tmp_path / "g", cfg, bbox=(lo, hi), progress=False)
+    assert given.meta["points_outside_bbox"] == 0
+    np.testing.assert_array_equal(given.bbox[0], r.min(0))
+    np.testing.assert_array_equal(given.bbox[1], r.max(0))
+    computed = Octree.build(chunked(pos, ids, 1000), tmp_path / "c", cfg, progress=False)
+    assert computed.meta["bbox"] == given.meta["bbox"]
+    assert_same_files(given, computed)
+
+    box = (lo, hi - 3.0)
+    short = Octree.build(chunked(pos, ids, 1000), tmp_path / "s", cfg, bbox=box, progress=False)
+    outside = int(np.count_nonzero(np.any(r > rounded(box[1]), axis=1)))
+    assert outside > 100 and short.meta["points_outside_bbox"] == outside
+    np.testing.assert_array_equal(np.sort(np.concatenate(ids_per_level(short))), ids)
 
 
 def test_level_files_are_spatially_coherent(big):
@@ -298,11 +373,13 @@ def test_open_rejects_bad_metadata(tmp_path):
     pos, ids = tricky_cloud()
     t = Octree.build(chunked(pos, ids, 7000), tmp_path / "o", OctreeConfig(levels=4), progress=False)
     meta = json.loads((t.path / "octree.json").read_text())
-    meta["version"] = 99
-    (t.path / "octree.json").write_text(json.dumps(meta))
-    with pytest.raises(InputError, match="version"):
-        Octree.open(t.path)
-    meta["version"] = 1
+    assert meta["version"] == 2 and meta["fields"]["positions"] == {"dtype": "float32", "shape": [3]}
+    for old in (99, 1):  # 1: an octree of float64 positions
+        meta["version"] = old
+        (t.path / "octree.json").write_text(json.dumps(meta))
+        with pytest.raises(InputError, match=f"field 'version' is {old}, this reader knows 2"):
+            Octree.open(t.path)
+    meta["version"] = 2
     meta["level_counts"][0] += 1
     (t.path / "octree.json").write_text(json.dumps(meta))
     with pytest.raises(InputError, match="level_counts"):
@@ -373,7 +450,7 @@ def test_process_pool_build_is_byte_identical(tmp_path, pool):
     pos, ids = parallel_cloud()
     lo, hi = pos.min(0), pos.max(0)
     root = float(np.linalg.norm(hi - lo)) / 3  # coarse levels span buckets: candidates run as tasks
-    cfg = OctreeConfig(levels=8, root_cell=root, memory_limit_mb=2)
+    cfg = OctreeConfig(levels=8, root_cell=root, memory_limit_mb=1.5)
     serial = Octree.build(chunked(pos, ids, 20_000), tmp_path / "s", cfg, bbox=(lo, hi), progress=False)
     par = Octree.build(chunked(pos, ids, 20_000), tmp_path / "p", cfg, bbox=(lo, hi), progress=False,
                        executor=pool)
@@ -439,11 +516,12 @@ def test_split_ply_input_in_workers_is_byte_identical(tmp_path, pool):
     src = point_range(ply, 20_000)
     lo, hi = pos.min(0), pos.max(0)
     root = float(np.linalg.norm(hi - lo)) / 3
-    cfg = OctreeConfig(levels=8, root_cell=root, memory_limit_mb=2)
+    cfg = OctreeConfig(levels=8, root_cell=root, memory_limit_mb=1.5)
     serial = Octree.build(src, tmp_path / "s", cfg, bbox=(lo, hi), progress=False)
     par = Octree.build(src, tmp_path / "p", cfg, progress=False, executor=pool)  # bbox in the workers too
     assert serial.meta["input_parts"] == 1 and par.meta["input_parts"] == 2
-    assert par.meta["bbox"] == [lo.tolist(), hi.tolist()]
+    r = rounded(pos).astype(np.float64)  # the given box, rounded = the box of the rounded points
+    assert serial.meta["bbox"] == par.meta["bbox"] == [r.min(0).tolist(), r.max(0).tolist()]
     for t in (serial, par):
         assert t.meta["max_bucket_points"] > t.meta["bucket_capacity"], "no over-full bucket: streaming path not run"
         assert t.meta["points_outside_bbox"] == 0
@@ -463,7 +541,7 @@ def test_split_input_outside_bbox_one_part_and_errors(tmp_path, pool):
     serial = Octree.build(src, tmp_path / "s", cfg, bbox=box, progress=False)
     par = Octree.build(src, tmp_path / "p", cfg, bbox=box, progress=False, executor=pool)
     assert par.meta["input_parts"] == 2
-    outside = int(np.count_nonzero(np.any(pos > box[1], axis=1)))
+    outside = int(np.count_nonzero(np.any(rounded(pos) > rounded(box[1]), axis=1)))
     assert outside > 0 and serial.meta["points_outside_bbox"] == par.meta["points_outside_bbox"] == outside
     assert par.meta["max_bucket_points"] > par.meta["bucket_capacity"]
     assert_same_files(serial, par)

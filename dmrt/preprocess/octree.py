@@ -19,10 +19,27 @@ grids nest exactly (no second rounding). Hence
 * ``LOD k`` = levels ``0 .. k-1`` holds a point in every occupied level-``(k-1)`` cell, and each
   ``LOD k+1`` is a superset of ``LOD k`` (nested), roughly 4x denser for surfaces (8x for volumes).
 
-The selection is a pure function of the *set* of input points: chunk order and chunk sizes do
-not change the octree (except the order of exact duplicate points, which follows the input). Each
-level file is in Morton order of its cells (the remainder: of the finest cells, duplicates in input
-order), so for a given input the level files are the same bytes whatever the memory limit, the
+Positions
+---------
+The octree holds positions as **float32** (12 bytes a point instead of 24: for a 683M-point cloud of
+39-byte float64 records, 8.2 GB less in the level files and as much again in the spill files). The
+input's positions are rounded to float32 (to nearest) as they enter the build, in every pass that
+reads the input, and the octree is that of the rounded points: the bbox, the cells, the "closest
+to the cell centre" selection, the candidates and the spill files all see the same float32 values
+(distances are computed in float64 on them, exactly upcast). So the build of a float64 input is the
+build of the same input rounded to float32 beforehand, byte for byte. Give the build positions
+relative to a nearby origin (the pipeline's are relative to the scene's bounding-box centre):
+rounding to float32 moves a coordinate by at most 2 micrometres within 64 m of it, 4 within 128 m
+(half a unit in the last place), and the stages after the octree (depth maps, proxies, the GPU)
+use float32 positions anyway. A given ``bbox`` is rounded to float32 too (the octree's box, in
+``octree.json``); rounding is monotonic, so a point inside the given box stays inside the rounded
+one, and the exact box of the input rounds to the box of the rounded points.
+
+The selection is a pure function of the *set* of (rounded) input points: chunk order and chunk
+sizes do not change the octree (except the order of exact duplicate points, which follows the
+input; rounding may make duplicates of points a float32 step apart). Each level file is in Morton
+order of its cells (the remainder: of the finest cells, duplicates in input order), so for a given
+input the level files are the same bytes whatever the memory limit, the
 buckets and the number of workers.
 
 Out-of-core build (memory ``M = memory_limit_mb``, ``W`` workers)
@@ -78,10 +95,12 @@ there); so beyond a few workers the passes that read the input dominate unless t
 
 Input chunks are processed in slices of about ``M / 8`` (``M / 8K`` per part) of work arrays, but
 the caller's chunk itself counts against the budget: keep ``chunk_size * record_bytes`` well below
-``M`` (``M / K`` with a split source; ``record_bytes`` = 24 for positions plus the attributes'
-bytes). The interpreter with numpy (~40 MB resident) comes on
-top. Measured (``bench/bench_octree.py``, 20M points of 39 bytes = 744 MB, ``M`` = 256 MB): maximum
-RSS 174,724 kB (``/usr/bin/time -v``) including that baseline.
+``M`` (``M / K`` with a split source; ``record_bytes`` = the caller's position bytes, 24 for float64,
+plus the attributes' bytes; the build rounds each slice to float32 as it reads it, 12 bytes a
+point of the slice, and spills ``record_bytes`` = 12 plus the attributes' bytes). The interpreter
+with numpy (~40 MB resident) comes on top. Measured (``bench/bench_octree.py``, 20M points of 39
+bytes = 744 MB, ``M`` = 256 MB, before positions were stored as float32): maximum RSS 174,724 kB
+(``/usr/bin/time -v``) including that baseline.
 
 An interrupted build (exception, Ctrl-C) removes its temporary folder; a killed one leaves only
 ``<name>.partial`` without ``octree.json``, which :meth:`Octree.open` refuses.
@@ -90,6 +109,9 @@ On disk (written to a temporary sibling folder and renamed when complete)::
 
     out_dir/octree.json            format, version, config, bbox, counts, fields, buckets, workers, timings
     out_dir/level_XX/<field>.bin   raw little-endian arrays, one file per attribute, Morton-ordered
+                                   (positions.bin: (n, 3) float32)
+
+Version 2 stores float32 positions; :meth:`Octree.open` refuses version 1 (float64 positions).
 """
 
 from __future__ import annotations
@@ -115,7 +137,11 @@ except ImportError:  # pragma: no cover
     _tqdm = None
 
 FORMAT = "dmrt-octree"
-VERSION = 1
+VERSION = 2  # 2: positions stored as float32 (1: float64)
+
+POSITIONS_DTYPE = "float32"
+"""The dtype of the octree's positions, in every pass and on disk: the input's are rounded to it as
+they enter the build (see the module docstring)."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -166,9 +192,12 @@ class _NullBar:
         return False
 
 
-def _normalize_chunk(item, where="chunk") -> tuple[np.ndarray, dict]:
+def _normalize_chunk(item, where="chunk", dtype=np.float64) -> tuple[np.ndarray, dict]:
     """Accept ``(positions, attrs)``, a dict with ``'positions'``, or an object with ``.positions``
-    (e.g. ``dmrt.io.pointcloud.PointCloud``; attributes that are ``None`` are skipped)."""
+    (e.g. ``dmrt.io.pointcloud.PointCloud``; attributes that are ``None`` are skipped).
+
+    Returns ``(positions (n, 3), {name: (n, ...) array})``; positions contiguous of ``dtype``, or
+    as given (only reshaped) for ``dtype=None``."""
     if isinstance(item, (tuple, list)) and len(item) == 2:
         pos, attrs = item
         attrs = dict(attrs or {})
@@ -185,7 +214,9 @@ def _normalize_chunk(item, where="chunk") -> tuple[np.ndarray, dict]:
     else:
         raise TypeError(f"{where}: expected (positions, attributes), a dict or a PointCloud, "
                         f"got {type(item).__name__}")
-    pos = np.ascontiguousarray(np.asarray(pos, dtype=np.float64).reshape(-1, 3))
+    pos = np.asarray(pos).reshape(-1, 3)
+    if dtype is not None:
+        pos = np.ascontiguousarray(pos, dtype=dtype)
     out = {}
     for name, a in attrs.items():
         if a is None or not isinstance(a, np.ndarray) and not isinstance(a, (list, tuple)):
@@ -209,14 +240,16 @@ def _chunk_source(chunks_fn) -> Callable[[], Iterator]:
     raise TypeError(f"chunks_fn must be callable, got {type(chunks_fn).__name__}")
 
 
-def _iter_normalized(chunks_fn, schema=None, max_points=None, where=""):
-    """Yield ``(positions, attrs)`` from the source, checking the attribute schema (``{name: (dtype
-    str, per-point shape)}``, as the first chunk's), and split into slices of at most
-    ``max_points`` so working arrays stay bounded. ``where`` prefixes the chunk in error messages
-    (e.g. ``"input part 2 of 4, "``: chunks are counted from the part's start)."""
+def _iter_normalized(chunks_fn, schema=None, max_points=None, where="", dtype=np.float64):
+    """Yield ``(positions (n, 3) dtype, attrs)`` from the source, checking the attribute schema
+    (``{name: (dtype str, per-point shape)}``, as the first chunk's), and split into slices of at
+    most ``max_points`` so working arrays stay bounded. ``where`` prefixes the chunk in error
+    messages (e.g. ``"input part 2 of 4, "``: chunks are counted from the part's start). The
+    positions are converted to ``dtype`` slice by slice (the octree's passes: rounded to float32),
+    so a conversion copy never holds more than one slice."""
     want = None if schema is None else {k: (str(dt), list(s)) for k, (dt, s) in schema.items() if k != "positions"}
     for i, item in enumerate(chunks_fn()):
-        pos, attrs = _normalize_chunk(item, where=f"{where}chunk {i}")
+        pos, attrs = _normalize_chunk(item, where=f"{where}chunk {i}", dtype=None)
         if want is not None:
             got = {k: (str(v.dtype), list(v.shape[1:])) for k, v in attrs.items()}
             if got != want:
@@ -226,13 +259,14 @@ def _iter_normalized(chunks_fn, schema=None, max_points=None, where=""):
             continue
         step = n if not max_points else max(1, int(max_points))
         for s in range(0, n, step):
-            yield pos[s:s + step], {k: v[s:s + step] for k, v in attrs.items()}
+            yield np.ascontiguousarray(pos[s:s + step], dtype=dtype), {k: v[s:s + step] for k, v in attrs.items()}
 
 
 def compute_bbox(chunks_fn, progress=False) -> tuple[np.ndarray, np.ndarray, int]:
-    """One streaming pass: ``(min (3,) float64, max (3,) float64, number of points)``."""
+    """One streaming pass: ``(min (3,) float64, max (3,) float64, number of points)`` of the
+    positions as given (taken as float64, not rounded as the octree's build rounds them)."""
     with _progress(None, "octree: bbox", progress) as bar:
-        return _check_bbox(*_bbox_part((0, 1, _chunk_source(chunks_fn)), bar=bar))
+        return _check_bbox(*_bbox_part((0, 1, _chunk_source(chunks_fn)), bar=bar, dtype=np.float64))
 
 
 def _check_bbox(lo, hi, n):
@@ -247,18 +281,23 @@ def _check_bbox(lo, hi, n):
 # the passes that read the input (bbox, count, distribute). Each reads one part of the input,
 # ``item = (part, parts, chunk source)``: the whole source in this process (the serial path,
 # ``(0, 1, source)``), or one part of a split source as a task in a worker process; module-level,
-# with picklable arguments, for the executor.
+# with picklable arguments, for the executor. Each rounds the positions to POSITIONS_DTYPE as they
+# are read (``_iter_normalized(..., dtype=POSITIONS_DTYPE)``), so every pass, and the passes after
+# them reading the spill files, see the same float32 values: arithmetic on them may run in float64
+# (numpy upcasts float32 arrays exactly when combined with float64 arrays), but never on the
+# unrounded input.
 # ---------------------------------------------------------------------------------------------
 def _where(item) -> str:
     part, parts, _ = item
     return f"input part {part + 1} of {parts}, " if parts > 1 else ""
 
 
-def _bbox_part(item, bar=None) -> tuple[np.ndarray, np.ndarray, int]:
-    """Bounding box of one part: ``(min (3,) float64, max (3,) float64, points)``; ``inf`` and
-    ``-inf`` without points (the neutral elements of combining parts), NaN where a coordinate is."""
+def _bbox_part(item, bar=None, dtype=POSITIONS_DTYPE) -> tuple[np.ndarray, np.ndarray, int]:
+    """Bounding box of one part's positions rounded to ``dtype``: ``(min (3,) float64, max (3,)
+    float64, points)``; ``inf`` and ``-inf`` without points (the neutral elements of combining
+    parts), NaN where a coordinate is (``inf`` too where rounding overflows float32's range)."""
     lo, hi, n = np.full(3, np.inf), np.full(3, -np.inf), 0
-    for pos, _ in _iter_normalized(item[2], where=_where(item)):
+    for pos, _ in _iter_normalized(item[2], where=_where(item), dtype=dtype):
         lo = np.minimum(lo, pos.min(axis=0))
         hi = np.maximum(hi, pos.max(axis=0))
         n += len(pos)
@@ -278,15 +317,16 @@ def _count_part(item, grid, schema, slice_points, cap, bbox=None, bar=None):
     keys : (m,) int64, sorted Morton keys of the occupied level-``level`` cells
     counts : (m,) int64
     points : int
-    outside : int, points outside ``bbox`` (``(lo (3,), hi (3,))``; 0 without)
+    outside : int, points whose (rounded) position is outside ``bbox`` (``(lo (3,), hi (3,))``,
+        float32-representable; 0 without)
     """
     level = grid.finest
     keys = np.zeros(0, np.int64)
     cnts = np.zeros(0, np.int64)
     n = n_out = 0
-    for pos, _ in _iter_normalized(item[2], schema, slice_points, _where(item)):
+    for pos, _ in _iter_normalized(item[2], schema, slice_points, _where(item), POSITIONS_DTYPE):
         if not np.isfinite(pos).all():
-            raise ValueError("the point source contains non-finite coordinates")
+            raise ValueError("the point source contains non-finite coordinates (or beyond float32's range)")
         if bbox is not None:
             n_out += int(np.count_nonzero(np.any((pos < bbox[0]) | (pos > bbox[1]), axis=1)))
         k = morton_encode(grid.coords(pos) >> (grid.finest - level))
@@ -331,7 +371,7 @@ def _distribute_part(item, work, bucket_starts, slice_points, buffer_bytes, bar=
                 apps[b].close()  # never hold thousands of handles
                 buf[b] = []
 
-    for pos, attrs in _iter_normalized(item[2], schema, slice_points, _where(item)):
+    for pos, attrs in _iter_normalized(item[2], schema, slice_points, _where(item), POSITIONS_DTYPE):
         kc = morton_encode(g.coords(pos) >> (g.finest - c))
         bid = np.searchsorted(bucket_starts, kc, side="right") - 1
         o = np.argsort(bid, kind="stable")
@@ -430,7 +470,7 @@ def _best_per_cell(keys, d2, pos) -> np.ndarray:
     ----------
     keys : (n,) int64 cell keys
     d2 : (n,) float64 squared distances to the cell centres
-    pos : (n, 3) float64
+    pos : (n, 3) float32 (or float64)
     """
     if len(keys) == 0:
         return np.zeros(0, np.int64)
@@ -601,7 +641,8 @@ class Octree:
     level_counts : list[int]
         Points per level, coarsest first.
     bbox : ((3,) float64, (3,) float64)
-    fields : dict name -> (dtype str, per-point shape tuple); always holds ``'positions'``.
+    fields : dict name -> (dtype str, per-point shape tuple); always holds ``'positions'``
+        (``('float32', (3,))``).
     meta : dict
         The parsed ``octree.json``.
     """
@@ -646,7 +687,8 @@ class Octree:
         if meta.get("format") != FORMAT:
             raise InputError(jf, f"field 'format' is {meta.get('format')!r}, expected {FORMAT!r}")
         if meta.get("version") != VERSION:
-            raise InputError(jf, f"field 'version' is {meta.get('version')!r}, this reader knows {VERSION}")
+            hint = " (version 1 stored float64 positions: build the octree again)" if meta.get("version") == 1 else ""
+            raise InputError(jf, f"field 'version' is {meta.get('version')!r}, this reader knows {VERSION}{hint}")
         for key in ("config", "level_counts", "bbox", "fields", "root_cell"):
             if key not in meta:
                 raise InputError(jf, f"field {key!r} is missing")
@@ -670,7 +712,7 @@ class Octree:
             raise IndexError(f"level {level} out of range 0..{self.levels - 1}")
 
     def read_level(self, level: int) -> dict:
-        """All points of one level: ``{'positions': (n, 3) float64, <attribute>: (n, ...)}``."""
+        """All points of one level: ``{'positions': (n, 3) float32, <attribute>: (n, ...)}``."""
         self._check_level(level)
         return _read_records(self._level_dir(level), self.fields)
 
@@ -697,7 +739,8 @@ class Octree:
         return OctreeRange(str(self.path), self.fields, tuple(self.level_counts), start, stop, int(chunk_size))
 
     def read_lod(self, k: int) -> dict:
-        """``LOD k`` = levels ``0 .. k-1`` concatenated (the paper's proxy cloud P_LD for ``k``)."""
+        """``LOD k`` = levels ``0 .. k-1`` concatenated (the paper's proxy cloud P_LD for ``k``), a
+        dict as :meth:`read_level` (``'positions'``: (n, 3) float32)."""
         parts = [self.read_level(lvl) for lvl in range(k)]
         if not parts:
             return {f: np.zeros((0, *s), dt) for f, (dt, s) in self.fields.items()}
@@ -729,8 +772,10 @@ class Octree:
         Parameters
         ----------
         chunks_fn : callable returning an iterator of chunks (or a re-iterable)
-            Each chunk is ``(positions (n, 3) float64, {name: (n, ...) array})``, a dict with
-            ``'positions'``, or a ``PointCloud``. Read 2 times (3 without ``bbox``), plus the
+            Each chunk is ``(positions (n, 3) float64 or float32, {name: (n, ...) array})``, a
+            dict with ``'positions'``, or a ``PointCloud``. Positions are rounded to float32 as
+            they are read (the octree stores float32 positions: keep them near the origin). Read
+            2 times (3 without ``bbox``), plus the
             first chunk once more for the attribute schema; every pass must yield the same points
             in the same order, and every chunk the first chunk's attributes (dtype and shape).
             Attributes travel with the points. A picklable callable with ``split(parts) -> list``
@@ -741,7 +786,10 @@ class Octree:
             complete. An existing octree there is replaced; any other non-empty folder is an error.
         config : OctreeConfig
         bbox : ((3,), (3,)) float64, optional
-            The cloud's bounding box; computed in an extra pass if omitted.
+            The cloud's bounding box; computed in an extra pass if omitted. Rounded to float32
+            (nearest), as the points are: the octree's box and origin. Points whose rounded
+            position lies outside it are clipped into the boundary cells and counted in
+            ``octree.json``'s ``points_outside_bbox``; a point inside the given box never is.
         progress : bool
             tqdm progress bars.
         executor : optional, :mod:`dmrt.preprocess.parallel`
@@ -770,7 +818,8 @@ class Octree:
 @dataclasses.dataclass(frozen=True)
 class OctreeRange:
     """Points ``[start, stop)`` of an octree's levels taken in order (coarsest first), as a
-    re-readable, picklable chunk source: calling it yields dicts as :meth:`Octree.read_level`, in
+    re-readable, picklable chunk source: calling it yields dicts as :meth:`Octree.read_level`
+    (``'positions'``: (n, 3) float32), in
     chunks of at most ``chunk_size`` that never span two levels; :meth:`split` cuts it into
     consecutive ranges that worker processes read on their own."""
 
@@ -800,6 +849,9 @@ class OctreeRange:
         return [dataclasses.replace(self, start=a, stop=b) for a, b in zip(cuts, cuts[1:]) if b > a]
 
 
+COUNT_CELLS = 1 << 22  # the counting table's most cells (_Builder._plan_memory)
+
+
 class _Builder:
     """The build passes of :meth:`Octree.build` (see the module docstring)."""
 
@@ -821,20 +873,27 @@ class _Builder:
 
     # -- budget split -----------------------------------------------------------------------------
     def _plan_memory(self):
-        rb = _field_bytes(self.schema)
+        rb = _field_bytes(self.schema)  # bytes a record: 12 of float32 positions + the attributes'
         # the input passes read the K = len(self.parts) parts at once (K <= W), so each part gets
         # 1/K of the budget of the tables, buffers and slices below (serially K = 1: all of it)
         k = len(self.parts)
         # counting table: int64 keys + int64 counts (16 B/cell); merging it with a slice's cells
         # takes ~6 temporaries of that size, so 96 B/cell at the peak: cap it at ~3/8 of the budget
-        # (count_cap: the whole table, merged here from the parts'; part_count_cap: one part's)
-        self.count_cap = max(4096, self.budget // 256)
-        self.part_count_cap = max(4096, self.budget // k // 256)
+        # (count_cap: the whole table, merged here from the parts'; part_count_cap: one part's).
+        # At most COUNT_CELLS cells: the table only chooses the bucket level and cuts the buckets,
+        # for which 4M cells (~170 points each at 683M points) are plenty, while merging the parts'
+        # tables here costs time linear in their size (a 16 GB budget allowed 65M cells: 6.9 of the
+        # octree's 11.7 s on 32M points and 16 cores went into counting)
+        self.count_cap = max(4096, min(self.budget // 256, COUNT_CELLS))
+        self.part_count_cap = max(4096, self.count_cap // k)
         # spill buffers: a quarter of the budget
         self.buffer_bytes = max(1 << 16, self.budget // k // 4)
         # one bucket in memory per worker: its records, a copy while writing levels, and ~100
         # bytes/point of work arrays (int64 coordinates 24, keys 8, distances 8, lexsort 16, float
-        # temporaries 48); W workers hold W buckets at once, so each gets 0.4 M / W
+        # temporaries 48: the float64 upcasts of the float32 positions in the distance and cell
+        # arithmetic); W workers hold W buckets at once, so each gets 0.4 M / W. Measured
+        # (tracemalloc, _select_in_memory of 200k points with an int64 attribute, rb = 20): 117
+        # bytes/point beside the loaded records, of the rb + 112 = 132 planned
         self.capacity = max(1024, int(self.budget / self.workers * 0.4 / (2 * rb + 112)))
         # input chunks are sliced so the per-slice work arrays (~ 4 * rb + 64 bytes/point) stay
         # within an eighth of the budget
@@ -852,8 +911,8 @@ class _Builder:
         del it
         if first is None:
             raise ValueError("the point source yielded no chunks")
-        pos0, attrs0 = _normalize_chunk(first, "chunk 0")
-        self.schema = {"positions": ("float64", (3,))}
+        pos0, attrs0 = _normalize_chunk(first, "chunk 0", dtype=None)
+        self.schema = {"positions": (POSITIONS_DTYPE, (3,))}
         self.schema.update({k: (str(v.dtype), tuple(v.shape[1:])) for k, v in attrs0.items()})
         del first, pos0, attrs0
         self._plan_memory()
@@ -865,8 +924,16 @@ class _Builder:
                 lo, hi, n = np.minimum(lo, lo_p), np.maximum(hi, hi_p), n + n_p
             lo, hi, self.n_total = _check_bbox(lo, hi, n)
         else:
-            lo = np.asarray(self.bbox[0], np.float64).reshape(3)
-            hi = np.asarray(self.bbox[1], np.float64).reshape(3)
+            # the given box rounded to float32 as the points are: rounding is monotonic, so every
+            # point inside the given box stays inside the rounded one (none is counted outside
+            # because rounding moved it across a face), and the exact box of the input gives the
+            # box the bbox pass would find (min of the rounded points = rounded min), so the same
+            # octree as without a bbox
+            lo, hi = (np.asarray(b, np.float64).reshape(3).astype(POSITIONS_DTYPE).astype(np.float64)
+                      for b in self.bbox)
+            if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+                raise ValueError(f"bbox {self.bbox} is not finite (or beyond float32's range)")
+            self.bbox = (lo, hi)
         self.timings["bbox_s"] = time.perf_counter() - t0
         extent = np.maximum(hi - lo, 0.0)
         diag = float(np.linalg.norm(extent))
@@ -938,7 +1005,7 @@ class _Builder:
     def _copy_all(self):
         app = _Appender(self.tmp / "level_00", self.schema)
         with _progress(self.n_total, "octree: copy", self.progress) as bar:
-            for pos, attrs in _iter_normalized(self.src, self.schema, self.slice_points):
+            for pos, attrs in _iter_normalized(self.src, self.schema, self.slice_points, dtype=POSITIONS_DTYPE):
                 app.write({"positions": pos, **attrs})
                 bar.update(len(pos))
         app.close()
@@ -979,7 +1046,10 @@ class _Builder:
             raise RuntimeError(f"chunks_fn yielded {n} points now and {self.n_total} before: "
                                "it must yield the same points on every call")
         self.n_total = n
-        self.n_outside = n_out  # clipped into the boundary cells; harmless but reported
+        # clipped into the boundary cells; harmless but reported. Counted on the rounded points
+        # against the rounded box: a point inside the given box never counts, and one outside it
+        # by less than float32's resolution there may round onto the box and not count either
+        self.n_outside = n_out
         # bucket level: the coarsest level whose every cell fits one bucket
         c, ck, cc = level, keys, cnts
         for lvl in range(0, level + 1):

@@ -117,7 +117,7 @@ def render_depth_group(js, cameras, names, work, out_dir, has_normals: bool, con
         for ch in octree.iter_levels(chunk_size=config.chunk_points):
             m = len(ch["positions"])
             nrm = ch["normals"] if has_normals else normals[g:g + m]
-            yield ch["positions"].astype(np.float32), np.asarray(nrm, np.float32), np.asarray(radii[g:g + m])
+            yield np.asarray(ch["positions"], np.float32), np.asarray(nrm, np.float32), np.asarray(radii[g:g + m])
             g += m
 
     ctx = get_context()
@@ -190,7 +190,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
 
     with BundleWriter(out, force=force) as bw, anon:
         work = Path(bw.tmp).resolve() / "work"
-        # 1. octree (positions relative to the origin keep float32 safe later; float64 here)
+        # 1. octree (positions relative to the origin, where its float32 keeps micrometres)
         t0 = time.perf_counter()
         # the bounds load_scene measured save the octree a pass (min(p) - o = min(p - o) exactly)
         octree = Octree.build(_LocalPoints(scene.point_range(config.chunk_points), origin), work / "octree",
@@ -205,7 +205,9 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         attrs = process_chunked(octree.point_range(chunk_size=config.chunk_points), work / "attrs",
                                 normals=not has_normals, radii=True, k_normals=config.normals_k,
                                 k_radii=config.radius_k, scale=config.radius_scale, viewpoints=centers,
-                                memory_limit_mb=config.memory_limit_mb, progress=progress, executor=executor)
+                                # the budget is per bucket task, and the workers hold one each
+                                memory_limit_mb=config.memory_limit_mb / executor.workers, progress=progress,
+                                executor=executor)
         tic("normals_radii_s", t0)
 
         # 3. depth maps: one task per group of photos (all photos in process), each reading P_HD
