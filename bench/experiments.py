@@ -89,7 +89,8 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         pass and after the sustained one, None without nvidia-smi}, ``fps_min_avg_max``, ``fps_median``,
         per frame ``total_ms_per_frame``, ``stage_ms_per_frame`` {stage: list}, ``wall_ms_per_frame``
         (``render()`` wall clock), ``median_cpu_ms``, ``mean_iterations`` (over the pixels with a
-        surface), ``surface_fraction``, ``photo_uploads`` and ``gpu_bytes``.
+        surface), ``surface_fraction``, ``photo_uploads``, ``gpu_bytes`` and ``tile_stats`` (the tiles
+        path's :meth:`~dmrt.runtime.tiles.TileVisibility.stats` of the last frame, else None).
     """
     from tqdm import tqdm
 
@@ -127,6 +128,8 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         sustained = (time.perf_counter() - t0) * 1e3 / len(cameras)
         renderer.timer.enabled = True
         clocks["sustained"] = gpu_clocks()
+        tiles = renderer.visibility.tiles  # its list length: the tile raster's work (disc-tile pairs)
+        tile_stats = tiles.stats() if tiles is not None else None
         stages = list(timings[0])
         totals = [float(sum(t.values())) for t in timings]
         part_names = sorted({k for t in parts for k in t})
@@ -141,7 +144,8 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
                 "wall_ms_per_frame": wall, "median_wall_ms": float(np.median(wall)),
                 "median_cpu_ms": {k: float(np.median([c.get(k, 0.0) for c in cpu])) for k in cpu[0]},
                 "mean_iterations": float(np.mean(iters)), "surface_fraction": float(np.mean(surface)),
-                "photo_uploads": int(renderer.images.uploads - uploads0), "gpu_bytes": dict(renderer.gpu_bytes)}
+                "photo_uploads": int(renderer.images.uploads - uploads0), "gpu_bytes": dict(renderer.gpu_bytes),
+                "tile_stats": tile_stats}
     finally:
         renderer.release()
 

@@ -306,12 +306,15 @@ def section_table1(rs: ResultSet, out: Path, key: str = "table1",
     if m.get("scene_generation_s") is not None:
         phases.append({"phase": "scene generation (not preprocessing)", "seconds": m["scene_generation_s"]})
     s.table(f"{key}_preprocessing", "Preprocessing wall-clock seconds per phase", phases)
-    cpu = m.get("cpu_s_per_phase")
-    if cpu:
-        total = m["preprocess_total_s"]
-        s.text(f"{c['points'] / total / 1e6:.2f}M points per second of these phases; CPU seconds per phase "
-               f"(worker processes included): " + ", ".join(f"{k.removesuffix('_s')} {fmt(v)}" for k, v in cpu.items())
-               + f"; {m.get('cores')} cores.")
+    cpu, anon = m.get("cpu_s_per_phase"), m.get("peak_anon_mb") or {}
+    if cpu:  # CPU seconds are kept per phase as bundle.json groups them (proxies to labeling: one)
+        wall = dict(m["phases_s"], proxies_candidates_labeling_s=sum(
+            m["phases_s"].get(k) or 0.0 for k in ("proxies_s", "candidates_s", "labeling_s")))
+        rows = [{"phase": k.removesuffix("_s"), "wall s": wall.get(k), "CPU s (workers included)": v,
+                 "cores busy": v / wall[k] if wall.get(k) else None,
+                 "peak anonymous MiB": anon.get(k, anon.get("labeling_s"))} for k, v in cpu.items()]
+        s.table(f"{key}_cpu", f"CPU and memory per phase ({m.get('cores')} cores; "
+                              f"{c['points'] / m['preprocess_total_s'] / 1e6:.2f}M points per second)", rows)
     if m.get("derived_from_base"):
         s.text("The proxies, candidates and labeling phases were run for this proxy set on the depth maps of "
                "the preset's one preprocessing (bench.harness.derive_proxy_bundle), exactly as `dmrt preprocess` "

@@ -314,6 +314,19 @@ def test_source_that_stays_whole_and_plain_callables_with_a_pool(octree_50k, poo
     assert_same_result(a, b)
 
 
+def test_float32_positions_spill_in_float32_with_the_same_results(octree_50k, tmp_path):
+    from dmrt.preprocess.normals import _positions_dtype
+
+    src = octree_50k.point_range(chunk_size=3000)  # the octree's positions are float32
+    as64 = lambda: ({**c, "positions": c["positions"].astype(np.float64)} for c in src())  # noqa: E731
+    assert (_positions_dtype(src), _positions_dtype(as64)) == ("float32", "float64")
+    kw = dict(viewpoints=[[3, 3, 2.5]], memory_limit_mb=1, progress=False)
+    a = process_chunked(src, tmp_path / "f32", **kw)
+    b = process_chunked(as64, tmp_path / "f64", **kw)
+    assert a.n_buckets > 10
+    assert_same_result(a, b)  # the float32 spill held the same values: bit for bit
+
+
 def test_cell_counts_of_parts_add_up_to_the_serial_table():
     """The count pass's merge rule (per-part tables at their own shifts, aligned and coarsened while
     over the cap) gives the serial table, also for uneven parts that stop at different shifts."""

@@ -441,8 +441,9 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
         # distribute: core copy to the own bucket, halo copies to the other buckets in the margin
         # box; each part into its own spill folder per bucket, a share of the buffer budget each
         n_parts = 1 if parts is None else len(parts)
+        positions_dtype = _positions_dtype(src)
         plan = dict(spill=str(spill), shift=shift, margin=margin, starts=starts, cell_keys=cell_keys,
-                    buffer_bytes=budget // 4 // n_parts, **grid)
+                    buffer_bytes=budget // 4 // n_parts, positions_dtype=positions_dtype, **grid)
         if parts is None:
             with _progress(n, "normals: distribute", progress) as bar:
                 written = [_distribute((0, src, 0), bar=bar, **plan)]
@@ -459,7 +460,8 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
         n_unverified = 0
         max_bucket = 0
         task = dict(spill=str(spill), n_parts=n_parts, normals=normals, radii=radii, k_normals=k_normals,
-                    k_radii=k_radii, scale=scale, viewpoints=viewpoints, margin=margin, knn_rows=knn_rows)
+                    k_radii=k_radii, scale=scale, viewpoints=viewpoints, margin=margin, knn_rows=knn_rows,
+                    positions_dtype=positions_dtype)
         if executor is None or not executor.distributed:
             results = (_bucket_attrs(b, **task) for b in range(nb))
         else:
@@ -556,8 +558,25 @@ def _count_cells(src, lo, cell0, cap, slice_points, bar=None):
     return keys, cnts, shift, n
 
 
-# spill records: a point's position, its index in the input, and whether it is the bucket's own
-_SPILL = {"positions": ("float64", (3,)), "gidx": ("int64", ()), "core": ("uint8", ())}
+def _spill_schema(positions: str) -> dict:
+    """Spill records: a point's position (``positions`` dtype), its index in the input, and
+    whether it is the bucket's own."""
+    return {"positions": (positions, (3,)), "gidx": ("int64", ()), "core": ("uint8", ())}
+
+
+def _positions_dtype(src) -> str:
+    """``"float32"`` when the source's first chunk holds float32 positions (an octree's), which the
+    spill then keeps exactly in 12 bytes a point instead of 24 (683M points: 8 GB less disk);
+    else ``"float64"``."""
+    it = iter(src())
+    first = next(it, None)
+    if hasattr(it, "close"):
+        it.close()
+    if isinstance(first, (tuple, list)):
+        pos = first[0]
+    else:
+        pos = first["positions"] if isinstance(first, dict) else getattr(first, "positions", None)
+    return "float32" if np.asarray(pos).dtype == np.float32 else "float64"
 # the 8 corners of a margin box, as (low 0 / high 1) per axis
 _CORNERS = np.array([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], np.int64)
 
@@ -567,7 +586,7 @@ def _part_folder(spill, b: int, part: int) -> Path:
 
 
 def _distribute(item, spill, lo, cell0, shift, margin, starts, cell_keys, slice_points, buffer_bytes,
-                bar=None) -> int:
+                positions_dtype="float64", bar=None) -> int:
     """Append one part's core and halo copies to the spill folders ``<spill>/b<bucket>/p<part>``.
 
     Parameters
@@ -578,6 +597,8 @@ def _distribute(item, spill, lo, cell0, shift, margin, starts, cell_keys, slice_
     cell_keys : (m,) int64 sorted occupied cells of the bucket grid.
     buffer_bytes : int
         Records buffered before they are written.
+    positions_dtype : str
+        The spill's position type (:func:`_positions_dtype`).
 
     Returns
     -------
@@ -585,14 +606,16 @@ def _distribute(item, spill, lo, cell0, shift, margin, starts, cell_keys, slice_
     """
     part, src, first = item
     nb = len(starts)
-    apps = [_Appender(_part_folder(spill, b, part), _SPILL) for b in range(nb)]
+    schema = _spill_schema(positions_dtype)
+    record = np.dtype(positions_dtype).itemsize * 3 + 9
+    apps = [_Appender(_part_folder(spill, b, part), schema) for b in range(nb)]
     buf = [[] for _ in range(nb)]
     buffered = 0
 
     def flush():
         for b in range(nb):
             if buf[b]:
-                apps[b].write({k: np.concatenate([p[k] for p in buf[b]]) for k in _SPILL})
+                apps[b].write({k: np.concatenate([p[k] for p in buf[b]]) for k in schema})
                 apps[b].close()
                 buf[b] = []
 
@@ -623,7 +646,7 @@ def _distribute(item, spill, lo, cell0, shift, margin, starts, cell_keys, slice_
             a, e = cuts[j], cuts[j + 1]
             sel = ii[a:e]
             buf[bb[a]].append({"positions": pos[sel], "gidx": gidx[sel], "core": core[a:e]})
-        buffered += len(bb) * 33
+        buffered += len(bb) * record
         if buffered > buffer_bytes:
             flush()
             buffered = 0
@@ -634,7 +657,7 @@ def _distribute(item, spill, lo, cell0, shift, margin, starts, cell_keys, slice_
 
 
 def _bucket_attrs(b: int, spill: str, n_parts: int, normals: bool, radii: bool, k_normals: int, k_radii: int,
-                  scale: float, viewpoints, margin: float, knn_rows: int):
+                  scale: float, viewpoints, margin: float, knn_rows: int, positions_dtype: str = "float64"):
     """The normals and radii of bucket ``b``'s core points (its spill folder is removed).
 
     The bucket's parts are read in part order, i.e. its points in input order, as one serial
@@ -645,11 +668,13 @@ def _bucket_attrs(b: int, spill: str, n_parts: int, normals: bool, radii: bool, 
     gidx : (m,) int64 the core points' indices in the input.  normals : (m, 3) float32 or None.
     radii : (m,) float32 or None.  n_unverified : int.  size : int, core + halo points.
     """
-    pieces = [_read_records(_part_folder(spill, b, p), _SPILL) for p in range(n_parts)]
+    schema = _spill_schema(positions_dtype)
+    pieces = [_read_records(_part_folder(spill, b, p), schema) for p in range(n_parts)]
     shutil.rmtree(Path(spill) / f"b{b:06d}", ignore_errors=True)
-    rec = pieces[0] if n_parts == 1 else {k: np.concatenate([r[k] for r in pieces]) for k in _SPILL}
+    rec = pieces[0] if n_parts == 1 else {k: np.concatenate([r[k] for r in pieces]) for k in schema}
     del pieces
-    pos, gidx, core = rec["positions"], rec["gidx"], rec["core"].astype(bool)
+    # float64 as every other path computes (float32 spills hold float32 inputs exactly)
+    pos, gidx, core = rec["positions"].astype(np.float64), rec["gidx"], rec["core"].astype(bool)
     qi = np.flatnonzero(core)
     out_n = np.empty((len(qi), 3), np.float32) if normals else None
     out_r = np.empty(len(qi), np.float32) if radii else None
