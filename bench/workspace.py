@@ -119,7 +119,7 @@ PRESETS = {
     "paper-full": BenchPreset(
         name="paper-full", scene="paper-full",
         preprocess={"depthmap_width": 1024, "memory_limit_mb": 64000, "resident_mb": 40000},
-        proxy_levels=(4,)),
+        proxy_levels=(4,), main_proxy_levels=4),
 }
 
 
