@@ -99,8 +99,9 @@ def load_results(results_dir) -> list[ResultSet]:
             files = sorted(sdir.glob("*.json"))
             if not files:
                 continue
-            commit, _, preset = sdir.name.rpartition("-")
-            if not commit:  # not <commit>-<preset>: e.g. the results/ of a report kept beside them
+            # a commit hash has no "-", a preset name may (paper-full)
+            commit, _, preset = sdir.name.partition("-")
+            if not preset:  # not <commit>-<preset>: e.g. the results/ of a report kept beside them
                 continue
             rs = ResultSet(sdir, mdir.name, commit, preset)
             for f in files:
@@ -257,14 +258,34 @@ def _meas(rs: ResultSet, name: str) -> dict | None:
     return None if p is None else p["measurements"]
 
 
-def _maps(rs: ResultSet, name: str) -> dict:
-    """The image maps of experiment ``name`` (its .npz beside the JSON)."""
+# figures drawn from the .npz image maps, which reports/history does not keep (JSON only)
+REAL_VIEWS_CAPTION = ("Held-out photos, the renders at their cameras (black: no surface) and the mean absolute "
+                      "RGB error (8-bit levels)")
+MAP_FIGURES = {"fig8": "fig8_heatmaps.png", "fig13": "fig13_holes.png", "real_views": "real_views.png"}
+
+
+def _maps(rs: ResultSet, name: str) -> dict | None:
+    """The image maps of experiment ``name`` (its .npz beside the JSON); None when the file is
+    not there (a result set rebuilt from reports/history), an error when it is unreadable."""
     path = rs.dir / _meas(rs, name)["maps_file"]
+    if not path.exists():
+        return None
     try:
         with np.load(path) as z:
             return {k: z[k] for k in z.files}
     except (OSError, ValueError) as exc:
         raise InputError(path, f"cannot read the maps of {name}.json ({exc})") from exc
+
+
+def _kept_figure(s: Section, out: Path, name: str, caption: str) -> Section:
+    """Without the maps: the figure as the previous build of this report drew it from the same
+    result set's maps (build_report keeps it), said so in the caption."""
+    if (out / "figures" / MAP_FIGURES[name]).is_file():
+        s.figure(MAP_FIGURES[name], f"{caption} (drawn by an earlier build of this report: the image maps of "
+                                    f"this result set are not in the results folder)")
+    else:
+        s.text(f"No figure: {name}'s image maps (.npz) are not in the results folder.")
+    return s
 
 
 def _not_run(rs: ResultSet, s: Section, name: str) -> bool:
@@ -303,6 +324,9 @@ def section_table1(rs: ResultSet, out: Path, key: str = "table1",
     s.table(f"{key}_scene", "Scene characteristics (paper Table 1)", rows)
     phases = [{"phase": k.removesuffix("_s"), "seconds": v} for k, v in m["phases_s"].items()]
     phases.append({"phase": "total (these phases)", "seconds": m["preprocess_total_s"]})
+    if m.get("bundle_total_s") is not None:
+        phases.append({"phase": "the whole preprocessing (scene loading and bundle writing included)",
+                       "seconds": m["bundle_total_s"]})
     if m.get("scene_generation_s") is not None:
         phases.append({"phase": "scene generation (not preprocessing)", "seconds": m["scene_generation_s"]})
     s.table(f"{key}_preprocessing", "Preprocessing wall-clock seconds per phase", phases)
@@ -612,6 +636,8 @@ def section_fig8(rs: ResultSet, out: Path) -> Section:
                     f"{rs.experiments['fig8']['parameters']['layers']} layers: coarse splats (8b), raytraced (8c), "
                     f"raytraced + per-pixel labels (8d)", rows)
     maps = _maps(rs, "fig8")
+    if maps is None:
+        return _kept_figure(s, out, "fig8", "Fig. 8: colour, depth-error and colour-error heat maps per stage")
     stages = list(m["stages"])
     dz = np.concatenate([maps[f"{st}_depth_error_m"].ravel() for st in stages]) * 1e3
     dz_max = float(np.nanpercentile(dz, 99)) if np.isfinite(dz).any() else 1.0
@@ -695,6 +721,8 @@ def section_fig13(rs: ResultSet, out: Path) -> Section:
                      f"visible holes, 3 almost none). The paper's rates are the layers' own; the 'filled' "
                      f"columns add this renderer's hole filling from neighbouring depth maps", rows)
     maps = _maps(rs, "fig13")
+    if maps is None:
+        return _kept_figure(s, out, "fig13", f"Fig. 13: frames and hole maps at {m['shown_camera']}")
     ks = [r["layers"] for r in m["rows"]]
     fig, axs = plt.subplots(2, len(ks) + 1, figsize=(3.6 * (len(ks) + 1), 5.2))
     axs[0, 0].imshow(maps["reference_color"])
@@ -802,6 +830,8 @@ def section_real_views(rs: ResultSet, out: Path) -> Section:
     if not m.get("maps_file"):
         return s
     maps = _maps(rs, "real_views")
+    if maps is None:
+        return _kept_figure(s, out, "real_views", REAL_VIEWS_CAPTION)
     shown, variants = m["shown_views"], m["shown_variants"]
     err_of = [v for v in ("dmrt", "dmrt+gains") if v in variants]
     ncol = 1 + len(variants) + len(err_of)
@@ -822,8 +852,7 @@ def section_real_views(rs: ResultSet, out: Path) -> Section:
             plt.colorbar(im, ax=axs[i, j], fraction=0.035)
         for a in axs[i]:
             a.axis("off")
-    s.figure(_save(fig, out, "real_views.png"), "Held-out photos, the renders at their cameras (black: no surface) "
-                                                  "and the mean absolute RGB error (8-bit levels)")
+    s.figure(_save(fig, out, MAP_FIGURES["real_views"]), REAL_VIEWS_CAPTION)
     return s
 
 
@@ -922,6 +951,11 @@ def build_report(results_dir, out, preset: str | None = None, machine: str | Non
     with atomic_dir(out, what="report") as tmp:
         for sub in ("figures", "csv", "results"):
             (tmp / sub).mkdir()
+        # the figures drawn from image maps, for sections whose maps are gone (_kept_figure); a
+        # section that has its maps draws its figure anew over the copy
+        for name in MAP_FIGURES.values():
+            if (out / "figures" / name).is_file():
+                shutil.copy2(out / "figures" / name, tmp / "figures" / name)
         sections = []
         for key in SECTIONS:
             try:

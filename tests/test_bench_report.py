@@ -256,8 +256,8 @@ def _table1_payload() -> dict:
                              "bundle": {"proxies": 100}}}
 
 
-def _write_set(root: Path, commit: str = "abcdef123456", **files) -> Path:
-    d = root / "test-gl" / f"{commit}-ci"
+def _write_set(root: Path, commit: str = "abcdef123456", preset: str = "ci", **files) -> Path:
+    d = root / "test-gl" / f"{commit}-{preset}"
     d.mkdir(parents=True)
     for name, text in files.items():
         (d / f"{name}.json").write_text(text if isinstance(text, str) else json.dumps(text))
@@ -424,3 +424,50 @@ def test_a_report_kept_beside_the_results_is_not_read_as_results(tmp_path):
     r = build_report(root, tmp_path / "again")
     assert [(s.machine, s.commit) for s in load_results(root)] == [("test-gl", "abcdef123456")]
     assert r.result_set.machine == "test-gl"
+
+
+def test_table1_at_scene2_size_stands_beside_the_presets(tmp_path):
+    """A `paper-full` result set (a preset name with a hyphen) of the same machine: its Table 1 is
+    a section of the other preset's report, with CPU seconds per phase; alone it is its own report."""
+    from bench.report import build_report, load_results
+
+    root = tmp_path / "results"
+    _write_set(root, table1=_table1_payload())
+    full = _table1_payload()
+    full["measurements"]["counts"] = dict(full["measurements"]["counts"], points=682_922_688)
+    full["measurements"].update(cpu_s_per_phase={"octree_s": 7.0, "labeling_s": 1.0}, cores=16,
+                                peak_anon_mb={"octree_s": 512.0, "labeling_s": 64.0})
+    _write_set(root, "0123456789ab", preset="paper-full", table1=full)
+    assert sorted((s.commit, s.preset) for s in load_results(root)) == [("0123456789ab", "paper-full"),
+                                                                        ("abcdef123456", "ci")]
+    build_report(root, tmp_path / "report", preset="ci")
+    md = (tmp_path / "report" / "REPORT.md").read_text()
+    assert "## Table 1 at Scene 2's size: the `paper-full` preset (commit 0123456789ab" in md
+    assert "| points | 682922688 | 682000000 |" in md
+    assert "| octree | 0.5 | 7 | 14 | 512 |" in md  # wall s, CPU s, cores busy, peak MiB
+    assert (tmp_path / "report" / "results" / "paper-full-table1.json").is_file()
+    own = build_report(root, tmp_path / "own", preset="paper-full")
+    assert own.result_set.preset == "paper-full"
+    assert "Scene 2's size" not in (tmp_path / "own" / "REPORT.md").read_text()
+
+
+def test_a_set_without_its_image_maps_keeps_the_earlier_figure(ci_run, tmp_path):
+    """reports/history keeps the JSON only: rebuilt from it, the report keeps the figures that its
+    previous build drew from the same set's maps, and says so."""
+    from bench.report import build_report
+
+    results, set_dir, _ = ci_run
+    copy = tmp_path / "results"
+    shutil.copytree(results, copy)
+    build_report(copy, tmp_path / "report")
+    drawn = (tmp_path / "report" / "figures" / "fig8_heatmaps.png").read_bytes()
+    for f in (copy / set_dir.parent.name / set_dir.name).glob("*.npz"):
+        f.unlink()
+    build_report(copy, tmp_path / "report")
+    assert (tmp_path / "report" / "figures" / "fig8_heatmaps.png").read_bytes() == drawn
+    md = (tmp_path / "report" / "REPORT.md").read_text()
+    # figs. 8, 13 and the real views, each caption twice (the image's alt text and the caption)
+    assert md.count("the image maps of this result set are not in the results folder") == 6
+    build_report(copy, tmp_path / "fresh")  # no earlier build: no figure, a line instead
+    assert not (tmp_path / "fresh" / "figures" / "fig8_heatmaps.png").exists()
+    assert "No figure: fig8's image maps (.npz) are not in the results folder." in (tmp_path / "fresh" / "REPORT.md").read_text()
