@@ -34,13 +34,14 @@ def test_dask_bundle_equals_in_process(tiny_scene, tiny_bundle, executor, tmp_pa
     out = preprocess(tiny_scene, tmp_path / "tiny", PreprocessConfig(depthmap_width=256), progress=False,
                      executor=executor)
     a, b = read_bundle(tiny_bundle), read_bundle(out)
-    # both workers rendered depth maps (6 photos each) on a GL context of their own
+    # both workers rendered depth maps (every map, each from half of P_HD) on a GL context of their own
     assert all(executor.client.run(_has_gl_context).values())
     # (the tiny cloud fits --memory-limit-mb, so its normals/radii are one in-memory pass here; the
     # bucketed path's tasks are checked below)
     # everything is computed by the same code on the same inputs, only in other processes: no
-    # floating-point order differs (the photos are cut into groups, each map still rendered whole;
-    # candidates are joined in photo order before the rim rule; labeling is global), so bit for bit
+    # floating-point order differs (P_HD is cut into ranges and each map merged as the nearest depth
+    # of the ranges' maps, exact since a map holds each texel's nearest splat; candidates are joined
+    # in photo order before the rim rule; labeling is global), so bit for bit
     assert_bundles_equal(a, b)
     assert b.meta["dask"] == {"spec": "local:2", "workers": 2} and "dask" not in a.meta
 

@@ -16,6 +16,7 @@ Phases, each with a progress bar and a wall-clock timing in ``bundle.json``:
 
 from __future__ import annotations
 
+import functools
 import resource
 import shlex
 import shutil
@@ -33,7 +34,7 @@ from dmrt.io.exr import read_depth_exr, write_depth_exr
 from dmrt.preprocess.config import PreprocessConfig
 from dmrt.preprocess.memory import AnonPeak, cpu_seconds
 from dmrt.preprocess.labeling import LabelingConfig
-from dmrt.preprocess.parallel import InProcess, check_gpu_worker, default_workers, split
+from dmrt.preprocess.parallel import InProcess, check_gpu_worker, default_workers
 from dmrt.preprocess.photometric import solve_for_proxies
 from dmrt.preprocess.proxies import choose_proxy_levels, label_proxies
 from dmrt.io.scene import Scene, load_scene
@@ -90,31 +91,19 @@ class _Photos:
         return {"scene": self.scene, "_cache": {}}
 
 
-def render_depth_group(js, cameras, names, work, out_dir, has_normals: bool, config: PreprocessConfig,
-                       progress: bool = False) -> tuple[list[str], list[list[int]], dict, str]:
-    """Phase 3 for the photos ``js`` (a Dask task, or the whole phase in process): P_HD from the
-    octree and the normals/radii in the work folder ``work``, splatted by
-    :meth:`~dmrt.preprocess.depthmaps.DepthMapRenderer.render_many` on this process's GL context;
-    the maps are written to ``out_dir/depthmaps/<photo stem>.exr``.
-
-    Returns
-    -------
-    rels : the maps' paths relative to ``out_dir``, in the order of ``js``.  sizes : ``[w, h]`` each.
-    gpu_ms : GPU milliseconds per stage (:class:`~dmrt.gl.GpuTimer`).  renderer : the GL renderer.
-    """
+def _depth_renderer(work, points, has_normals: bool, config: PreprocessConfig):
+    """This process's depth-map renderer and the chunk source of P_HD's points ``points`` (an
+    :class:`~dmrt.preprocess.octree.OctreeRange`) with their normals and radii from ``work``."""
     from dmrt.gl import GpuTimer, get_context
     from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer
-    from dmrt.preprocess.octree import Octree
 
     check_gpu_worker()
-    work, out_dir = Path(work), Path(out_dir)
-    octree = Octree.open(work / "octree")
-    normals = None if has_normals else np.load(work / "attrs" / "normals.npy", mmap_mode="r")
-    radii = np.load(work / "attrs" / "radii.npy", mmap_mode="r")
+    normals = None if has_normals else np.load(Path(work) / "attrs" / "normals.npy", mmap_mode="r")
+    radii = np.load(Path(work) / "attrs" / "radii.npy", mmap_mode="r")
 
     def hd_chunks():
-        g = 0
-        for ch in octree.iter_levels(chunk_size=config.chunk_points):
+        g = points.start  # the attributes are indexed in octree order, as the range
+        for ch in points():
             m = len(ch["positions"])
             nrm = ch["normals"] if has_normals else normals[g:g + m]
             yield np.asarray(ch["positions"], np.float32), np.asarray(nrm, np.float32), np.asarray(radii[g:g + m])
@@ -125,15 +114,33 @@ def render_depth_group(js, cameras, names, work, out_dir, has_normals: bool, con
     # GPU batches of one read chunk: on a CPU renderer (llvmpipe) GPU buffers are host memory
     renderer = DepthMapRenderer(ctx, DepthMapConfig(width=config.depthmap_width, method=config.depthmap_method,
                                                     chunk_points=config.chunk_points), timer=timer)
-    js = list(js)
+    return renderer, hd_chunks, timer
+
+
+def render_depth_maps(cameras, names, work, out_dir, has_normals: bool, config: PreprocessConfig,
+                      progress: bool = False) -> tuple[list[str], list[list[int]], dict, str]:
+    """Phase 3 in this process: every photo's depth map from all of P_HD (the octree and the
+    normals/radii in the work folder ``work``), splatted by
+    :meth:`~dmrt.preprocess.depthmaps.DepthMapRenderer.render_many` on this process's GL context
+    and written to ``out_dir/depthmaps/<photo stem>.exr``.
+
+    Returns
+    -------
+    rels : the maps' paths relative to ``out_dir``, in photo order.  sizes : ``[w, h]`` each.
+    gpu_ms : GPU milliseconds per stage (:class:`~dmrt.gl.GpuTimer`).  renderer : the GL renderer.
+    """
+    from dmrt.preprocess.octree import Octree
+
+    points = Octree.open(Path(work) / "octree").point_range(chunk_size=config.chunk_points)
+    renderer, hd_chunks, timer = _depth_renderer(work, points, has_normals, config)
     rels, sizes, writes = [], [], []
     # EXR compression (~40 ms a map) runs on threads while the GPU renders the next maps
     with ThreadPoolExecutor(default_workers()) as pool:
         try:
-            for i, depth in renderer.render_many([cameras[j] for j in js], hd_chunks,
-                                                 resident_mb=config.resident_mb, progress=progress):
-                rel = f"depthmaps/{Path(names[js[i]]).stem}.exr"
-                writes.append(pool.submit(write_depth_exr, out_dir / rel, depth))
+            for j, depth in renderer.render_many(cameras, hd_chunks, resident_mb=config.resident_mb,
+                                                 progress=progress):
+                rel = f"depthmaps/{Path(names[j]).stem}.exr"
+                writes.append(pool.submit(write_depth_exr, Path(out_dir) / rel, depth))
                 rels.append(rel)
                 sizes.append([depth.shape[1], depth.shape[0]])
         finally:
@@ -141,6 +148,35 @@ def render_depth_group(js, cameras, names, work, out_dir, has_normals: bool, con
         for f in writes:
             f.result()  # a failed write raises here
     return rels, sizes, dict(timer.ms), _gl_renderer_string()
+
+
+def render_depth_part(item, cameras, work, has_normals: bool, config: PreprocessConfig) -> tuple[dict, str]:
+    """Phase 3 on one of several GPUs (a Dask task): every photo's depth map from the points of
+    ``item = (part, points)`` only (an :class:`~dmrt.preprocess.octree.OctreeRange` of P_HD),
+    saved as ``work/depth-parts/p<part>/<photo index>.npy`` ((h, w) float32 camera z, 0 where
+    empty). A map is the nearest splat at each texel, so the nearest of the parts' maps there
+    (:func:`nearest_depth`) is the map of all points, bit for bit. Each GPU reads and uploads only
+    its share of the points, which dominate the phase at scale (683M points: 26 of its 33.5 s).
+
+    Returns
+    -------
+    gpu_ms : GPU milliseconds per stage.  renderer : the GL renderer.
+    """
+    part, points = item
+    folder = Path(work) / "depth-parts" / f"p{part:03d}"
+    folder.mkdir(parents=True, exist_ok=True)
+    renderer, hd_chunks, timer = _depth_renderer(work, points, has_normals, config)
+    try:
+        for j, depth in renderer.render_many(cameras, hd_chunks, resident_mb=config.resident_mb):
+            np.save(folder / f"{j}.npy", depth)
+    finally:
+        renderer.release()
+    return dict(timer.ms), _gl_renderer_string()
+
+
+def nearest_depth(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Texel-wise nearest of two depth maps ((h, w) float32 camera z, 0 = empty)."""
+    return np.where((b > 0) & ((a == 0) | (b < a)), b, a)
 
 
 def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
@@ -210,23 +246,35 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                                 executor=executor)
         tic("normals_radii_s", t0)
 
-        # 3. depth maps: one task per group of photos (all photos in process), each reading P_HD
-        # and its attributes from the work folder
+        # 3. depth maps: in process, or on several GPUs each with its share of P_HD (read from the
+        # work folder)
         t0 = time.perf_counter()
-        task = dict(cameras=cams_local, names=[c.name for c in scene.cameras], work=str(work),
-                    out_dir=str(work.parent), has_normals=has_normals, config=config)
+        names = [c.name for c in scene.cameras]
         if executor.gpu_tasks:
-            parts = executor.map(render_depth_group, split(len(cams_local), executor.workers), desc="depth maps",
-                                 progress=progress, **task)
+            # each GPU splats its share of P_HD into every map; the maps' nearest depths are merged here
+            shares = list(enumerate(octree.point_range(chunk_size=config.chunk_points).split(executor.workers)))
+            parts = executor.map(render_depth_part, shares, desc="depth maps", progress=progress,
+                                 cameras=cams_local, work=str(work), has_normals=has_normals, config=config)
+
+            def merge(j):
+                maps = (np.load(work / "depth-parts" / f"p{p:03d}" / f"{j}.npy") for p, _ in shares)
+                depth = functools.reduce(nearest_depth, maps)
+                rel = f"depthmaps/{Path(names[j]).stem}.exr"
+                write_depth_exr(work.parent / rel, depth)
+                return rel, [depth.shape[1], depth.shape[0]]
+
+            with ThreadPoolExecutor(default_workers()) as pool:
+                depth_files, depth_sizes = (list(x) for x in zip(*pool.map(merge, range(len(cams_local)))))
+            shutil.rmtree(work / "depth-parts")
+            gpu_ms: dict[str, float] = {}
+            for ms, _ in parts:
+                for k, v in ms.items():
+                    gpu_ms[k] = gpu_ms.get(k, 0.0) + v
+            gl_renderers = list(dict.fromkeys(r for _, r in parts))
         else:
-            parts = [render_depth_group(range(len(cams_local)), progress=progress, **task)]
-        depth_files = [rel for part in parts for rel in part[0]]
-        depth_sizes = [size for part in parts for size in part[1]]
-        gpu_ms: dict[str, float] = {}
-        for part in parts:
-            for k, v in part[2].items():
-                gpu_ms[k] = gpu_ms.get(k, 0.0) + v
-        gl_renderers = list(dict.fromkeys(part[3] for part in parts))
+            depth_files, depth_sizes, gpu_ms, renderer_name = render_depth_maps(
+                cams_local, names, work, work.parent, has_normals, config, progress=progress)
+            gl_renderers = [renderer_name]
         tic("depthmaps_s", t0)
         timings["depthmaps_gpu_ms"] = {k: round(v, 3) for k, v in gpu_ms.items()}
 
