@@ -330,7 +330,8 @@ def test_float32_positions_spill_in_float32_with_the_same_results(octree_50k, tm
 def test_cell_counts_of_parts_add_up_to_the_serial_table():
     """The count pass's merge rule (per-part tables at their own shifts, aligned and coarsened while
     over the cap) gives the serial table, also for uneven parts that stop at different shifts."""
-    from dmrt.preprocess.normals import _add_counts, _count_cells
+    from dmrt.preprocess.normals import _count_cells
+    from dmrt.preprocess.octree import _add_counts
 
     p = scene(20_000, 10_000)
     lo, cell0 = p.min(0), float(np.ptp(p, axis=0).max()) / ((1 << 20) - 1)

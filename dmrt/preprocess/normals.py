@@ -29,8 +29,8 @@ from typing import Iterator
 import numpy as np
 from scipy.spatial import cKDTree
 
-from dmrt.preprocess.octree import (_Appender, _chunk_source, _iter_normalized, _merge_counts, _progress,
-                         _in_sorted, _read_records, _unique_counts, compute_bbox)
+from dmrt.preprocess.octree import (_Appender, _add_counts, _chunk_source, _iter_normalized, _merge_counts,
+                         _progress, _in_sorted, _read_records, _unique_counts, compute_bbox)
 from dmrt.io.atomic import atomic_file
 from dmrt.preprocess.parallel import default_workers
 from dmrt.morton import morton_encode
@@ -512,32 +512,6 @@ def _qcoords(p: np.ndarray, lo: np.ndarray, cell0: float) -> np.ndarray:
     q = np.floor((p - lo) / cell0)
     np.clip(q, 0, (1 << 21) - 1, out=q)
     return q.astype(np.int64)
-
-
-def _shifted(keys: np.ndarray, levels: int) -> np.ndarray:
-    """Morton ``keys`` of cells ``levels`` doublings coarser (still sorted, now with repeats)."""
-    return keys >> (3 * levels) if levels else keys
-
-
-def _add_counts(keys, cnts, shift, keys2, cnts2, shift2, cap):
-    """Add a (key, count) table at ``shift2`` to one at ``shift``: both coarsened to the coarser
-    shift, merged, then coarsened while over ``cap`` cells.
-
-    Parameters
-    ----------
-    keys, keys2 : (m,) int64 sorted Morton keys of grid cells at ``fine cell * 2**shift``.
-    cnts, cnts2 : (m,) int64 points per cell.
-
-    Returns
-    -------
-    keys : (m',) int64.  cnts : (m',) int64.  shift : int, the sum's shift.
-    """
-    s = max(shift, shift2)
-    keys, cnts = _merge_counts(_shifted(keys, s - shift), cnts, _shifted(keys2, s - shift2), cnts2)
-    while len(keys) > cap:
-        s += 1
-        keys, cnts = _merge_counts(keys >> 3, cnts)
-    return keys, cnts, s
 
 
 def _count_cells(src, lo, cell0, cap, slice_points, bar=None):

@@ -616,6 +616,32 @@ def _merge_counts(k1, c1, k2=None, c2=None):
     return np.insert(k1, i[new], k2[new]), np.insert(c, i[new], c2[new])
 
 
+def _shifted(keys: np.ndarray, levels: int) -> np.ndarray:
+    """Morton ``keys`` of cells ``levels`` doublings coarser (still sorted, now with repeats)."""
+    return keys >> (3 * levels) if levels else keys
+
+
+def _add_counts(keys, cnts, shift, keys2, cnts2, shift2, cap, max_shift=None):
+    """Add a (key, count) table at ``shift2`` to one at ``shift``: both coarsened to the coarser
+    shift, merged, then coarsened while over ``cap`` cells (and below ``max_shift``, if given).
+
+    Parameters
+    ----------
+    keys, keys2 : (m,) int64 sorted Morton keys of grid cells at ``fine cell * 2**shift``.
+    cnts, cnts2 : (m,) int64 points per cell.
+
+    Returns
+    -------
+    keys : (m',) int64.  cnts : (m',) int64.  shift : int, the sum's shift.
+    """
+    s = max(shift, shift2)
+    keys, cnts = _merge_counts(_shifted(keys, s - shift), cnts, _shifted(keys2, s - shift2), cnts2)
+    while len(keys) > cap and (max_shift is None or s < max_shift):
+        s += 1
+        keys, cnts = _merge_counts(keys >> 3, cnts)
+    return keys, cnts, s
+
+
 def _reduce_runs(k, c):
     """A sorted (key, count) table with each run of equal keys summed into one entry."""
     if len(k) < 2 or not np.any(k[1:] == k[:-1]):
@@ -1034,13 +1060,11 @@ class _Builder:
         # capacity (c is then the table's level, and more buckets are over-full); the level files
         # do not depend on the buckets, so they are the same bytes either way.
         for level_p, keys_p, cnts_p, n_p, out_p in results:
-            lvl = min(level, level_p)
-            keys, cnts = _merge_counts(keys >> (3 * (level - lvl)), cnts, keys_p >> (3 * (level_p - lvl)), cnts_p)
+            # in shifts (doublings coarser than the finest level), no coarser than level 0
+            keys, cnts, shift = _add_counts(keys, cnts, g.finest - level, keys_p, cnts_p, g.finest - level_p,
+                                            self.count_cap, max_shift=g.finest)
             del keys_p, cnts_p
-            level = lvl
-            while len(keys) > self.count_cap and level > 0:
-                level -= 1
-                keys, cnts = _merge_counts(keys >> 3, cnts)
+            level = g.finest - shift
             n, n_out = n + n_p, n_out + out_p
         if self.n_total is not None and n != self.n_total:
             raise RuntimeError(f"chunks_fn yielded {n} points now and {self.n_total} before: "
