@@ -370,11 +370,18 @@ def read_points(path) -> PointCloud:
 
 def bounds(path, chunk_size: int = 1_000_000) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned bounding box, streamed: ``(lo, hi)``, each (3,) float64 metres."""
-    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    for c in iter_point_chunks(path, chunk_size):
+    return chunk_bounds(iter_point_chunks(path, chunk_size))[:2]
+
+
+def chunk_bounds(chunks) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(lo, hi, n)``: the bounding box ((3,) float64 metres each) and number of the points of an
+    iterable of PointCloud chunks."""
+    lo, hi, n = np.full(3, np.inf), np.full(3, -np.inf), 0
+    for c in chunks:
         lo = np.minimum(lo, c.positions.min(axis=0))
         hi = np.maximum(hi, c.positions.max(axis=0))
-    return lo, hi
+        n += len(c)
+    return lo, hi, n
 
 
 class PointWriter:

@@ -192,7 +192,7 @@ def load_scene(root, check_images: bool = True, chunk_size: int = 1_000_000) -> 
     # invalid. A seekable file is read in ranges on threads (reads and numpy release the GIL).
     parts = pointcloud.point_range(points_path, chunk_size).split(len(os.sched_getaffinity(0)))
     with ThreadPoolExecutor(len(parts)) as pool:
-        ranges = list(pool.map(_range_bounds, parts))
+        ranges = list(pool.map(lambda part: pointcloud.chunk_bounds(part()), parts))
     lo = np.min([r[0] for r in ranges], axis=0)
     hi = np.max([r[1] for r in ranges], axis=0)
     n_points = sum(r[2] for r in ranges)
@@ -202,11 +202,3 @@ def load_scene(root, check_images: bool = True, chunk_size: int = 1_000_000) -> 
         scanners = e57.scanner_positions(points_path)
     return Scene(root, points_path, cameras, image_paths, mesh_path, origin, n_points, scanners, (lo, hi))
 
-
-def _range_bounds(source: pointcloud.PointRange) -> tuple[np.ndarray, np.ndarray, int]:
-    lo, hi, n = np.full(3, np.inf), np.full(3, -np.inf), 0
-    for c in source():
-        lo = np.minimum(lo, c.positions.min(axis=0))
-        hi = np.maximum(hi, c.positions.max(axis=0))
-        n += len(c)
-    return lo, hi, n
