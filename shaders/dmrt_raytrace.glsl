@@ -31,11 +31,8 @@
 // An invalid hit sends the search to the next layer. The pixel's normal is the average of the
 // unit normals of the triangles that pass the test (the paper: of both triangles).
 //
-// Passes (dmrt/runtime/renderer.py): the pixel pass searches each pixel's layers in turn but
-// stops after u_defer_steps steps and lists the pixel (DeferList); DEFERRED then searches the
-// listed pixels' remaining layers a thread each, and FILL the listed holes' neighbours a thread each,
-// so that no pass waits for one pixel's hundreds of steps in a row. The results are the serial
-// walk's, bit for bit.
+// Hole filling walks a list of the holes the pixel pass leaves (HoleList), a workgroup per hole and
+// a thread per neighbour (see FILL below).
 //
 // RAYTRACE 0 (ablation, the paper's Fig. 8a "coarse splats"): no search; the first layer's splat is
 // the surface (its depth and label; the normal faces the camera).
@@ -51,17 +48,10 @@
 #define FILL 0
 #endif
 
-#ifndef DEFERRED
-#define DEFERRED 0
-#endif
-
-// The pixel pass: 8 x 8 pixels a workgroup; the list passes (FILL, DEFERRED): one item a workgroup,
-// LIST_THREADS candidates (neighbours, layers) searched side by side
+// The pixel pass: 8 x 8 pixels a workgroup; the fill pass: one hole a workgroup, its LIST_THREADS
+// neighbours searched side by side
 #if FILL
 #define LIST_THREADS 8
-layout(local_size_x = LIST_THREADS) in;
-#elif DEFERRED
-#define LIST_THREADS 16
 layout(local_size_x = LIST_THREADS) in;
 #else
 #define LIST_THREADS 1
@@ -100,8 +90,8 @@ uniform float u_threshold;  // metres
 #define ILLINOIS 0
 #endif
 
-#if FILL || DEFERRED
-// hole filling searches no layer; deferral is off when steps are recorded (each would count twice)
+#if FILL
+// hole filling searches no layer: nothing of it is recorded
 #undef STATISTICS
 #define STATISTICS 0
 #endif
@@ -235,18 +225,15 @@ bool refine(int l, vec3 C, vec3 dir, float sa, float fa, float sb, float fb, out
     return true;
 }
 
-// Search D_l along the ray C + s * dir (s = camera z) from s0, at most steps (<= u_max_steps) steps.
-// True with s_hit and the unit world normal n on a valid intersection; exhausted when it stopped
-// at steps < u_max_steps (the full search could still succeed). The paper's search ends at the
-// first enclosed interval; with
+// Search D_l along the ray C + s * dir (s = camera z) from s0. True with s_hit and the unit world
+// normal n on a valid intersection. The paper's search ends at the first enclosed interval; with
 // SECANT an interval that fails (a sign change across a depth edge of D_l, not a surface, or a
 // hit that fails the discontinuity test) resumes the search beyond it, at most MAX_RESUMES times
 // (a pixel that no depth-map surface covers would otherwise spend every step of the budget).
-bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, int steps, inout int iters,
-           out float s_hit, out vec3 n, out bool exhausted) {
+bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int iters, out float s_hit,
+           out vec3 n) {
     s_hit = 0.0;
     n = vec3(0.0);
-    exhausted = false;
     bool ok;
     float s = s0;
     float f = signed_distance(l, C + s * dir, ok);
@@ -254,7 +241,7 @@ bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, int steps, 
     float sp = s, fp = f;
     bool restart = true;  // the next step is the paper's (no previous sample for a secant)
     int resumes = 0;
-    for (int i = 0; i < steps; ++i) {
+    for (int i = 0; i < u_max_steps; ++i) {
         iters++;
         if (abs(f) <= CONVERGED * s) {  // on the surface: no interval to refine
             s_hit = s;
@@ -308,7 +295,6 @@ bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, int steps, 
         s = sn;
         f = fn;
     }
-    exhausted = steps < u_max_steps;  // cut short by the caller's budget, not by u_max_steps
     return false;
 }
 
@@ -316,14 +302,12 @@ bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, int steps, 
 // walks the list, one workgroup per item: cmd.x = min(items, u_max_groups), cmd.w = items; a
 // workgroup takes items gl_WorkGroupID.x, + gl_NumWorkGroups.x, ...
 struct ListHeader { uint x, y, z, n; };
-// Pixels whose search was cut short (DEFERRED walks them): (pixel, first layer | steps before it << 8)
-layout(std430, binding = B_DEFER) buffer DeferList { ListHeader defer_cmd; uvec2 defer_items[]; };
 // Pixels that a splat covers but no layer gave a surface (FILL pass u_pass walks HoleList, appends
 // the pixels it leaves to NextHoles)
 layout(std430, binding = B_HOLES) buffer HoleList { ListHeader hole_cmd; uint hole_items[]; };
 layout(std430, binding = B_HOLES_NEXT) buffer NextHoles { ListHeader next_cmd; uint next_items[]; };
 uniform uint u_max_groups;  // GL_MAX_COMPUTE_WORK_GROUP_COUNT[0]
-uniform int u_fill;         // 1: append holes for a fill pass (fill_passes > 0; the last fill pass: 0)
+uniform int u_fill;         // 1: list the holes left for a fill pass (fill_passes > 0; the last fill pass: 0)
 
 void push_hole(uint pix) {
     uint i = atomicAdd(next_cmd.n, 1u);
@@ -331,9 +315,8 @@ void push_hole(uint pix) {
     if (i < u_max_groups) atomicMax(next_cmd.x, i + 1u);
 }
 
-// One item of a list per workgroup: the thread that finds the first success (smallest index j)
-// writes the pixel; iters counts the steps of the candidates up to that one, as the serial loop
-// over them in order would.
+// One hole per workgroup: the thread that finds the first success (smallest index j) writes the
+// pixel; iters counts the steps of the neighbours up to that one, as a loop over them in order would.
 const uint NONE = uint(LIST_THREADS);  // s_best when no candidate succeeded
 shared uint s_best;
 shared int s_iters[LIST_THREADS];
@@ -376,9 +359,8 @@ void main() {
         if (all(greaterThanEqual(q, ivec2(0))) && all(lessThan(q, u_size))) {
             nb = hits[uint(q.y * u_size.x + q.x)];
             if (nb.layer >= 0 && nb.layer < u_layers + u_pass && nb.depth > 0.0) {
-                bool exhausted;
                 // only the neighbour's own surface: within the discontinuity threshold of its depth
-                found = trace(-1, nb.label, C, dir, dlen, nb.depth, u_max_steps, iters, s_hit, n, exhausted) &&
+                found = trace(-1, nb.label, C, dir, dlen, nb.depth, iters, s_hit, n) &&
                         abs(s_hit - nb.depth) <= u_threshold;
             }
         }
@@ -397,70 +379,7 @@ void main() {
         barrier();  // s_best and s_iters are reset for the next item
     }
 }
-#elif DEFERRED
-// The layers of the pixels whose search (main, below) ran out of its u_defer_steps budget: one
-// workgroup per pixel, one thread per remaining layer, each searching its layer in full; the
-// smallest layer that gives a hit wins, as in the serial walk. The same hit, bit for bit (each
-// layer's search depends only on the pixel, the layer and its splat depth); the pass takes as long
-// as the longest single layer, not the sum of them.
-
-void main() {
-    uint lid = gl_LocalInvocationIndex;
-    uint npix = uint(u_size.x * u_size.y);
-    mat3 Rt = transpose(u_R);
-    vec3 C = -(Rt * u_t);
-    for (uint e = gl_WorkGroupID.x; e < defer_cmd.n; e += gl_NumWorkGroups.x) {
-        uvec2 item = defer_items[e];
-        uint pix = item.x;
-        int first = int(item.y & 0xFFu), iters0 = int(item.y >> 8);
-        ivec2 p = ivec2(int(pix % uint(u_size.x)), int(pix / uint(u_size.x)));
-        vec3 dir = Rt * camera_ray(vec2(p) + 0.5);
-        float dlen = length(dir);
-        if (lid == 0u) s_best = NONE;
-        memoryBarrierShared();
-        barrier();
-        // thread j searches layer first + j (the renderer defers only with u_layers <= LIST_THREADS)
-        int layer = first + int(lid), l = -1, iters = 0;
-        float s_hit = 0.0;
-        vec3 n = vec3(0.0);
-        bool found = false;
-        if (layer < u_layers) {
-            uint bits = layer_depth[uint(layer) * npix + pix];
-            if (bits != EMPTY_BITS) {
-                l = layer_label[uint(layer) * npix + pix];
-                bool exhausted;
-                found = trace(layer, l, C, dir, dlen, uintBitsToFloat(bits), u_max_steps, iters, s_hit, n, exhausted);
-            }
-        }
-        s_iters[lid] = iters;
-        if (found) atomicMin(s_best, lid);
-        memoryBarrierShared();
-        barrier();
-        uint best = s_best;
-        if (best == lid) {
-            hits[pix] = Hit(s_hit, l, layer, iters_through(best, iters0), n.x, n.y, n.z, -1);
-        } else if (best == NONE && lid == 0u) {
-            hits[pix] = Hit(0.0, -1, -1, iters_through(best, iters0), 0.0, 0.0, 0.0, -1);
-            if (u_fill != 0) push_hole(pix);
-        }
-        memoryBarrierShared();
-        barrier();
-    }
-}
 #else
-// u_defer_steps > 0: a pixel stops searching once its steps reach u_defer_steps and goes to the
-// DEFERRED pass with the layer it was on (whose search that pass starts again): a few pixels take
-// hundreds of steps (p99.99 ~300 on the paper preset, against a median of 2), and a pass lasts as
-// long as its slowest pixel's chain of dependent texture fetches. 0: every pixel searches to the
-// end here (STATISTICS: always, so that each step is recorded once).
-uniform int u_defer_steps;
-
-void defer(uint pix, int layer, int iters) {
-    uint i = atomicAdd(defer_cmd.n, 1u);
-    defer_items[i] = uvec2(pix, uint(layer) | (uint(iters) << 8));
-    if (i < u_max_groups) atomicMax(defer_cmd.x, i + 1u);
-}
-
 void raytrace_pixel() {
     ivec2 p = ivec2(gl_GlobalInvocationID.xy);
     if (p.x >= u_size.x || p.y >= u_size.y) return;
@@ -483,26 +402,18 @@ void raytrace_pixel() {
     hits[pix] = hit;
     return;
 #endif
-    bool budget = u_defer_steps > 0 && STATISTICS == 0;
     for (int layer = 0; layer < u_layers; ++layer) {
         uint bits = layer_depth[uint(layer) * npix + pix];
         if (bits == EMPTY_BITS) break;  // peeling: every later layer is empty too
         int l = layer_label[uint(layer) * npix + pix];
-        int steps = budget ? min(u_max_steps, u_defer_steps - iters) : u_max_steps;
         float s_hit;
         vec3 n;
-        bool exhausted;
-        int before = iters;
-        if (steps > 0 && trace(layer, l, C, dir, dlen, uintBitsToFloat(bits), steps, iters, s_hit, n, exhausted)) {
+        if (trace(layer, l, C, dir, dlen, uintBitsToFloat(bits), iters, s_hit, n)) {
             hit.depth = s_hit;
             hit.label = l;
             hit.layer = layer;
             hit.nx = n.x; hit.ny = n.y; hit.nz = n.z;
             break;
-        }
-        if (steps <= 0 || exhausted) {
-            defer(pix, layer, before);
-            return;
         }
     }
     hit.iters = iters;

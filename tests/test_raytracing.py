@@ -128,28 +128,3 @@ def test_secant_search_loses_fewer_pixels_than_the_papers(ctx, bundle):
     assert s.sum() >= a.sum()
     assert np.mean(s[a]) >= 0.995
 
-
-@pytest.mark.parametrize("defer_steps", [1, 3])
-def test_deferred_search_gives_the_same_hits(ctx, bundle, defer_steps):
-    """``defer_steps``: a pixel whose search takes more steps than that goes to a second pass that
-    searches its remaining layers side by side (a thread per layer), and its holes to fill passes
-    that search the neighbours side by side. The smallest successful layer (neighbour) wins and
-    each search depends only on the pixel, the layer and its start depth, so every record -
-    depth, label, layer, normal and the step count of the layers a serial walk would have tried -
-    equals the serial search's, bit for bit."""
-    from dmrt.runtime.renderer import RenderConfig, Renderer
-
-    sync = {"async_photos": False, "max_uploads_per_frame": 0, "layers": 4, "fill_passes": 2}
-    serial = Renderer(bundle, RenderConfig(defer_steps=0, **sync), ctx)
-    split = Renderer(bundle, RenderConfig(defer_steps=defer_steps, **sync), ctx)
-    try:
-        for cam in (bundle.cameras[5].resized(W), novel_camera(bundle.cameras[6], bundle.cameras[7]).resized(W)):
-            a, b = serial.render(cam), split.render(cam)
-            deferred = int(np.frombuffer(split._buffers["defer"].read(16), np.uint32)[3])
-            assert deferred > 0.01 * a["depth"].size  # the second pass had work
-            for key in ("depth", "label_raw", "layer_used", "iterations", "normal"):
-                np.testing.assert_array_equal(b[key], a[key], err_msg=key)
-            assert (a["layer_used"] >= 4).sum() > 0  # the fill passes filled something
-    finally:
-        serial.release()
-        split.release()

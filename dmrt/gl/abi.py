@@ -51,11 +51,10 @@ B_TILE_OFFSETS = 26  # uint per tile + 1: where each tile's entries start
 B_TILE_STATUS = 27   # uint x 4: list length, overflow pixels, long tiles, spare
 # photometric adjustment
 B_PHOTO_GAINS = 28  # n_photos vec4: each photo's RGB colour gain (bundle.json photo_gains), 1 = unchanged
-# raytracing work lists (shaders/dmrt_raytrace.glsl): a dispatch-indirect header (groups x, y, z,
-# items), then the items
-B_DEFER = 29        # (pixel, first layer | steps before it << 8) uvec2 per pixel whose search was deferred
-B_HOLES = 30        # pixel index per hole the fill pass walks
-B_HOLES_NEXT = 31   # pixel index per hole a pass leaves to the next fill pass
+# raytracing's lists of holes (shaders/dmrt_raytrace.glsl): a dispatch-indirect header (groups x,
+# y, z, items), then a pixel index per hole
+B_HOLES = 29        # the holes a fill pass walks
+B_HOLES_NEXT = 30   # the holes a pass leaves to the next fill pass
 
 # -- sentinels ---------------------------------------------------------------------------------
 EMPTY_BITS = 0xFFFFFFFF  # an empty depth (above every positive float's bits: atomicMin keeps the nearest)

@@ -5,9 +5,8 @@ Per frame, each stage its own shader and GPU timer section:
 1. ``visibility`` - the proxy splats in k label layers, depth peeling (:mod:`dmrt.runtime.visibility`);
 2. ``raytracing`` - per pixel, the depth map of each layer's label is raytraced from the layer's
    splat depth (adaptive-step search, bisection, discontinuity test), first valid layer wins
-   (``shaders/dmrt_raytrace.glsl`` documents the surface and the step formula); a pixel still
-   searching after ``defer_steps`` steps has its remaining layers searched side by side in a second
-   pass, and the holes' neighbours are searched side by side in the fill passes (the same hits);
+   (``shaders/dmrt_raytrace.glsl`` documents the surface and the step formula); the fill passes
+   search the neighbours of the holes it leaves, side by side, over a list of those holes;
 3. ``labeling`` - the proxies splatted again with the 3D distance to the raytraced point as depth:
    each pixel takes the label of its nearest covering proxy (``shaders/dmrt_labeling.glsl``);
 4. ``image_management`` - final labels (``shaders/dmrt_label_finalize.glsl``), the label
@@ -58,7 +57,6 @@ from dmrt.runtime.visibility import ProxySplats, VisibilityStage
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 _EMPTY_LIST = np.array([0, 1, 1, 0], np.uint32).tobytes()  # a work list's header: no workgroups, no items
-_DEFER_LAYERS = 16  # the deferred pass's threads per pixel (LIST_THREADS in shaders/dmrt_raytrace.glsl)
 STAGES = ("visibility", "raytracing", "labeling", "image_management", "texturing", "leveling")
 
 
@@ -85,11 +83,6 @@ class RenderConfig:
     search: Literal["adaptive", "secant"] = option(
         "secant", "iterative search: adaptive (paper: every step is the signed distance along the line to the "
                   "photo's centre) or secant (that step first, then secant steps along the pixel ray)")
-    defer_steps: int = option(32, "addition to the paper: search steps a pixel takes in the raytracing pass before "
-                                  "its remaining layers are searched side by side in a second pass (one "
-                                  "workgroup per pixel, a thread per layer): the same hits, but a pass no longer "
-                                  "lasts as long as its slowest pixel's hundreds of steps in a row; 0 = never "
-                                  "(also with statistics or more than 16 layers)", minimum=0)
     fill_passes: int = option(2, "addition to the paper: passes in which a covered pixel that no layer gave a "
                                  "surface searches its neighbours' depth maps near their depths; 0 = the paper",
                               minimum=0)
@@ -218,7 +211,6 @@ class Renderer:
                    "SECANT": int(self.config.search == "secant"), "RAYTRACE": int(self.config.raytrace),
                    "STATISTICS": int(self.config.statistics), "ILLINOIS": int(self.config.refine == "illinois")}
         self._raytrace = load_program(self.ctx, "dmrt_raytrace", defines)
-        self._deferred = load_program(self.ctx, "dmrt_raytrace", {**defines, "DEFERRED": 1})
         self._fill = load_program(self.ctx, "dmrt_raytrace", {**defines, "FILL": 1})
         self._max_groups = int(self.ctx.info["GL_MAX_COMPUTE_WORK_GROUP_COUNT"][0])
         self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
@@ -289,8 +281,8 @@ class Renderer:
 
         self.visibility.run(cam_uniforms, (w, h), cfg.layers, b["layer_depth"], b["layer_label"], timer)
 
-        # the search: every pixel, then the layers of the pixels it deferred; then the fill passes,
-        # each over the holes the one before left (work lists: shaders/dmrt_raytrace.glsl)
+        # the search, which lists the holes it leaves; then the fill passes, each over the holes the
+        # one before left (work lists: shaders/dmrt_raytrace.glsl)
         fill_passes = cfg.fill_passes if cfg.raytrace else 0
         search = {"u_layers": cfg.layers, "u_max_steps": cfg.max_steps, "u_binary_steps": cfg.binary_steps,
                   "u_threshold": float(cfg.discontinuity_threshold), "u_depthmaps": 0,
@@ -301,23 +293,16 @@ class Renderer:
                 fill_u32(ctx, self.step_stats, 0, 4 * cfg.layers * STEP_BINS)
                 ctx.memory_barrier(_BARRIER)
                 self.step_stats.bind_to_storage_buffer(abi.B_STEP_STATS)
-            for buf in (b["defer"], holes[0]):
-                buf.write(_EMPTY_LIST)
+            holes[0].write(_EMPTY_LIST)
             b["layer_depth"].bind_to_storage_buffer(abi.B_LAYER_DEPTH)
             b["layer_label"].bind_to_storage_buffer(abi.B_LAYER_LABEL)
             b["hits"].bind_to_storage_buffer(abi.B_HITS)
-            b["defer"].bind_to_storage_buffer(abi.B_DEFER)
             holes[0].bind_to_storage_buffer(abi.B_HOLES_NEXT)
             self.photos.bind_to_storage_buffer(abi.B_PHOTOS)
             self.depthmaps.use(0)
-            defer = cfg.defer_steps if cfg.layers <= _DEFER_LAYERS else 0
-            set_uniforms(self._raytrace, u_defer_steps=defer, u_fill=int(fill_passes > 0), **search)
+            set_uniforms(self._raytrace, u_fill=int(fill_passes > 0), **search)
             self._raytrace.run(*grid)
             ctx.memory_barrier(_BARRIER)
-            if defer and cfg.raytrace and not cfg.statistics:
-                set_uniforms(self._deferred, u_fill=int(fill_passes > 0), **search)
-                self._deferred.run_indirect(b["defer"])
-                ctx.memory_barrier(_BARRIER)
         with timer.section("raytracing:hole_fill"):
             for fill_pass in range(fill_passes):
                 current, following = holes[fill_pass % 2], holes[(fill_pass + 1) % 2]
@@ -424,8 +409,7 @@ class Renderer:
             "key": self.ctx.buffer(reserve=8 * npix),  # 64-bit keys on the int64 path
             "vlabel": self.ctx.buffer(reserve=4 * npix),
             "colors": self.ctx.buffer(reserve=4 * npix),
-            # raytracing work lists: a 16-byte header, then at most one item per pixel
-            "defer": self.ctx.buffer(reserve=16 + 8 * npix),
+            # the fill passes' lists of holes: a 16-byte header, then at most one pixel index per pixel
             "holes_a": self.ctx.buffer(reserve=16 + 4 * npix),
             "holes_b": self.ctx.buffer(reserve=16 + 4 * npix),
         }
@@ -433,7 +417,7 @@ class Renderer:
         self.gpu_bytes["layers"] = 8 * k * npix
         if self.config.method == "kbuffer":
             self.gpu_bytes["kbuffer"] = 4 * npix * (self.config.kbuffer_slots or 6 * k + 2)
-        self.gpu_bytes["frame"] = (HIT_DTYPE.itemsize + 12 + 16) * npix
+        self.gpu_bytes["frame"] = (HIT_DTYPE.itemsize + 12 + 8) * npix
 
     def _release_frame(self) -> None:
         for buf in self._buffers.values():
