@@ -1,7 +1,8 @@
-"""Preprocessing on Dask (``dmrt preprocess --dask``): a real 2-worker LocalCluster (no mock) gives
-the in-process bundle, bit for bit."""
+"""Preprocessing on Dask (``dmrt preprocess --dask``): a real 3-worker LocalCluster (no mock), 2 of
+whose workers render the depth maps, gives the in-process bundle, bit for bit."""
 
 import shutil
+import threading
 
 import numpy as np
 import pytest
@@ -9,16 +10,17 @@ import pytest
 from dmrt.app.cli import main
 from dmrt.errors import ConfigError
 from dmrt.io.bundle import read_bundle
-from dmrt.preprocess.parallel import open_executor, split
-from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
+from dmrt.preprocess.parallel import _gpu_workers, _nvidia_gpus, _spread_gpus, open_executor, split
+from dmrt.preprocess.pipeline import PreprocessConfig, _read_ahead, preprocess
 from helpers import assert_bundles_equal
 
 
 @pytest.fixture(scope="module")
 def executor():
-    """Two worker processes of one thread each: each makes its own EGL context (llvmpipe here)."""
-    with open_executor("local:2") as ex:
-        assert ex.workers == 2
+    """Three worker processes of one thread each, the first two (by rank) GPU workers: each of those
+    makes its own EGL context (llvmpipe here), as on a 2-GPU host with more cores than GPUs."""
+    with open_executor("local:3", gpus_per_host=2) as ex:
+        assert ex.workers == 3 and len(ex.gpu_workers) == 2
         yield ex
 
 
@@ -34,8 +36,10 @@ def test_dask_bundle_equals_in_process(tiny_scene, tiny_bundle, executor, tmp_pa
     out = preprocess(tiny_scene, tmp_path / "tiny", PreprocessConfig(depthmap_width=256), progress=False,
                      executor=executor)
     a, b = read_bundle(tiny_bundle), read_bundle(out)
-    # both workers rendered depth maps (every map, each from half of P_HD) on a GL context of their own
-    assert all(executor.client.run(_has_gl_context).values())
+    # exactly the two GPU workers rendered depth maps (every map, each from half of P_HD: two shares)
+    # on a GL context of their own; the third ran CPU tasks only
+    has_gl = executor.client.run(_has_gl_context)
+    assert sorted(a for a, gl in has_gl.items() if gl) == sorted(executor.gpu_workers) and len(has_gl) == 3
     # (the tiny cloud fits --memory-limit-mb, so its normals/radii are one in-memory pass here; the
     # bucketed path's tasks are checked below)
     # everything is computed by the same code on the same inputs, only in other processes: no
@@ -43,7 +47,49 @@ def test_dask_bundle_equals_in_process(tiny_scene, tiny_bundle, executor, tmp_pa
     # of the ranges' maps, exact since a map holds each texel's nearest splat; candidates are joined
     # in photo order before the rim rule; labeling is global), so bit for bit
     assert_bundles_equal(a, b)
-    assert b.meta["dask"] == {"spec": "local:2", "workers": 2} and "dask" not in a.meta
+    assert b.meta["dask"] == {"spec": "local:3", "workers": 3, "gpu_workers": 2} and "dask" not in a.meta
+
+
+def test_gpu_workers(executor):
+    """Per host, the first workers by rank: as many as asked, else as the host's NVIDIA GPUs (at
+    least 1: llvmpipe renders on one worker), never more than the host's workers."""
+    ranks = _spread_gpus(executor.client)  # the ranks open_executor gave (it pins nothing twice)
+    by_rank = sorted(ranks, key=ranks.get)
+    assert sorted(ranks.values()) == [0, 1, 2] and executor.gpu_workers == by_rank[:2]
+    assert _gpu_workers(executor.client, ranks, None) == by_rank[:max(1, min(_nvidia_gpus(), 3))]
+    assert _gpu_workers(executor.client, ranks, 1) == by_rank[:1]
+    assert _gpu_workers(executor.client, ranks, 8) == by_rank
+    with pytest.raises(ValueError, match="3 GPU tasks for 2 GPU workers"):
+        executor.map_gpus(int, [1, 2, 3])
+    # one item per GPU worker, on that worker only
+    where = executor.map_gpus(_worker_address, [0, 1])
+    assert where == executor.gpu_workers
+
+
+def _worker_address(_):
+    from distributed import get_worker
+
+    return get_worker().address
+
+
+def test_read_ahead_same_items_no_leaked_thread():
+    """The depth maps' chunk reader: the same items in order, re-callable, errors raised in the
+    consumer, and no thread left behind when the consumer stops early."""
+    before = threading.active_count()
+    assert list(_read_ahead(iter(range(7)))) == list(range(7))
+    assert list(_read_ahead(iter([]), depth=1)) == []
+    stopped = _read_ahead(iter(range(100)))
+    assert next(stopped) == 0
+    del stopped  # dropped half read, as render_many drops the reader when the cloud exceeds its budget
+    assert threading.active_count() == before
+
+    def failing():
+        yield 1
+        raise OSError("disk gone")
+
+    with pytest.raises(OSError, match="disk gone"):
+        list(_read_ahead(failing()))
+    assert threading.active_count() == before
 
 
 @pytest.mark.slow
@@ -101,6 +147,17 @@ def test_bad_spec(spec):
     with pytest.raises(ConfigError, match="--dask"):
         with open_executor(spec):
             pass
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--dask-gpus", "2"], "--dask-gpus: needs --dask"),
+    (["--dask", "local:2", "--dask-gpus", "0"], "--dask-gpus: must be >= 1, not 0"),
+])
+def test_bad_dask_gpus_exit_2_one_line(tmp_path, capsys, args, message):
+    assert main(["preprocess", str(tmp_path / "scene"), "--out", str(tmp_path / "b"), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith(f"dmrt: error: {message}")
+    assert not (tmp_path / "b").exists()
 
 
 def test_bad_spec_exit_2_one_line(tmp_path, capsys):

@@ -58,14 +58,15 @@ def cmd_preprocess(args) -> None:
     from dmrt.preprocess.labeling import LabelingConfig
     from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
 
-    from dmrt.preprocess.parallel import open_executor
+    from dmrt.preprocess.parallel import check_gpus_per_host, open_executor
 
     config, labeling = config_from_args(PreprocessConfig, args), config_from_args(LabelingConfig, args)
     check_positive(args, "workers")
+    check_gpus_per_host(args.dask, args.dask_gpus)
     check_output(args.out, folder=True)
     if args.out.exists() and not args.force:  # refused before the scene is read (minutes on big clouds)
         raise InputError(args.out, "bundle exists (use --force to replace it)")
-    with open_executor(args.dask, workers=args.workers) as executor:
+    with open_executor(args.dask, workers=args.workers, gpus_per_host=args.dask_gpus) as executor:
         out = preprocess(args.scene, args.out, config, labeling, force=args.force, progress=not args.quiet,
                          executor=executor)
     print(f"wrote {out}")
@@ -332,6 +333,9 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("--dask", metavar="SPEC", help="run the parallel phases as Dask tasks: local:N (a LocalCluster "
                      "of N worker processes) or tcp://HOST:PORT (a running scheduler; workers with --nthreads 1 "
                      "that see the scene and --out at the same paths); needs dmrt[dask]")
+    pre.add_argument("--dask-gpus", type=int, metavar="N", help="with --dask: workers per host that render depth "
+                     "maps, one per GPU (default: the host's NVIDIA GPUs, at least 1); all workers run the CPU "
+                     "phases")
     pre.add_argument("--workers", type=int, help="without --dask: local processes for the CPU phases (octree, "
                      "normals/radii, candidates; default: CPU cores; 1 = all in this process); the bundle does "
                      "not depend on it")

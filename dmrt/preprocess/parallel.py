@@ -12,12 +12,21 @@ runs a module-level function over items, results in item order:
 ``"tcp://HOST:PORT"``
     A running scheduler (``dask scheduler`` + ``dask worker ... --nthreads 1`` on each machine).
 
+On Dask every worker runs the CPU phases, but only the *GPU workers* render depth maps
+(:meth:`DaskExecutor.map_gpus`): per host, its first ``g`` workers, where ``g`` is
+``gpus_per_host`` (``dmrt preprocess --dask-gpus``) or else the host's NVIDIA GPUs, at least 1
+(a host without them, e.g. Mesa's llvmpipe, renders on one worker) and at most the host's
+workers. Each GPU worker splats its share of the cloud into every map and reads all of them back,
+so ``--dask local:32`` on a 2-GPU host keeps 32 processes for the CPU phases and 2 for the maps.
+
 Tasks take picklable arguments (paths, configurations, cameras, index ranges) and read the octree,
 the normals/radii and the depth maps from the bundle's ``.partial`` work folder, so every worker
 must see the bundle's folder and the scene at the same paths (a shared file system). GPU tasks make
 the worker's own GL context on first use (:func:`dmrt.gl.get_context`): one context per worker
-process, so a worker must run one thread; on a host with several NVIDIA GPUs the workers of that
-host are spread over them (``GLCONTEXT_DEVICE_INDEX``, unless already set).
+process, so a worker must run one thread. The workers of a host get ranks 0, 1, ... (by address)
+and, on a host with several NVIDIA GPUs, worker ``r`` uses GPU ``r mod GPUs``
+(``GLCONTEXT_DEVICE_INDEX``, unless already set): the GPU workers, ranks ``0 .. g-1``, each have
+a GPU of their own.
 """
 
 from __future__ import annotations
@@ -29,7 +38,7 @@ from typing import Callable, Iterator, Sequence
 
 from dmrt.errors import ConfigError, DMRTError, require
 
-__all__ = ["InProcess", "ProcessPool", "DaskExecutor", "open_executor", "split"]
+__all__ = ["InProcess", "ProcessPool", "DaskExecutor", "open_executor", "check_gpus_per_host", "split"]
 
 _SPEC_HELP = "expected local:N (a LocalCluster of N worker processes) or tcp://HOST:PORT (a running scheduler)"
 
@@ -144,13 +153,24 @@ class DaskExecutor:
 
     ``shared`` keyword arguments of :meth:`map` are sent to every worker once (scattered,
     broadcast) rather than once per task.
+
+    Parameters
+    ----------
+    client : distributed.Client
+    spec : str
+        What the cluster was opened from (``local:N``, ``tcp://HOST:PORT``), for the record.
+    gpu_workers : list of str
+        Addresses of the workers that run the GPU phase (:meth:`map_gpus`), in order; see the
+        module docstring for how :func:`open_executor` chooses them.
     """
 
     distributed = True
     gpu_tasks = True
 
-    def __init__(self, client, spec: str):
-        self.client, self.spec = client, spec
+    def __init__(self, client, spec: str, gpu_workers: Sequence[str]):
+        self.client, self.spec, self.gpu_workers = client, spec, list(gpu_workers)
+        if not self.gpu_workers:
+            raise ValueError("a DaskExecutor needs at least one GPU worker")
 
     @property
     def workers(self) -> int:
@@ -159,20 +179,19 @@ class DaskExecutor:
 
     def record(self) -> dict:
         """What bundle.json records of the cluster."""
-        return {"spec": self.spec, "workers": self.workers}
+        return {"spec": self.spec, "workers": self.workers, "gpu_workers": len(self.gpu_workers)}
+
+    def _scatter(self, shared, workers=None):
+        return {k: self.client.scatter([v], workers=workers, broadcast=True, hash=False)[0]
+                for k, v in shared.items()}
 
     def _submit(self, fn, items, shared):
-        box = {k: self.client.scatter([v], broadcast=True, hash=False)[0] for k, v in shared.items()}
-        return self.client.map(fn, list(items), pure=False, **box)
+        return self.client.map(fn, list(items), pure=False, **self._scatter(shared))
 
-    def map(self, fn: Callable, items: Sequence, desc: str | None = None, progress: bool = False,
-            **shared) -> list:
-        """``[fn(item, **shared) for item in items]`` as tasks; a tqdm bar over completed ones.
-        The first task that fails raises its exception here."""
+    def _gather(self, futures, desc, progress) -> list:
         from distributed import as_completed
         from tqdm import tqdm
 
-        futures = self._submit(fn, items, shared)
         try:
             with tqdm(total=len(futures), desc=desc, unit="task", disable=not progress) as bar:
                 for f in as_completed(futures):
@@ -183,6 +202,37 @@ class DaskExecutor:
         finally:
             for f in futures:
                 f.release()
+
+    def map(self, fn: Callable, items: Sequence, desc: str | None = None, progress: bool = False,
+            **shared) -> list:
+        """``[fn(item, **shared) for item in items]`` as tasks; a tqdm bar over completed ones.
+        The first task that fails raises its exception here."""
+        return self._gather(self._submit(fn, items, shared), desc, progress)
+
+    def map_gpus(self, fn: Callable, items: Sequence, desc: str | None = None, progress: bool = False,
+                 **shared) -> list:
+        """:meth:`map` with ``items[i]`` run on ``gpu_workers[i]`` and nowhere else (at most one
+        item per GPU worker: each holds its GPU's one GL context).
+
+        Raises
+        ------
+        ValueError
+            More items than GPU workers.
+        DMRTError
+            A GPU worker left the cluster (its task could run nowhere else).
+        """
+        items = list(items)
+        if len(items) > len(self.gpu_workers):
+            raise ValueError(f"{len(items)} GPU tasks for {len(self.gpu_workers)} GPU workers")
+        targets = self.gpu_workers[:len(items)]
+        gone = [a for a in targets if a not in self.client.nthreads()]
+        if gone:
+            raise DMRTError(f"dask GPU worker(s) {', '.join(gone)} left the cluster")
+        box = self._scatter(shared, workers=targets)
+        # allow_other_workers=False: a share must not land on a worker already holding one
+        futures = [self.client.submit(fn, item, workers=[address], allow_other_workers=False, pure=False, **box)
+                   for item, address in zip(items, targets)]
+        return self._gather(futures, desc, progress)
 
     def imap(self, fn: Callable, items: Sequence, desc: str | None = None, progress: bool = False,
              **shared) -> Iterator:
@@ -222,14 +272,38 @@ def _pin_gpu(rank: int) -> int | None:
     return int(value) if value else None
 
 
-def _spread_gpus(client) -> None:
-    """Give the workers of each host consecutive GPU ranks (workers joining later keep the default)."""
+def _host(address: str) -> str:
+    """``tcp://10.0.0.5:40123`` -> ``tcp://10.0.0.5``."""
+    return address.rsplit(":", 1)[0]
+
+
+def _spread_gpus(client) -> dict[str, int]:
+    """Give the workers of each host consecutive ranks by address and pin each to GPU ``rank mod
+    GPUs`` (:func:`_pin_gpu`); returns ``{address: rank}`` (workers joining later keep the
+    default GPU and are not GPU workers)."""
     ranks, per_host = {}, {}
     for address in sorted(client.nthreads()):
-        host = address.rsplit(":", 1)[0]
+        host = _host(address)
         ranks[address] = per_host[host] = per_host.get(host, -1) + 1
     for address, rank in ranks.items():
         client.run(_pin_gpu, rank, workers=[address])
+    return ranks
+
+
+def _gpu_workers(client, ranks: dict[str, int], gpus_per_host: int | None = None) -> list[str]:
+    """The workers that render depth maps: per host (in address order), its workers of rank below
+    ``gpus_per_host``, or without it below the host's NVIDIA GPUs as one of its workers counts
+    them; at least 1 and at most the host's workers. In host order, then by rank."""
+    hosts: dict[str, list[str]] = {}
+    for address in sorted(ranks, key=lambda a: (_host(a), ranks[a])):
+        hosts.setdefault(_host(address), []).append(address)
+    chosen = []
+    for addresses in hosts.values():
+        g = gpus_per_host
+        if g is None:  # measured where the workers run: this process may be on another machine
+            g = client.run(_nvidia_gpus, workers=[addresses[0]])[addresses[0]]
+        chosen += addresses[:max(1, min(int(g), len(addresses)))]
+    return chosen
 
 
 def default_workers() -> int:
@@ -240,18 +314,34 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def check_gpus_per_host(spec: str | None, gpus_per_host: int | None) -> None:
+    """:class:`ConfigError` (``--dask-gpus``) for GPU workers per host below 1 or without a Dask spec."""
+    if gpus_per_host is None:
+        return
+    if spec is None:
+        raise ConfigError("dask_gpus", "needs --dask (without it the depth maps stay on this process's one GL "
+                                       "context)")
+    if int(gpus_per_host) < 1:
+        raise ConfigError("dask_gpus", f"must be >= 1, not {gpus_per_host}")
+
+
 @contextmanager
-def open_executor(spec: str | None, progress: bool = False, workers: int | None = 1):
+def open_executor(spec: str | None, progress: bool = False, workers: int | None = 1,
+                  gpus_per_host: int | None = None):
     """The executor of ``spec`` (see the module docstring), closed on exit. Without a spec,
     ``workers`` local processes (None: :func:`default_workers`; 1: :class:`InProcess`).
+    ``gpus_per_host``: with a spec, the workers per host that render depth maps (None: the
+    host's NVIDIA GPUs, at least 1).
 
     Raises
     ------
     ConfigError
-        A spec of neither form, or a scheduler that cannot be reached / has no workers.
+        A spec of neither form, a scheduler that cannot be reached / has no workers, or
+        ``gpus_per_host`` below 1 or given without a spec (``--dask-gpus``).
     MissingDependencyError
         ``dask[distributed]`` is not installed.
     """
+    check_gpus_per_host(spec, gpus_per_host)
     if spec is None:
         workers = default_workers() if workers is None else int(workers)
         if workers < 1:
@@ -291,8 +381,8 @@ def open_executor(spec: str | None, progress: bool = False, workers: int | None 
                 client.wait_for_workers(1, timeout=60)
             except (OSError, TimeoutError) as exc:
                 raise ConfigError("dask", f"cannot use the scheduler at {spec} ({exc})") from None
-        _spread_gpus(client)
-        yield DaskExecutor(client, spec)
+        ranks = _spread_gpus(client)
+        yield DaskExecutor(client, spec, _gpu_workers(client, ranks, gpus_per_host))
     finally:
         if client is not None:
             client.close()

@@ -5,7 +5,8 @@ Phases, each with a progress bar and a wall-clock timing in ``bundle.json``:
 1. **octree** — P_HD into nested levels of detail, out of core (:mod:`dmrt.preprocess.octree`);
 2. **normals/radii** — normals by plane fit where the input has none, oriented toward the nearest
    photo camera; splat radii from the local density (:mod:`dmrt.preprocess.normals`), out of core;
-3. **depth maps** — P_HD splatted as oriented discs from every photo's camera (:mod:`dmrt.preprocess.depthmaps`);
+3. **depth maps** — P_HD splatted as oriented discs from every photo's camera (:mod:`dmrt.preprocess.depthmaps`;
+   :func:`render_depth_phase`: here, or on Dask each GPU worker its share, the maps merged exactly);
 4. **proxies** — P_LD = the k coarsest octree levels, with radii from their own density;
 5. **candidates** — the photos that see each proxy: inside the frame, in front, not grazing, and
    not occluded according to that photo's depth map;
@@ -16,6 +17,7 @@ Phases, each with a progress bar and a wall-clock timing in ``bundle.json``:
 
 from __future__ import annotations
 
+import collections
 import functools
 import resource
 import shlex
@@ -25,6 +27,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 from tqdm import tqdm
@@ -91,9 +94,43 @@ class _Photos:
         return {"scene": self.scene, "_cache": {}}
 
 
+_END = object()  # what the read-ahead thread hands over past the last chunk
+
+
+def _read_ahead(items: Iterator, depth: int = 2) -> Iterator:
+    """The items of the iterator ``items``, each taken ``depth`` ahead on a background thread while
+    the consumer works on the ones before: reading the next chunk (file reads release the GIL)
+    overlaps packing and uploading this one. One thread advances ``items``; it is shut down, and
+    ``items`` closed, when the consumer is done, fails or drops this generator early."""
+    pool = ThreadPoolExecutor(1, thread_name_prefix="dmrt-read-ahead")
+    ahead: collections.deque = collections.deque()
+    try:
+        while True:
+            while len(ahead) < depth:
+                ahead.append(pool.submit(next, items, _END))
+            item = ahead.popleft().result()  # a failed read raises here
+            if item is _END:
+                return
+            yield item
+    finally:
+        for f in ahead:
+            f.cancel()
+        pool.shutdown(wait=True)  # the read under way, if any, ends before `items` is closed
+        close = getattr(items, "close", None)
+        if close is not None:
+            close()
+
+
+def _float32(a) -> np.ndarray:
+    """``a`` as contiguous float32 in memory: a memory-mapped slice is copied, so that its pages
+    are read here (on the read-ahead thread), not where the chunk is packed."""
+    return np.array(a, np.float32) if isinstance(a, np.memmap) else np.ascontiguousarray(a, np.float32)
+
+
 def _depth_renderer(work, points, has_normals: bool, config: PreprocessConfig):
     """This process's depth-map renderer and the chunk source of P_HD's points ``points`` (an
-    :class:`~dmrt.preprocess.octree.OctreeRange`) with their normals and radii from ``work``."""
+    :class:`~dmrt.preprocess.octree.OctreeRange`) with their normals and radii from ``work``; each
+    call of the source reads its chunks two ahead of the consumer (:func:`_read_ahead`)."""
     from dmrt.gl import GpuTimer, get_context
     from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer
 
@@ -101,13 +138,16 @@ def _depth_renderer(work, points, has_normals: bool, config: PreprocessConfig):
     normals = None if has_normals else np.load(Path(work) / "attrs" / "normals.npy", mmap_mode="r")
     radii = np.load(Path(work) / "attrs" / "radii.npy", mmap_mode="r")
 
-    def hd_chunks():
+    def read():
         g = points.start  # the attributes are indexed in octree order, as the range
         for ch in points():
             m = len(ch["positions"])
             nrm = ch["normals"] if has_normals else normals[g:g + m]
-            yield np.asarray(ch["positions"], np.float32), np.asarray(nrm, np.float32), np.asarray(radii[g:g + m])
+            yield _float32(ch["positions"]), _float32(nrm), _float32(radii[g:g + m])
             g += m
+
+    def hd_chunks():  # a fresh reader (and thread) per call: render_many may read the cloud twice
+        return _read_ahead(read())
 
     ctx = get_context()
     timer = GpuTimer(ctx)
@@ -180,6 +220,88 @@ def nearest_depth(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.where((b > 0) & ((a == 0) | (b < a)), b, a)
 
 
+def octree_phase(scene: Scene, work, config: PreprocessConfig, executor=None, progress: bool = False):
+    """Phase 1: P_HD's octree in ``work/octree``, positions relative to the scene origin (where
+    its float32 keeps micrometres); returns the :class:`~dmrt.preprocess.octree.Octree`."""
+    from dmrt.preprocess.octree import Octree, OctreeConfig
+
+    origin = scene.origin
+    # the bounds load_scene measured save the octree a pass (min(p) - o = min(p - o) exactly)
+    return Octree.build(_LocalPoints(scene.point_range(config.chunk_points), origin), Path(work) / "octree",
+                        OctreeConfig(levels=config.octree_levels, memory_limit_mb=config.memory_limit_mb),
+                        bbox=[b - origin for b in scene.bounds], progress=progress,
+                        executor=executor or InProcess())
+
+
+def normals_radii_phase(octree, cameras, work, config: PreprocessConfig, executor=None, progress: bool = False):
+    """Phase 2: normals (where the input has none) and splat radii over P_HD, in octree order, in
+    ``work/attrs``. ``cameras``: the photos' cameras relative to the origin (normals face the
+    nearest). Returns (the :func:`~dmrt.preprocess.normals.process_chunked` result, whether the
+    input had normals)."""
+    from dmrt.preprocess.normals import process_chunked
+
+    executor = executor or InProcess()
+    has_normals = octree.read_level(0).get("normals") is not None
+    centers = np.array([c.center for c in cameras])
+    attrs = process_chunked(octree.point_range(chunk_size=config.chunk_points), Path(work) / "attrs",
+                            normals=not has_normals, radii=True, k_normals=config.normals_k,
+                            k_radii=config.radius_k, scale=config.radius_scale, viewpoints=centers,
+                            # the budget is per bucket task, and the workers hold one each
+                            memory_limit_mb=config.memory_limit_mb / executor.workers, progress=progress,
+                            executor=executor)
+    return attrs, has_normals
+
+
+def render_depth_phase(executor, octree, cameras, names, work, out_dir, has_normals: bool, config: PreprocessConfig,
+                       progress: bool = False) -> tuple[list[str], list[list[int]], dict, list[str]]:
+    """Phase 3: every photo's depth map from all of P_HD (the octree and the normals/radii in the
+    work folder ``work``), written to ``out_dir/depthmaps/<photo stem>.exr``.
+
+    On an executor with ``gpu_tasks`` (Dask), P_HD is cut into one share per GPU worker
+    (:meth:`~dmrt.preprocess.parallel.DaskExecutor.map_gpus`), each splatted into every map
+    (:func:`render_depth_part`), and each map merged here as the nearest depth of the shares'
+    (:func:`nearest_depth`, exact); otherwise :func:`render_depth_maps` on this process's GL
+    context. The maps are the same bit for bit either way.
+
+    Parameters
+    ----------
+    executor : an executor of :func:`dmrt.preprocess.parallel.open_executor`.
+    octree : :class:`~dmrt.preprocess.octree.Octree` in ``work/octree``.
+    cameras : the photos' cameras relative to the origin.  names : their image names.
+
+    Returns
+    -------
+    rels : the maps' paths relative to ``out_dir``, in photo order.  sizes : ``[w, h]`` each.
+    gpu_ms : GPU milliseconds per stage, summed over the GPUs.  renderers : the GL renderers used.
+    """
+    work, out_dir = Path(work), Path(out_dir)
+    if not executor.gpu_tasks:
+        rels, sizes, gpu_ms, renderer = render_depth_maps(cameras, names, work, out_dir, has_normals, config,
+                                                          progress=progress)
+        return rels, sizes, gpu_ms, [renderer]
+    # each GPU worker splats its share of P_HD into every map; the maps' nearest depths are merged here
+    points = octree.point_range(chunk_size=config.chunk_points)
+    shares = list(enumerate(points.split(len(executor.gpu_workers))))
+    parts = executor.map_gpus(render_depth_part, shares, desc="depth maps", progress=progress,
+                              cameras=cameras, work=str(work), has_normals=has_normals, config=config)
+
+    def merge(j):
+        maps = (np.load(work / "depth-parts" / f"p{p:03d}" / f"{j}.npy") for p, _ in shares)
+        depth = functools.reduce(nearest_depth, maps)
+        rel = f"depthmaps/{Path(names[j]).stem}.exr"
+        write_depth_exr(out_dir / rel, depth)
+        return rel, [depth.shape[1], depth.shape[0]]
+
+    with ThreadPoolExecutor(default_workers()) as pool:
+        rels, sizes = (list(x) for x in zip(*pool.map(merge, range(len(cameras)))))
+    shutil.rmtree(work / "depth-parts")
+    gpu_ms: dict[str, float] = {}
+    for ms, _ in parts:
+        for k, v in ms.items():
+            gpu_ms[k] = gpu_ms.get(k, 0.0) + v
+    return rels, sizes, gpu_ms, list(dict.fromkeys(r for _, r in parts))
+
+
 def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                labeling: LabelingConfig | None = None, force: bool = False, progress: bool = True,
                executor=None) -> Path:
@@ -187,14 +309,12 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
 
     ``executor`` (:func:`dmrt.preprocess.parallel.open_executor`) runs the parallel phases as tasks
     in other processes: octree buckets, normals/radii per spatial bucket, candidates per group of
-    photos (one contiguous group per worker), and on Dask also the depth maps. The (global)
+    photos (one contiguous group per worker), and on Dask also the depth maps (on its GPU workers:
+    :func:`render_depth_phase`). The (global)
     labeling runs here. The bundle equals the in-process one; bundle.json records the workers under
     ``dask`` or ``processes``. None: everything in this process.
     """
     from PIL import Image
-
-    from dmrt.preprocess.normals import process_chunked
-    from dmrt.preprocess.octree import Octree, OctreeConfig
 
     config = config or PreprocessConfig()
     labeling = labeling or LabelingConfig()
@@ -229,53 +349,20 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         work = Path(bw.tmp).resolve() / "work"
         # 1. octree (positions relative to the origin, where its float32 keeps micrometres)
         t0 = time.perf_counter()
-        # the bounds load_scene measured save the octree a pass (min(p) - o = min(p - o) exactly)
-        octree = Octree.build(_LocalPoints(scene.point_range(config.chunk_points), origin), work / "octree",
-                              OctreeConfig(levels=config.octree_levels, memory_limit_mb=config.memory_limit_mb),
-                              bbox=[b - origin for b in scene.bounds], progress=progress, executor=executor)
+        octree = octree_phase(scene, work, config, executor, progress)
         tic("octree_s", t0)
 
         # 2. normals (if missing) and splat radii over P_HD, in octree order (coarsest level first)
         t0 = time.perf_counter()
-        has_normals = octree.read_level(0).get("normals") is not None
-        centers = np.array([c.center for c in cams_local])
-        attrs = process_chunked(octree.point_range(chunk_size=config.chunk_points), work / "attrs",
-                                normals=not has_normals, radii=True, k_normals=config.normals_k,
-                                k_radii=config.radius_k, scale=config.radius_scale, viewpoints=centers,
-                                # the budget is per bucket task, and the workers hold one each
-                                memory_limit_mb=config.memory_limit_mb / executor.workers, progress=progress,
-                                executor=executor)
+        attrs, has_normals = normals_radii_phase(octree, cams_local, work, config, executor, progress)
         tic("normals_radii_s", t0)
 
-        # 3. depth maps: in process, or on several GPUs each with its share of P_HD (read from the
-        # work folder)
+        # 3. depth maps: in process, or on the GPU workers each with its share of P_HD (read from
+        # the work folder)
         t0 = time.perf_counter()
-        names = [c.name for c in scene.cameras]
-        if executor.gpu_tasks:
-            # each GPU splats its share of P_HD into every map; the maps' nearest depths are merged here
-            shares = list(enumerate(octree.point_range(chunk_size=config.chunk_points).split(executor.workers)))
-            parts = executor.map(render_depth_part, shares, desc="depth maps", progress=progress,
-                                 cameras=cams_local, work=str(work), has_normals=has_normals, config=config)
-
-            def merge(j):
-                maps = (np.load(work / "depth-parts" / f"p{p:03d}" / f"{j}.npy") for p, _ in shares)
-                depth = functools.reduce(nearest_depth, maps)
-                rel = f"depthmaps/{Path(names[j]).stem}.exr"
-                write_depth_exr(work.parent / rel, depth)
-                return rel, [depth.shape[1], depth.shape[0]]
-
-            with ThreadPoolExecutor(default_workers()) as pool:
-                depth_files, depth_sizes = (list(x) for x in zip(*pool.map(merge, range(len(cams_local)))))
-            shutil.rmtree(work / "depth-parts")
-            gpu_ms: dict[str, float] = {}
-            for ms, _ in parts:
-                for k, v in ms.items():
-                    gpu_ms[k] = gpu_ms.get(k, 0.0) + v
-            gl_renderers = list(dict.fromkeys(r for _, r in parts))
-        else:
-            depth_files, depth_sizes, gpu_ms, renderer_name = render_depth_maps(
-                cams_local, names, work, work.parent, has_normals, config, progress=progress)
-            gl_renderers = [renderer_name]
+        depth_files, depth_sizes, gpu_ms, gl_renderers = render_depth_phase(
+            executor, octree, cams_local, [c.name for c in scene.cameras], work, work.parent, has_normals,
+            config, progress)
         tic("depthmaps_s", t0)
         timings["depthmaps_gpu_ms"] = {k: round(v, 3) for k, v in gpu_ms.items()}
 
