@@ -27,8 +27,10 @@
 //    layers plus the pending hits already give are dropped (exact: adding hits only adds layers or
 //    moves them nearer, so nothing behind that one can become a layer), and so is every later hit
 //    behind it; if the list is still full, its farthest hit is dropped (approximate: only layers
-//    behind it can change). Status.overflow counts the pixels where that happened; the host then
-//    switches to a longer list (dmrt/runtime/tiles.py).
+//    behind it can change). With u_redo the workgroup then lists its tile (RedoList) and the REDO
+//    variant, compiled with the longest list, walks the listed tiles again in the same frame
+//    (dispatch-indirect); Status.redo_tiles counts them. Status.overflow counts the pixels that
+//    overflowed in the pass that wrote them last (dmrt/runtime/tiles.py).
 // 4. Early exit. A pixel is done when it has k layers. After each batch of discs the workgroup
 //    checks (shared flag, barrier) whether all of its pixels are done and stops walking the list.
 // At the end the pending hits are flushed and the missing layers written empty, so the layer
@@ -38,7 +40,8 @@
 //   B_PROXIES       n x 8 floats (dmrt_tiles_common.glsl)
 //   B_LAYER_DEPTH   k x h x w uint: float bits of camera z, EMPTY_BITS = none (row 0 at the top)
 //   B_LAYER_LABEL   k x h x w int: label, EMPTY_LABEL = none
-//   B_TILE_STATUS   uint total, overflow (pixels that dropped a hit), long_tiles, spare
+//   B_TILE_STATUS   uint total, overflow (pixels that dropped a hit), long_tiles, redo_tiles
+//   B_TILE_REDO     dispatch-indirect header (groups x, y, z, tiles), then the tiles to walk again
 //   B_TILE_ENTRIES  uvec2[capacity] (dmrt_tiles_bin.glsl); chunks of long slices are sorted in place
 //   B_TILE_OFFSETS  uint[tiles + 1] (dmrt_tiles_scan.glsl)
 #include "dmrt_tiles_common.glsl"
@@ -51,6 +54,9 @@
 #ifndef SORT_SIZE
 #define SORT_SIZE 2048  // power of two; SORT_SIZE x 8 bytes of shared memory
 #endif
+#ifndef REDO
+#define REDO 0
+#endif
 #ifndef MAX_CHUNKS
 #define MAX_CHUNKS 256
 #endif
@@ -60,12 +66,15 @@ layout(local_size_x = TILE, local_size_y = TILE) in;
 
 layout(std430, binding = B_LAYER_DEPTH) writeonly buffer LayerDepth { uint layer_depth[]; };
 layout(std430, binding = B_LAYER_LABEL) writeonly buffer LayerLabel { int layer_label[]; };
-layout(std430, binding = B_TILE_STATUS) buffer Status { uint total; uint overflow; uint long_tiles; uint spare; };
+layout(std430, binding = B_TILE_STATUS) buffer Status { uint total; uint overflow; uint long_tiles; uint redo_tiles; };
+layout(std430, binding = B_TILE_REDO) buffer RedoList { uint redo_x, redo_y, redo_z, redo_n; uint redo_list[]; };
 layout(std430, binding = B_TILE_ENTRIES) coherent buffer Entries { uvec2 entries[]; };
 layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
 
 uniform uint u_capacity;  // entries the buffer holds (a slice past it was cut short)
 uniform int u_layers;     // k
+uniform int u_redo;       // 1: list the tiles with an overflowing pixel for the REDO pass (main pass)
+uniform uint u_max_groups;  // GL_MAX_COMPUTE_WORK_GROUP_COUNT[0]
 
 const uvec2 MAX_KEY = uvec2(EMPTY_BITS);  // above every (near key, index) pair
 
@@ -77,6 +86,7 @@ shared uint s_cur[MAX_CHUNKS];   // merge: next unprocessed key of each chunk
 shared uint s_cnt[MAX_CHUNKS];   // merge: keys of each chunk in this round
 shared uint s_tx, s_ty, s_m;     // merge: the round's bound T and key count
 shared uint s_active[3];         // "some pixel still needs layers", one per round, rotating
+shared uint s_overflow;          // some pixel of the tile overflowed
 
 // per-invocation state
 uint g_pix, g_npix;       // pixel index, pixels per layer
@@ -230,10 +240,10 @@ bool process_run(uint m, uint final_watermark, ivec2 p, vec2 uv) {
     return false;
 }
 
-void main() {
+void raster_tile(uint tile) {
     uint lid = gl_LocalInvocationIndex;
-    uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
-    ivec2 p = ivec2(gl_WorkGroupID.xy * uint(TILE) + gl_LocalInvocationID.xy);
+    uvec2 tile_xy = uvec2(tile % uint(u_tiles.x), tile / uint(u_tiles.x));
+    ivec2 p = ivec2(tile_xy * uint(TILE) + gl_LocalInvocationID.xy);
     bool inside = p.x < u_size.x && p.y < u_size.y;
     vec2 uv = vec2(p) + 0.5;  // the pixel centre, as in every splat path
     g_npix = uint(u_size.x * u_size.y);
@@ -249,6 +259,7 @@ void main() {
         pl[i] = 0u;
     }
     if (lid < 3u) s_active[lid] = 0u;
+    if (lid == 0u) s_overflow = 0u;
 
     uint off = offsets[tile];
     uint count = offsets[tile + 1u] - off;
@@ -257,7 +268,7 @@ void main() {
 
     if (chunks <= 1u || chunks > min(uint(MAX_CHUNKS), uint(SORT_SIZE) / 4u)) {
         // one sorted run (or, past MAX_CHUNKS, each chunk sorted on its own: approximate)
-        if (chunks > 1u && lid == 0u) atomicAdd(long_tiles, 1u);
+        if (chunks > 1u && lid == 0u && REDO == 0) atomicAdd(long_tiles, 1u);  // once a tile
         for (uint c = 0u; c < chunks; ++c) {
             uint m = min(uint(SORT_SIZE), count - c * uint(SORT_SIZE));
             load_sorted(off + c * uint(SORT_SIZE), 1u, m);
@@ -345,7 +356,38 @@ void main() {
             layer_label[i * g_npix + g_pix] = EMPTY_LABEL;
         }
     }
+#if REDO
     if (g_overflow) atomicAdd(overflow, 1u);
+#else
+    if (u_redo == 0) {
+        if (g_overflow) atomicAdd(overflow, 1u);
+        return;
+    }
+    memoryBarrierShared();
+    barrier();  // s_overflow's reset above is done
+    if (g_overflow) s_overflow = 1u;
+    memoryBarrierShared();
+    barrier();
+    if (lid == 0u && s_overflow != 0u) {
+        uint i = atomicAdd(redo_n, 1u);
+        redo_list[i] = tile;
+        if (i < u_max_groups) atomicMax(redo_x, i + 1u);
+        atomicAdd(redo_tiles, 1u);
+    }
+#endif
+}
+
+void main() {
+#if REDO
+    // the listed tiles, a workgroup taking every gl_NumWorkGroups.x-th
+    for (uint e = gl_WorkGroupID.x; e < redo_n; e += gl_NumWorkGroups.x) {
+        memoryBarrierShared();
+        barrier();  // the last tile's walk has left the shared arrays
+        raster_tile(redo_list[e]);
+    }
+#else
+    raster_tile(gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x);
+#endif
 }
 
 #endif

@@ -48,7 +48,8 @@ B_DMT_STATS = 23    # culled maps, triangles drawn
 B_TILE_ENTRIES = 24  # uvec2 (near key, proxy index) per disc-tile overlap
 B_TILE_COUNTS = 25   # uint per tile: discs binned
 B_TILE_OFFSETS = 26  # uint per tile + 1: where each tile's entries start
-B_TILE_STATUS = 27   # uint x 4: list length, overflow pixels, long tiles, spare
+B_TILE_STATUS = 27   # uint x 4: list length, overflow pixels, long tiles, tiles walked again
+B_TILE_REDO = 31     # dispatch-indirect header (groups x, y, z, tiles), then the tiles walked again
 # photometric adjustment
 B_PHOTO_GAINS = 28  # n_photos vec4: each photo's RGB colour gain (bundle.json photo_gains), 1 = unchanged
 # raytracing's lists of holes (shaders/dmrt_raytrace.glsl): a dispatch-indirect header (groups x,

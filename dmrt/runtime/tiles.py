@@ -22,11 +22,16 @@ Where the layers can differ from compute peeling (``shaders/dmrt_tiles_raster.gl
 
 * a pixel whose pending list overflows (more hits than it holds between the near depth of the disc
   being walked and the k-th layer: overlapping splats of the nearest surfaces) drops its farthest
-  hit, which can change the layers behind that hit. Counted (``overflow_pixels``); when more than
-  :data:`OVERFLOW_SHARE` of a frame's pixels overflow, the list doubles (8, 16, 32 entries, 2
-  registers each) and the raster pass runs again. Measured on the ``tiny`` scene: 8 suffice for
-  its splat radii (every layer equal to peeling), radii x 2.5 (the paper's worst case) take 32
-  (>= 99.5 % of the pixels of every layer);
+  hit, which can change the layers behind that hit. The list's length costs every pixel (2
+  registers an entry: the raster pass took 5.5 / 6.9 / 8.8 ms at 4K with 8 / 16 / 32 entries on
+  the paper preset, H200), and only ~0.1 % of the pixels need more than 8 there, so the pass runs
+  with 8 (:data:`PENDING_LEVELS`) and lists each tile in which a pixel overflowed; a second pass
+  with 32 entries walks the listed tiles again, in the same frame, without the CPU
+  (``redo_tiles``). A frame whose listed tiles exceed :data:`REDO_SHARE` of its tiles moves the
+  first pass to the next length for the following frames. Pixels that overflow even 32 entries
+  keep the approximation (``overflow_pixels``). Measured on the ``tiny`` scene: 8 suffice for its
+  splat radii (every layer equal to peeling), radii x 2.5 (the paper's worst case) take 32 (>=
+  99.5 % of the pixels of every layer). With a fixed ``pending`` there is no second pass;
 * a tile with more than 256 x ``sort_size`` (2048) discs is walked chunk after chunk (``long_tiles``;
   the merge needs windows of >= 4 keys per chunk in one sort).
 
@@ -34,10 +39,10 @@ The list's length is only known on the GPU. By default (``check="frame"``) the s
 back 16 bytes of statistics, which waits for the stage (a CPU wait after its last pass, so its GPU
 time is not stretched; the renderer waits once per frame anyway, for the label histogram): a frame
 whose list outgrew the buffer is built again in a larger one (x 2, kept >= 25 % above the last
-length), one whose pixels overflowed is rastered again. ``check="lagged"`` never waits (but on a
+length). ``check="lagged"`` never waits (but on a
 frame size's first frame): it adapts from the statistics of the frame two frames back, so a view
 whose list grows by more than the headroom within two frames loses the discs past the buffer's end
-in that frame (``dropped``), and overflowing pixels stay approximate for two frames.
+in that frame (``dropped``).
 """
 
 from __future__ import annotations
@@ -52,9 +57,11 @@ from dmrt.gl.timer import timed
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 ENTRY_BYTES = 8  # (near key, disc index) uint pair
-STATUS_FIELDS = ("entries", "overflow_pixels", "long_tiles")  # Status in shaders/dmrt_tiles_raster.glsl
-PENDING_LEVELS = (8, 16, 32)  # pending-list lengths the path steps through
-OVERFLOW_SHARE = 1e-3  # overflowing pixels (share of the frame) that make the pending list grow
+STATUS_FIELDS = ("entries", "overflow_pixels", "long_tiles", "redo_tiles")  # Status in dmrt_tiles_raster.glsl
+PENDING_LEVELS = (8, 16, 32)  # pending-list lengths of the first pass; the second pass takes the last
+# tiles walked again (share of the frame's) past which the first pass takes the next length: a tile
+# walked again costs a 32-entry pass (~1.6x an 8-entry one), a 16-entry first pass +25 % on every tile
+REDO_SHARE = 0.15
 _RING = 3  # status buffers in flight: the one read back was written two frames before
 
 
@@ -111,7 +118,8 @@ class TileVisibility:
                                                                             "MAX_THREAD_TILES": max_thread_tiles})
                      for scatter in (0, 1) for large in (0, 1)}
         self._scan = load_program(ctx, "dmrt_tiles_scan")
-        self._raster_program()  # compile errors now, not in the first frame
+        for redo in (False, True):  # compile errors now, not in the first frame
+            self._raster_program(redo)
         n = max(splats.n, 1)
         # large-disc list: dispatch-indirect header (groups x, y, z), its length, proxy indices
         self.large = ctx.buffer(reserve=16 + 4 * n)
@@ -120,7 +128,8 @@ class TileVisibility:
         self._status_run = [(0, 0, 0)] * _RING
         self._frame = 0
         self._grid: tuple[int, int] | None = None
-        self.counts = self.offsets = None
+        self.counts = self.offsets = self._redo_list = None
+        self._max_groups = int(ctx.info["GL_MAX_COMPUTE_WORK_GROUP_COUNT"][0])
         # a first guess (two tiles per disc); sized from the real length on the first frame
         self.capacity = max(2 * n, 4096)
         self.entries = ctx.buffer(reserve=ENTRY_BYTES * self.capacity)
@@ -128,16 +137,24 @@ class TileVisibility:
         self._grow_to = 0  # list length to make room for at the next frame (this one's list is kept)
 
     # -- sizes ------------------------------------------------------------------------------
-    def _raster_program(self):
-        return load_program(self.ctx, "dmrt_tiles_raster", {**self._raster_defines, "PENDING": self.pending})
+    def _raster_program(self, redo: bool = False):
+        pending = PENDING_LEVELS[-1] if redo else self.pending
+        return load_program(self.ctx, "dmrt_tiles_raster", {**self._raster_defines, "PENDING": pending,
+                                                              "REDO": int(redo)})
+
+    @property
+    def _second_pass(self) -> bool:
+        """Whether tiles with an overflowing pixel are walked again with the longest list."""
+        return self.adaptive and self.pending < PENDING_LEVELS[-1]
 
     def _allocate_tiles(self, grid: tuple[int, int]) -> None:
-        for buf in (self.counts, self.offsets):
+        for buf in (self.counts, self.offsets, self._redo_list):
             if buf is not None:
                 buf.release()
         n = grid[0] * grid[1]
         self.counts = self.ctx.buffer(reserve=4 * n)
         self.offsets = self.ctx.buffer(reserve=4 * (n + 1))
+        self._redo_list = self.ctx.buffer(reserve=16 + 4 * n)  # header, then the tiles walked again
         self._grid = grid
 
     def _fit(self, total: int) -> None:
@@ -148,16 +165,14 @@ class TileVisibility:
         self.entries.release()
         self.entries = self.ctx.buffer(reserve=ENTRY_BYTES * self.capacity)
 
-    def _adapt(self, overflow: int, pending: int, pixels: int) -> bool:
-        """Step to the next pending-list length after a frame (run with ``pending``) in which more
-        than OVERFLOW_SHARE of ``pixels`` overflowed. True when the length changed."""
-        if not self.adaptive or overflow <= OVERFLOW_SHARE * pixels or pending != self.pending:
-            return False
+    def _adapt(self, redone: int, pending: int, tiles: int) -> None:
+        """Step the first pass to the next list length after a frame (run with ``pending``) that
+        walked more than REDO_SHARE of its ``tiles`` again."""
+        if not self.adaptive or redone <= REDO_SHARE * tiles or pending != self.pending:
+            return
         longer = [p for p in PENDING_LEVELS if p > self.pending]
-        if not longer:
-            return False
-        self.pending = longer[0]
-        return True
+        if longer:
+            self.pending = longer[0]
 
     def _read_status(self, slot: int) -> np.ndarray:
         return np.frombuffer(self._status[slot].read(), np.uint32)
@@ -167,7 +182,7 @@ class TileVisibility:
         points = {"proxies": abi.B_PROXIES, "layer_depth": abi.B_LAYER_DEPTH, "layer_label": abi.B_LAYER_LABEL,
                   "large": abi.B_LARGE, "entries": abi.B_TILE_ENTRIES,
                   "counts": abi.B_TILE_COUNTS, "offsets": abi.B_TILE_OFFSETS,
-                  "status": abi.B_TILE_STATUS}
+                  "status": abi.B_TILE_STATUS, "redo": abi.B_TILE_REDO}
         for name, buf in buffers.items():
             buf.bind_to_storage_buffer(points[name])
 
@@ -176,7 +191,7 @@ class TileVisibility:
             timer=None) -> None:
         """Fill ``layers`` label layers for the camera in ``uniforms``; with ``timer``, timed as the
         parts ``visibility:tile_lists`` (bin, scan, scatter), ``visibility:tile_raster`` and
-        ``visibility:redo`` (what a frame that outgrew the list or the pending list did again).
+        ``visibility:redo`` (what a frame that outgrew the list did again).
 
         Parameters
         ----------
@@ -200,11 +215,11 @@ class TileVisibility:
         if self.check == "lagged" and self._frame >= _RING - 1:
             # the frame two back has finished by now (the renderer read its label histogram since)
             back = (self._frame - (_RING - 1)) % _RING
-            capacity, pending, pixels = self._status_run[back]
-            total, overflow = (int(v) for v in self._read_status(back)[:2])
-            self.dropped_frames += total > capacity
-            self._fit(total)
-            self._adapt(overflow, pending, pixels)
+            capacity, pending, tiles = self._status_run[back]
+            status = self._read_status(back)
+            self.dropped_frames += int(status[0]) > capacity
+            self._fit(int(status[0]))
+            self._adapt(int(status[3]), pending, tiles)
         slot = self._frame % _RING
         status = self._status[slot]
         tile_uniforms = {**uniforms, "u_tiles": grid, "u_count": self.splats.n, "u_tile_count": grid[0] * grid[1]}
@@ -212,32 +227,30 @@ class TileVisibility:
 
         with timed(timer, "visibility:tile_lists"):
             self._build_list(tile_uniforms, status, size_after_scan=first and self.check == "lagged")
+        pending = self.pending  # the first pass's list length (_redo may step it for the next frames)
         with timed(timer, "visibility:tile_raster"):
             self._raster_pass(*raster)
         if self.check == "frame" or first:
             # wait for the stage (its GPU time is not stretched: nothing is issued after it) and redo
-            # what the frame outgrew: the list (all passes), the pending list (the raster pass)
-            self._redo(tile_uniforms, raster, status, slot, w * h, timer)
-        self._status_run[slot] = (self.capacity, self.pending, w * h)
+            # the frame if it outgrew the list
+            self._redo(tile_uniforms, raster, status, slot, timer)
+        self._status_run[slot] = (self.capacity, pending, grid[0] * grid[1])
         self._frame += 1
 
-    def _redo(self, tile_uniforms, raster, status, slot, pixels, timer) -> None:
-        """Wait for the frame's status and redo what it outgrew. The wait is outside any timed
-        section: a section open while the CPU waits would count the idle GPU."""
+    def _redo(self, tile_uniforms, raster, status, slot, timer) -> None:
+        """Wait for the frame's status and build the list again, larger, if it outgrew its buffer;
+        adapt the first pass's list length. The wait is outside any timed section: a section open
+        while the CPU waits would count the idle GPU."""
         while True:
-            total, overflow = (int(v) for v in self._read_status(slot)[:2])
-            if total > self.capacity:
-                self.dropped_frames += 1
-                self._fit(total)
-                with timed(timer, "visibility:redo"):
-                    self._build_list(tile_uniforms, status, size_after_scan=False)
-                    self._raster_pass(*raster)
-            elif self._adapt(overflow, self.pending, pixels):
-                status.write(np.zeros(2, np.uint32).tobytes(), offset=4)  # overflow, long_tiles
-                with timed(timer, "visibility:redo"):
-                    self._raster_pass(*raster)
-            else:
+            total = int(self._read_status(slot)[0])
+            if total <= self.capacity:
                 break
+            self.dropped_frames += 1
+            self._fit(total)
+            with timed(timer, "visibility:redo"):
+                self._build_list(tile_uniforms, status, size_after_scan=False)
+                self._raster_pass(*raster)
+        self._adapt(int(self._read_status(slot)[3]), self.pending, self._grid[0] * self._grid[1])
         # headroom for the next frames, made then: the labeling pass still walks this list
         self._grow_to = total
 
@@ -270,12 +283,21 @@ class TileVisibility:
             self.ctx.memory_barrier(_BARRIER)
 
     def _raster_pass(self, tile_uniforms: dict, layers: int, layer_depth, layer_label, status) -> None:
-        program = self._raster_program()
-        self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label, status=status,
-                   entries=self.entries, offsets=self.offsets)
-        set_uniforms(program, u_capacity=self.capacity, u_layers=int(layers), **tile_uniforms)
-        program.run(*self._grid)
-        self.ctx.memory_barrier(_BARRIER)
+        """The raster pass over every tile, then (:attr:`_second_pass`) the one with the longest list
+        over the tiles the first listed (dispatch-indirect: the list is only known on the GPU)."""
+        second = self._second_pass
+        self._redo_list.write(np.array([0, 1, 1, 0], np.uint32).tobytes())  # no workgroups, no tiles
+        for redo in ((False, True) if second else (False,)):
+            program = self._raster_program(redo)
+            self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label, status=status,
+                       entries=self.entries, offsets=self.offsets, redo=self._redo_list)
+            set_uniforms(program, u_capacity=self.capacity, u_layers=int(layers), u_redo=int(second),
+                         u_max_groups=self._max_groups, **tile_uniforms)
+            if redo:
+                program.run_indirect(self._redo_list)
+            else:
+                program.run(*self._grid)
+            self.ctx.memory_barrier(_BARRIER)
 
     def label_pass(self, uniforms: dict, hits, key, vlabel, packed: bool) -> None:
         """The labeling pass on this frame's tile lists (``shaders/dmrt_tiles_labeling.glsl``): the
@@ -308,12 +330,13 @@ class TileVisibility:
         dict
             ``entries`` (list length: disc-tile overlaps), ``capacity`` (entries the buffer held),
             ``dropped`` (bool: the list outgrew the buffer, entries past it were lost),
-            ``overflow_pixels`` (pixels whose pending list overflowed, in the frame's last raster
-            pass), ``pending`` (its length), ``long_tiles`` (tiles walked chunk by chunk).
+            ``overflow_pixels`` (pixels whose pending list overflowed in the pass that wrote them
+            last), ``pending`` (the first pass's list length), ``redo_tiles`` (tiles walked again
+            with the longest list), ``long_tiles`` (tiles walked chunk by chunk).
         """
         if self._frame == 0:
             return {"entries": 0, "capacity": self.capacity, "dropped": False, "overflow_pixels": 0,
-                    "pending": self.pending, "long_tiles": 0}
+                    "pending": self.pending, "long_tiles": 0, "redo_tiles": 0}
         slot = (self._frame - 1) % _RING
         out = {name: int(v) for name, v in zip(STATUS_FIELDS, self._read_status(slot))}
         out["capacity"], out["pending"], _ = self._status_run[slot]
@@ -331,11 +354,11 @@ class TileVisibility:
     @property
     def nbytes(self) -> int:
         """GPU bytes of the path's own buffers (list, tile counts and offsets, large list, status)."""
-        bufs = [self.entries, self.large, self.counts, self.offsets, *self._status]
+        bufs = [self.entries, self.large, self.counts, self.offsets, self._redo_list, *self._status]
         return sum(b.size for b in bufs if b is not None)
 
     def release(self) -> None:
-        for name in ("entries", "large", "counts", "offsets"):
+        for name in ("entries", "large", "counts", "offsets", "_redo_list"):
             buf = getattr(self, name)
             if buf is not None:
                 buf.release()
