@@ -86,17 +86,17 @@ class RenderConfig:
     fill_passes: int = option(2, "addition to the paper: passes in which a covered pixel that no layer gave a "
                                  "surface searches its neighbours' depth maps near their depths; 0 = the paper",
                               minimum=0)
-    # tiles is the fastest path that keeps the layers (H200, paper preset, 5 layers: 1.7 ms at 720p
-    # and 7.2 ms at 4K against 6.4 / 41 ms for compute peeling and 9.9 / 74 ms for the k-buffer; >=
-    # 99.999 % of every layer equal to compute peeling's; reports/frame-h200/)
+    # tiles is the fastest path that keeps the layers (H200, paper preset, 5 layers, visibility stage:
+    # 1.5 ms at 720p and 5.9 ms at 4K against 8.9 / 41 ms for compute peeling and 9.7 / 75 ms for the
+    # k-buffer; every layer equal to compute peeling's; reports/frame-h200/, session 7)
     method: Visibility = option(
         "tiles", "visibility stage: tiles (all layers from one tile-binned pass, each pixel's nearest fragments "
                  "kept in registers: dmrt/runtime/tiles.py), compute (depth peeling by atomicMin splatting, a "
                  "pass per layer), kbuffer (one splat pass into a per-pixel list of the nearest fragments in "
                  "global memory) or raster (the paper's GL_POINTS depth peeling); the same layers")
     tile_check: Literal["frame", "lagged"] = option(
-        "frame", "tiles: frame (the stage ends by reading back its list length and overflow, and redoes what "
-                 "the frame outgrew: every frame exact) or lagged (reads the status of two frames back and never "
+        "frame", "tiles: frame (the stage ends by reading back its list length and builds the list again if "
+                 "the frame outgrew it: no frame loses discs) or lagged (reads the status of two frames back and never "
                  "waits; a frame whose list outgrew the buffer loses the disks past its end)")
     kbuffer_slots: int = option(0, "k-buffer fragments kept per pixel; 0 = 6 per layer + 2 (>= 99.9 % of the "
                                    "peeled layers' pixels); a pixel with more fragments in front of its k-th layer "
