@@ -6,11 +6,7 @@
 // workgroup adds its non-zero bins to the global counts once: a few hundred global atomics per
 // frame. Neighbouring threads take neighbouring columns, so each step's loads are coalesced; with
 // a row of 64 pixels per thread instead, the loads of a warp lay 2 KB apart and the pass took
-// 2.4 ms at 3840x2160 on an H200. Those global atomics still meet on the few labels a view shows:
-// every workgroup adds to the same handful of counters, which took the pass from 0.07 ms (a view of
-// many labels) to 1.3 ms at 3840x2160 (the paper preset's walkthrough). So each label has COPIES
-// counters, workgroup g adding to copy g mod COPIES, and the reader sums the copies
-// (dmrt/runtime/shading.py).
+// 2.4 ms at 3840x2160 on an H200.
 #include "splat_depth_common.glsl"
 #include "dmrt_frame.glsl"
 
@@ -19,16 +15,13 @@
 #ifndef N_PHOTOS
 #define N_PHOTOS 1
 #endif
-#ifndef COPIES
-#define COPIES 1
-#endif
 #ifndef PIXELS_PER_THREAD
 #define PIXELS_PER_THREAD 64
 #endif
 
 layout(local_size_x = 64) in;
 
-layout(std430, binding = B_COUNTS) buffer Counts { uint counts[]; };  // N_PHOTOS x COPIES
+layout(std430, binding = B_COUNTS) buffer Counts { uint counts[]; };
 
 shared uint local_counts[N_PHOTOS];
 
@@ -55,9 +48,8 @@ void main() {
     }
     if (run_label >= 0 && run > 0u) atomicAdd(local_counts[run_label], run);
     barrier();
-    uint copy = (gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x) % uint(COPIES);
     for (uint i = lid; i < uint(N_PHOTOS); i += gl_WorkGroupSize.x)
-        if (local_counts[i] > 0u) atomicAdd(counts[i * uint(COPIES) + copy], local_counts[i]);
+        if (local_counts[i] > 0u) atomicAdd(counts[i], local_counts[i]);
 }
 
 #endif

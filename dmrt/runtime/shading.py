@@ -29,9 +29,6 @@ from dmrt.runtime.leveling import ScreenLeveler
 from dmrt.runtime.texturing import ImageCache, gains_buffer_data, texture_frame
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
-# counters per label in the histogram pass, summed here: its workgroups' global atomics meet on the
-# few labels of a view (shaders/dmrt_label_histogram.glsl); 32 copies of 192 labels: a 24 KB read-back
-HISTOGRAM_COPIES = 32
 
 
 def photo_params(cameras, origin, depth_sizes, low_sizes) -> np.ndarray:
@@ -96,11 +93,10 @@ class FrameShading:
         self.photo_gains = (bundle.photo_gains if config.photometric else np.ones((n, 3), np.float32)).copy()
         self.gains = ctx.buffer(gains_buffer_data(self.photo_gains, n).tobytes())
         # two histograms, this frame's and the last one's (see the module doc)
-        self.counts = [ctx.buffer(reserve=4 * n * HISTOGRAM_COPIES) for _ in range(2)]
+        self.counts = [ctx.buffer(reserve=4 * n), ctx.buffer(reserve=4 * n)]
         self.latency = 1 if config.async_photos else 0
         self.frames = 0
-        self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64,
-                                                                         "COPIES": HISTOGRAM_COPIES})
+        self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
         self.leveler = ScreenLeveler(ctx, n, config.leveling_min_samples, config.leveling_max_gain,
                                      config.discontinuity_threshold, seam_tolerance) if config.leveling else None
         self.label_counts: np.ndarray | None = None  # (n,) uint32 pixels per label of the last frame
@@ -138,7 +134,7 @@ class FrameShading:
             ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
         t0 = time.perf_counter()
         chooser = self.counts[(self.frames - min(self.latency, self.frames)) % 2]
-        counts = np.frombuffer(chooser.read(), np.uint32).reshape(-1, HISTOGRAM_COPIES).sum(1, dtype=np.uint32)
+        counts = np.frombuffer(chooser.read(), np.uint32).copy()
         cpu_ms = {"label_readback": (time.perf_counter() - t0) * 1e3}
         self.frames += 1
         cpu_ms["image_management"] = texture_frame(ctx, timer, self.images, counts, hits, colors, self.photos,
