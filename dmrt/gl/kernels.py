@@ -3,9 +3,20 @@
 from __future__ import annotations
 
 import moderngl
+import numpy as np
 
 from dmrt.gl import abi
 from dmrt.gl.shaders import load_program, set_uniforms
+
+
+# The header of a GPU work list: a dispatch-indirect command of no workgroups (x, y, z = 0, 1, 1),
+# then the list's length, 0. The kernels that append an item raise both (shaders/dmrt_raytrace.glsl).
+EMPTY_DISPATCH = np.array([0, 1, 1, 0], np.uint32).tobytes()
+
+
+def max_groups(ctx: moderngl.Context) -> int:
+    """The most workgroups a dispatch may have along x (``GL_MAX_COMPUTE_WORK_GROUP_COUNT[0]``)."""
+    return int(ctx.info["GL_MAX_COMPUTE_WORK_GROUP_COUNT"][0])
 
 
 def groups(n: int, size: int) -> int:

@@ -49,14 +49,13 @@ from dmrt.errors import ConfigError, InputError
 from dmrt.gl import abi
 from dmrt.gl.abi import EMPTY_BITS, EMPTY_LABEL, HIT_DTYPE, STAT_LAYERS, STEP_BINS
 from dmrt.gl.context import get_context
-from dmrt.gl.kernels import fill_u32, groups
+from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups, max_groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.runtime.shading import FrameShading
 from dmrt.runtime.visibility import ProxySplats, VisibilityStage
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
-_EMPTY_LIST = np.array([0, 1, 1, 0], np.uint32).tobytes()  # a work list's header: no workgroups, no items
 STAGES = ("visibility", "raytracing", "labeling", "image_management", "texturing", "leveling")
 
 
@@ -212,7 +211,7 @@ class Renderer:
                    "STATISTICS": int(self.config.statistics), "ILLINOIS": int(self.config.refine == "illinois")}
         self._raytrace = load_program(self.ctx, "dmrt_raytrace", defines)
         self._fill = load_program(self.ctx, "dmrt_raytrace", {**defines, "FILL": 1})
-        self._max_groups = int(self.ctx.info["GL_MAX_COMPUTE_WORK_GROUP_COUNT"][0])
+        self._max_groups = max_groups(self.ctx)
         self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
         self.step_stats = self.ctx.buffer(reserve=16 * self.config.layers * STEP_BINS) if self.config.statistics else None
         self._size: tuple[int, int] | None = None
@@ -293,7 +292,7 @@ class Renderer:
                 fill_u32(ctx, self.step_stats, 0, 4 * cfg.layers * STEP_BINS)
                 ctx.memory_barrier(_BARRIER)
                 self.step_stats.bind_to_storage_buffer(abi.B_STEP_STATS)
-            holes[0].write(_EMPTY_LIST)
+            holes[0].write(EMPTY_DISPATCH)
             b["layer_depth"].bind_to_storage_buffer(abi.B_LAYER_DEPTH)
             b["layer_label"].bind_to_storage_buffer(abi.B_LAYER_LABEL)
             b["hits"].bind_to_storage_buffer(abi.B_HITS)
@@ -306,7 +305,7 @@ class Renderer:
         with timer.section("raytracing:hole_fill"):
             for fill_pass in range(fill_passes):
                 current, following = holes[fill_pass % 2], holes[(fill_pass + 1) % 2]
-                following.write(_EMPTY_LIST)
+                following.write(EMPTY_DISPATCH)
                 current.bind_to_storage_buffer(abi.B_HOLES)
                 following.bind_to_storage_buffer(abi.B_HOLES_NEXT)
                 set_uniforms(self._fill, u_pass=fill_pass, u_fill=int(fill_pass + 1 < fill_passes), **search)

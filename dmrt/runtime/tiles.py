@@ -51,7 +51,7 @@ import moderngl
 import numpy as np
 
 from dmrt.gl import abi
-from dmrt.gl.kernels import fill_u32, groups
+from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups, max_groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import timed
 
@@ -129,7 +129,7 @@ class TileVisibility:
         self._frame = 0
         self._grid: tuple[int, int] | None = None
         self.counts = self.offsets = self._redo_list = None
-        self._max_groups = int(ctx.info["GL_MAX_COMPUTE_WORK_GROUP_COUNT"][0])
+        self._max_groups = max_groups(ctx)
         # a first guess (two tiles per disc); sized from the real length on the first frame
         self.capacity = max(2 * n, 4096)
         self.entries = ctx.buffer(reserve=ENTRY_BYTES * self.capacity)
@@ -242,7 +242,8 @@ class TileVisibility:
         adapt the first pass's list length. The wait is outside any timed section: a section open
         while the CPU waits would count the idle GPU."""
         while True:
-            total = int(self._read_status(slot)[0])
+            words = self._read_status(slot)
+            total = int(words[0])
             if total <= self.capacity:
                 break
             self.dropped_frames += 1
@@ -250,7 +251,7 @@ class TileVisibility:
             with timed(timer, "visibility:redo"):
                 self._build_list(tile_uniforms, status, size_after_scan=False)
                 self._raster_pass(*raster)
-        self._adapt(int(self._read_status(slot)[3]), self.pending, self._grid[0] * self._grid[1])
+        self._adapt(int(words[3]), self.pending, self._grid[0] * self._grid[1])
         # headroom for the next frames, made then: the labeling pass still walks this list
         self._grow_to = total
 
@@ -259,7 +260,7 @@ class TileVisibility:
         ctx = self.ctx
         n_tiles = tile_uniforms["u_tile_count"]
         fill_u32(ctx, self.counts, 0, n_tiles)
-        self.large.write(np.array([0, 1, 1, 0], np.uint32).tobytes())  # zero workgroups, empty list
+        self.large.write(EMPTY_DISPATCH)
         ctx.memory_barrier(_BARRIER)
         self._bin_pass(0, tile_uniforms)
         self._bind(status=status, counts=self.counts, offsets=self.offsets)
@@ -286,7 +287,7 @@ class TileVisibility:
         """The raster pass over every tile, then (:attr:`_second_pass`) the one with the longest list
         over the tiles the first listed (dispatch-indirect: the list is only known on the GPU)."""
         second = self._second_pass
-        self._redo_list.write(np.array([0, 1, 1, 0], np.uint32).tobytes())  # no workgroups, no tiles
+        self._redo_list.write(EMPTY_DISPATCH)
         for redo in ((False, True) if second else (False,)):
             program = self._raster_program(redo)
             self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label, status=status,

@@ -43,7 +43,7 @@ import numpy as np
 
 from dmrt.gl import abi
 from dmrt.gl.abi import EMPTY_BITS, EMPTY_LABEL, EMPTY_Z, PROXY_FLOATS
-from dmrt.gl.kernels import fill_u32, groups
+from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import timed
 from dmrt.morton import morton_order
@@ -102,7 +102,7 @@ class ProxySplats:
 
     def begin_frame(self) -> None:
         """Forget the previous camera's large-disc list (the next compute pass rebuilds it)."""
-        self.large.write(np.array([0, 1, 1, 0], np.uint32).tobytes())
+        self.large.write(EMPTY_DISPATCH)
         self._built = False
 
     def run(self, name: str, defines: dict, uniforms: dict, bindings: dict) -> None:
