@@ -1,8 +1,13 @@
 """Preprocessing on Dask (``dmrt preprocess --dask``): a real 3-worker LocalCluster (no mock), 2 of
 whose workers render the depth maps, gives the in-process bundle, bit for bit."""
 
+import ctypes
+import os
 import shutil
+import subprocess
+import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -70,6 +75,39 @@ def _worker_address(_):
     from distributed import get_worker
 
     return get_worker().address
+
+
+class _MallInfo2(ctypes.Structure):  # glibc's struct mallinfo2 (size_t fields)
+    _fields_ = [(name, ctypes.c_size_t) for name in
+                ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks",
+                 "keepcost")]
+
+
+def _mmapped_blocks_of_new_arrays() -> int:
+    """Of four 1 MiB arrays made and dropped in turn (as the depth-map phase's chunks are), how
+    many glibc mmapped (its count of mmapped blocks, ``mallinfo2().hblks``, rose)."""
+    libc = ctypes.CDLL("libc.so.6")
+    libc.mallinfo2.restype = _MallInfo2
+    mapped = 0
+    for _ in range(4):
+        before = libc.mallinfo2().hblks
+        a = np.ones(1 << 18, np.float32)
+        mapped += libc.mallinfo2().hblks > before
+        del a
+    return mapped
+
+
+def test_workers_reuse_the_heap(executor):
+    """The nanny's MALLOC_TRIM_THRESHOLD_ makes every array above 128 KiB a fresh mmap in a
+    worker process; open_executor fixes glibc's thresholds there (_plain_heap), so that 1 MiB
+    arrays come from the heap again, as in a plain process."""
+    code = ("import test_dask as t; from dmrt.preprocess.parallel import _plain_heap; "
+            "print(t._mmapped_blocks_of_new_arrays(), _plain_heap(), t._mmapped_blocks_of_new_arrays())")
+    env = {**os.environ, "MALLOC_TRIM_THRESHOLD_": "65536",
+           "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), str(Path(__file__).parents[1])])}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["4", "True", "0"]  # a fresh mmap per array with the variable alone, none after
+    assert set(executor.client.run(_mmapped_blocks_of_new_arrays).values()) == {0}
 
 
 def test_read_ahead_same_items_no_leaked_thread():
