@@ -50,6 +50,14 @@ float quad_span(vec4 d) {
     return max(max(d.x, d.y), max(d.z, d.w)) - min(min(d.x, d.y), min(d.z, d.w));
 }
 
+// depth_quad's other quads for a position within SNAP of a row (s.y != 0) and/or a column (s.x):
+// k = 0 across the column, 1 across the row, 2 across both. A function of k, not a constant array
+// indexed by the loop counter: the NVIDIA compiler put such an array in local memory (lmem), in
+// each of the seven places the raytracing program inlines depth_quad.
+ivec2 snap_try(ivec2 s, int k) {
+    return k == 0 ? ivec2(s.x, 0) : (k == 1 ? ivec2(0, s.y) : s);
+}
+
 // The four texels nearest to depth-map position uv: i0 = the top-left one's (column, row), f = the
 // bilinear weights, d = depths of (i0, i0 + (1,0), i0 + (0,1), i0 + (1,1)). False when the quad is
 // not wholly inside the map. A position on a row or column of texel centres (within SNAP) lies in
@@ -68,12 +76,12 @@ bool depth_quad(int l, Photo ph, vec2 uv, float max_span, out ivec2 i0, out vec2
     if (span <= max_span) return true;
     ivec2 s = ivec2(f.x < SNAP ? -1 : (f.x > 1.0 - SNAP ? 1 : 0), f.y < SNAP ? -1 : (f.y > 1.0 - SNAP ? 1 : 0));
     if (s == ivec2(0)) return inside;
-    ivec2 tries[3] = ivec2[3](ivec2(s.x, 0), ivec2(0, s.y), s);
     int best = -1;
     vec4 best_d = d;
     for (int k = 0; k < 3; ++k) {
         vec4 d2;
-        if (tries[k] == ivec2(0) || !fetch_quad(l, ph, i0 + tries[k], d2)) continue;
+        ivec2 o = snap_try(s, k);
+        if (o == ivec2(0) || !fetch_quad(l, ph, i0 + o, d2)) continue;
         float span2 = quad_span(d2);
         if (span2 < span && (span2 <= max_span || span >= 1e30)) {
             best = k;
@@ -83,8 +91,9 @@ bool depth_quad(int l, Photo ph, vec2 uv, float max_span, out ivec2 i0, out vec2
         }
     }
     if (best < 0) return inside;
-    i0 += tries[best];
-    f = clamp(f - vec2(tries[best]), 0.0, 1.0);
+    ivec2 o = snap_try(s, best);
+    i0 += o;
+    f = clamp(f - vec2(o), 0.0, 1.0);
     d = best_d;
     return true;
 }
