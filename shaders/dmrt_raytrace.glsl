@@ -145,8 +145,7 @@ void flush_steps() {
 const float CONVERGED = 1e-5;  // |h| / camera z below which the search has landed on the surface
 
 // h(q) of the header; ok = false where it is undefined.
-float signed_distance(int l, vec3 q, out bool ok) {
-    Photo ph = photos[l];
+float signed_distance(int l, Photo ph, vec3 q, out bool ok) {
     vec3 pc = to_photo(ph, q);
     ok = false;
     if (pc.z <= 1e-6) return 0.0;
@@ -156,9 +155,8 @@ float signed_distance(int l, vec3 q, out bool ok) {
 
 // The hit at s_hit on D_l passes the discontinuity test on the four texels around it: true, with
 // the unit world normal n facing the render camera.
-bool valid_hit(int l, vec3 C, vec3 dir, float dlen, float s_hit, out vec3 n) {
+bool valid_hit(int l, Photo ph, vec3 C, vec3 dir, float dlen, float s_hit, out vec3 n) {
     n = vec3(0.0);
-    Photo ph = photos[l];
     vec3 pc = to_photo(ph, C + s_hit * dir);
     if (pc.z <= 1e-6) return false;
     ivec2 i0;
@@ -192,7 +190,7 @@ bool valid_hit(int l, vec3 C, vec3 dir, float dlen, float s_hit, out vec3 n) {
 
 // Refinement of the enclosing interval [sa, sb] (f changes sign): true with the intersection s_hit;
 // false where a probe falls on empty texels (see the header for the two methods).
-bool refine(int l, vec3 C, vec3 dir, float sa, float fa, float sb, float fb, out float s_hit) {
+bool refine(int l, Photo ph, vec3 C, vec3 dir, float sa, float fa, float sb, float fb, out float s_hit) {
     bool ok;
     s_hit = sa;
     if (sa == sb) return true;
@@ -200,7 +198,7 @@ bool refine(int l, vec3 C, vec3 dir, float sa, float fa, float sb, float fb, out
     int side = 0;
     for (int b = 0; b < u_binary_steps && fa != fb; ++b) {
         float sm = (sa * fb - sb * fa) / (fb - fa);
-        float fm = signed_distance(l, C + sm * dir, ok);
+        float fm = signed_distance(l, ph, C + sm * dir, ok);
         if (!ok) return false;
         if (abs(fm) <= 1e-6 * sm) { s_hit = sm; return true; }
         if ((fm > 0.0) == (fb > 0.0)) {
@@ -216,7 +214,7 @@ bool refine(int l, vec3 C, vec3 dir, float sa, float fa, float sb, float fb, out
 #else
     for (int b = 0; b < u_binary_steps; ++b) {
         float sm = 0.5 * (sa + sb);
-        float fm = signed_distance(l, C + sm * dir, ok);
+        float fm = signed_distance(l, ph, C + sm * dir, ok);
         if (!ok) return false;
         if ((fm > 0.0) == (fa > 0.0)) { sa = sm; fa = fm; } else { sb = sm; fb = fm; }
     }
@@ -235,8 +233,11 @@ bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int i
     s_hit = 0.0;
     n = vec3(0.0);
     bool ok;
+    // read once: the search's steps all project into D_l (96 bytes a step otherwise, which the
+    // compiler does not hoist out of the loop)
+    Photo ph = photos[l];
     float s = s0;
-    float f = signed_distance(l, C + s * dir, ok);
+    float f = signed_distance(l, ph, C + s * dir, ok);
     if (!ok) return false;
     float sp = s, fp = f;
     bool restart = true;  // the next step is the paper's (no previous sample for a secant)
@@ -245,12 +246,12 @@ bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int i
         iters++;
         if (abs(f) <= CONVERGED * s) {  // on the surface: no interval to refine
             s_hit = s;
-            if (valid_hit(l, C, dir, dlen, s_hit, n)) return true;
+            if (valid_hit(l, ph, C, dir, dlen, s_hit, n)) return true;
 #if SECANT
             if (++resumes > MAX_RESUMES) return false;
             // nudge past the edge point: a texel beyond it along the ray
             float sn = s * (1.0 + 1e-3);
-            f = signed_distance(l, C + sn * dir, ok);
+            f = signed_distance(l, ph, C + sn * dir, ok);
             if (!ok) return false;
             s = sn;
             restart = true;
@@ -269,13 +270,13 @@ bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int i
         restart = false;
         float sn = s + step;
         if (sn <= 0.0) return false;
-        float fn = signed_distance(l, C + sn * dir, ok);
+        float fn = signed_distance(l, ph, C + sn * dir, ok);
 #if SECANT
         // a step that lands on an empty or outside texel is halved (a few times) before giving up
         for (int k = 0; k < 4 && !ok; ++k) {
             step *= 0.5;
             sn = s + step;
-            fn = signed_distance(l, C + sn * dir, ok);
+            fn = signed_distance(l, ph, C + sn * dir, ok);
         }
 #endif
 #if STATISTICS
@@ -283,7 +284,7 @@ bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int i
 #endif
         if (!ok) return false;
         if ((fn > 0.0) != (f > 0.0)) {  // enclosed
-            if (refine(l, C, dir, s, f, sn, fn, s_hit) && valid_hit(l, C, dir, dlen, s_hit, n)) return true;
+            if (refine(l, ph, C, dir, s, f, sn, fn, s_hit) && valid_hit(l, ph, C, dir, dlen, s_hit, n)) return true;
 #if SECANT
             if (++resumes > MAX_RESUMES) return false;
             restart = true;  // resume beyond the interval

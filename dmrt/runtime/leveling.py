@@ -120,13 +120,16 @@ class ScreenLeveler:
         self.threshold, self.visibility_tol = float(threshold), float(visibility_tol)
         self._seams = load_program(ctx, "dmrt_leveling_seams")
         self._apply = load_program(ctx, "dmrt_leveling_apply")
+        # the seam pass adds into `pairs` (GPU only), copied into `_pairs_host` for the CPU: a buffer
+        # the CPU reads every frame lives in host memory (NVIDIA), slow for the pass's atomics
         self.pairs = ctx.buffer(reserve=16 * self.n * self.n)
+        self._pairs_host = ctx.buffer(reserve=16 * self.n * self.n)
         self.gains_buffer = ctx.buffer(reserve=16 * self.n)
         self.gains = np.ones((self.n, 3), np.float32)
 
     @property
     def nbytes(self) -> int:
-        return self.pairs.size + self.gains_buffer.size
+        return 2 * self.pairs.size + self.gains_buffer.size
 
     def run(self, timer, hits, colors, photos, images, depthmaps, cam_uniforms: dict, counts) -> float:
         """Level the frame's colours in place.
@@ -169,8 +172,9 @@ class ScreenLeveler:
                          **cam_uniforms)
             self._seams.run(-(-w // 8), -(-h // 8))
             ctx.memory_barrier(barrier | moderngl.BUFFER_UPDATE_BARRIER_BIT)
+            ctx.copy_buffer(self._pairs_host, self.pairs)
         t0 = time.perf_counter()
-        pairs = np.frombuffer(self.pairs.read(), np.int32).reshape(n, n, 4)
+        pairs = np.frombuffer(self._pairs_host.read(), np.int32).reshape(n, n, 4)
         self.gains = solve_gains(pairs, counts, min_samples=self.min_samples, max_gain=self.max_gain)
         self.gains_buffer.write(np.concatenate([self.gains, np.ones((n, 1), np.float32)], axis=1).tobytes())
         cpu_ms = (time.perf_counter() - t0) * 1e3
@@ -185,4 +189,5 @@ class ScreenLeveler:
 
     def release(self) -> None:
         self.pairs.release()
+        self._pairs_host.release()
         self.gains_buffer.release()
