@@ -1,9 +1,11 @@
 """The label histogram pass alone (``shaders/dmrt_label_histogram.glsl``) on synthetic ``Hit`` records.
 
-Inside a walkthrough frame the pass's timer section reads far more than the pass's bytes (1.26 ms at
-3840x2160 on an H200, where 265 MB of records take ~0.07 ms), so this measures the shader alone,
-with warm clocks: label layouts (blocks of one label, one label everywhere, random labels, no
-labels) times column lengths per thread. Each result is checked against ``numpy.bincount``.
+Inside a walkthrough frame the pass's timer section once read far more than the pass's bytes (1.26
+ms at 3840x2160 on an H200, where 265 MB of records take ~0.07 ms): the counts buffer, read back
+every frame, lived in host memory (see dmrt/runtime/shading.py). This measures the shader alone,
+with warm clocks, its counts buffer read once per case: label layouts (blocks of one label, one
+label everywhere, random labels, no labels) times column lengths per thread. Each result is checked
+against ``numpy.bincount``.
 
     python -m bench.bench_histogram [--size 3840x2160] [--repeats 30]
 """
