@@ -120,8 +120,8 @@ class ScreenLeveler:
         self.threshold, self.visibility_tol = float(threshold), float(visibility_tol)
         self._seams = load_program(ctx, "dmrt_leveling_seams")
         self._apply = load_program(ctx, "dmrt_leveling_apply")
-        # the seam pass adds into `pairs` (GPU only), copied into `_pairs_host` for the CPU: a buffer
-        # the CPU reads every frame lives in host memory (NVIDIA), slow for the pass's atomics
+        # the seam pass adds into `pairs` (GPU only), copied into `_pairs_host` for the CPU, as the
+        # label histogram does (FrameShading: why)
         self.pairs = ctx.buffer(reserve=16 * self.n * self.n)
         self._pairs_host = ctx.buffer(reserve=16 * self.n * self.n)
         self.gains_buffer = ctx.buffer(reserve=16 * self.n)
