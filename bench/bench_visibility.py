@@ -5,8 +5,8 @@
 
 Renders a walkthrough at 1280x720 with 1 and ``--layers`` label layers for depth peeling by compute
 passes (``compute``, per ``--max-thread-pixels``: discs with a larger pixel box are splatted by a
-workgroup each), for the single-pass k-buffer (``kbuffer``, per ``--slots``) and for the tile-binned
-single pass (``tiles``, :mod:`dmrt.runtime.tiles`; ``tiles-lagged`` without its end-of-stage
+workgroup each), for the single-pass k-buffer (``kbuffer``, per ``--slots``) and for the
+tile-binned path (``tiles``, :mod:`dmrt.runtime.tiles`; ``tiles-lagged`` without its end-of-stage
 readback), and records the median GPU ms of the visibility stage and of the labeling pass (one
 more splat pass). For the single passes also the agreement of their layers with the peeled ones
 (share of pixels with equal label, per layer) and the pixels whose list overflowed; for ``tiles``
@@ -67,7 +67,7 @@ def main(argv=None) -> None:
             row[f"visibility_{k}_ms"] = float(np.median([x["visibility"] for x in t]))
             row["labeling_ms"] = float(np.median([x["labeling"] for x in t]))
             row["n_large"] = int(np.frombuffer(r.splats.large.read(16), np.uint32)[3])
-            if method.startswith("tiles"):  # the last frame's list length, pending-list length, overflows
+            if method.startswith("tiles"):  # the last frame's list length and capacity
                 row[f"tiles_{k}"] = {**r.visibility.tiles.stats(), "bytes": r.visibility.nbytes}
             r.release()
         if reference is None:

@@ -6,17 +6,17 @@
 //            whose header holds the dispatch-indirect arguments of the LARGE 1 passes (the host
 //            resets it to zero workgroups and an empty list before this pass);
 //   SCATTER 0, LARGE 1: one workgroup per listed large disc, its threads striding over its tiles;
-//   SCATTER 1, LARGE 0/1: the same walk again, writing (near key, proxy index) into the tile's slice
-//            of Entries: slot = Offsets[tile] + (Counts[tile] decremented atomically) - 1, so the
+//   SCATTER 1, LARGE 0/1: the same walk again, writing the proxy index into the tile's slice of
+//            Entries: slot = Offsets[tile] + (Counts[tile] decremented atomically) - 1, so the
 //            counts are back to 0 afterwards and the order within a slice is arbitrary (the raster
-//            pass sorts it). Entries at or past u_capacity are dropped (the host grows the buffer
-//            from the frame's total, dmrt_tiles_scan.glsl).
+//            and labeling passes take minima, which need no order). Entries at or past u_capacity
+//            are dropped (the host grows the buffer from the frame's total, dmrt_tiles_scan.glsl).
 // Both walks recompute the disc's box (cheaper than storing it): the same box, so the same tiles.
 //
 // Buffers (binding: layout):
 //   B_PROXIES       n x 8 floats (dmrt_tiles_common.glsl)
 //   B_LARGE         uint groups_x, groups_y, groups_z, n_large; uint large[n]  (proxy indices)
-//   B_TILE_ENTRIES  uvec2[capacity]: (near_key bits, proxy index), tile after tile
+//   B_TILE_ENTRIES  uint[capacity]: proxy indices, tile after tile
 //   B_TILE_COUNTS   uint[tiles]: discs per tile
 //   B_TILE_OFFSETS  uint[tiles + 1]: exclusive prefix sum of Counts (SCATTER 1 only)
 #include "dmrt_tiles_common.glsl"
@@ -37,17 +37,17 @@
 layout(std430, binding = B_LARGE) buffer Large { uint groups_x; uint groups_y; uint groups_z; uint n_large; uint large[]; };
 layout(std430, binding = B_TILE_COUNTS) buffer Counts { uint counts[]; };
 #if SCATTER
-layout(std430, binding = B_TILE_ENTRIES) writeonly buffer Entries { uvec2 entries[]; };
+layout(std430, binding = B_TILE_ENTRIES) writeonly buffer Entries { uint entries[]; };
 layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
 uniform uint u_capacity;  // entries the buffer holds
 #endif
 
 uniform uint u_count;  // number of proxies
 
-void bin_into(uint tile, uint key, uint k) {
+void bin_into(uint tile, uint k) {
 #if SCATTER
     uint pos = offsets[tile] + atomicAdd(counts[tile], ~0u) - 1u;  // decrement: adding 2^32 - 1
-    if (pos < u_capacity) entries[pos] = uvec2(key, k);
+    if (pos < u_capacity) entries[pos] = k;
 #else
     atomicAdd(counts[tile], 1u);
 #endif
@@ -63,11 +63,10 @@ void main() {
         int label;
         Splat s = load_proxy(k, label);
         ivec4 tb = splat_pixel_box(s) / TILE;  // the box is non-empty and non-negative here
-        uint key = SCATTER != 0 ? near_key(s) : 0u;
         int w = tb.z - tb.x + 1;
         int n = w * (tb.w - tb.y + 1);
         for (int j = int(gl_LocalInvocationID.x); j < n; j += int(gl_WorkGroupSize.x))
-            bin_into(uint((tb.y + j / w) * u_tiles.x + tb.x + j % w), key, k);
+            bin_into(uint((tb.y + j / w) * u_tiles.x + tb.x + j % w), k);
     }
 }
 
@@ -91,10 +90,9 @@ void main() {
 #endif
             continue;
         }
-        uint key = SCATTER != 0 ? near_key(s) : 0u;
         for (int ty = tb.y; ty <= tb.w; ++ty)
             for (int tx = tb.x; tx <= tb.z; ++tx)
-                bin_into(uint(ty * u_tiles.x + tx), key, k);
+                bin_into(uint(ty * u_tiles.x + tx), k);
     }
 }
 

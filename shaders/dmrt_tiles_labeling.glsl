@@ -21,7 +21,7 @@
 
 layout(local_size_x = TILE, local_size_y = TILE) in;
 
-layout(std430, binding = B_TILE_ENTRIES) readonly buffer Entries { uvec2 entries[]; };
+layout(std430, binding = B_TILE_ENTRIES) readonly buffer Entries { uint entries[]; };
 layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
 #if PACKED_LABELS
 layout(std430, binding = B_KEY) writeonly buffer Key { uvec2 key[]; };
@@ -52,7 +52,7 @@ void main() {
     for (uint base = start; base < end; base += uint(THREADS)) {
         if (base + lid < end) {
             int label;
-            Splat s = load_proxy(entries[base + lid].y, label);
+            Splat s = load_proxy(entries[base + lid], label);
             s_disc[lid] = s;
             s_label[lid] = label;
             s_box[lid] = splat_pixel_box(s);

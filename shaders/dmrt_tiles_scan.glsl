@@ -6,8 +6,7 @@
 // a multi-workgroup scan would only pay off at millions.
 //
 // Buffers (binding: layout):
-//   B_TILE_STATUS   uint total (entries this frame), overflow, long_tiles, redo_tiles (see
-//                   dmrt_tiles_raster.glsl; this pass zeroes the counters the raster pass increments)
+//   B_TILE_STATUS   uint total: entries this frame (the host sizes the list from it)
 //   B_TILE_COUNTS   uint[tiles] (dmrt_tiles_bin.glsl SCATTER 0)
 //   B_TILE_OFFSETS  uint[tiles + 1]: Offsets[t] = sum of Counts[0..t), Offsets[tiles] = total
 #if defined COMPUTE_SHADER
@@ -18,7 +17,7 @@
 
 layout(local_size_x = SCAN_THREADS) in;
 
-layout(std430, binding = B_TILE_STATUS) buffer Status { uint total; uint overflow; uint long_tiles; uint redo_tiles; };
+layout(std430, binding = B_TILE_STATUS) buffer Status { uint total; };
 layout(std430, binding = B_TILE_COUNTS) readonly buffer Counts { uint counts[]; };
 layout(std430, binding = B_TILE_OFFSETS) writeonly buffer Offsets { uint offsets[]; };
 
@@ -51,9 +50,6 @@ void main() {
     if (t == uint(SCAN_THREADS) - 1u) {
         offsets[u_tile_count] = s_sum[t];
         total = s_sum[t];
-        overflow = 0u;
-        long_tiles = 0u;
-        redo_tiles = 0u;
     }
 }
 
