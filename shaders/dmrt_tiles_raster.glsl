@@ -14,10 +14,10 @@
 //    radius, label, pixel box) and serves every layer; a longer one is walked BATCH discs at a
 //    time, loaded again for each layer.
 // 2. The first walk tests every disc against the pixel box and the disc; each invocation notes
-//    which of the first MASK_DISCS discs hit its pixel (a bit mask in registers), and the later
-//    walks test only those (findLSB), dropping the hits at or in front of the last layer (they
-//    can never pass a filter again). Typical tiles hold fewer discs than MASK_DISCS (paper preset,
-//    4K: ~63), so after the first layer a pixel visits only its own hits.
+//    which of the first MASK_DISCS (256) discs hit its pixel (a bit mask in eight registers), and
+//    the later walks test only those (findLSB), dropping the hits at or in front of the last layer
+//    (they can never pass a filter again). Most tiles hold fewer discs (paper preset: ~180 a tile
+//    at 1280x720, ~63 at 3840x2160), so after the first layer a pixel visits only its own hits.
 // 3. A pixel without a hit for layer i has none for the layers after it; the workgroup stops when
 //    none of its pixels found a layer (a shared flag per walk).
 // Every layer of every pixel is written once (empty ones as EMPTY_BITS / EMPTY_LABEL), so the layer
@@ -36,7 +36,7 @@
 #ifndef BATCH
 #define BATCH 512  // discs in shared memory at once: 40 bytes each
 #endif
-#define MASK_DISCS 64  // the first walk's hits remembered per pixel: two uint words
+#define MASK_DISCS 256  // the first walk's hits remembered per pixel: eight uint words
 #define THREADS (TILE * TILE)
 
 layout(local_size_x = TILE, local_size_y = TILE) in;
@@ -59,6 +59,11 @@ uvec2 g_px;               // the pixel
 vec2 g_uv;                // its centre
 uint g_prev_d, g_prev_l;  // the last layer's depth bits and label (label ~0u before the first)
 uint g_best_d, g_best_l;  // the nearest hit that passes the filter so far
+uint g_count;             // discs in the tile's list
+// The hit masks of discs 0-127 and 128-255, one word of 32 discs a component. Written as vectors
+// filled component by component with constant indices: an array indexed by a loop counter may be
+// kept in local memory (dmrt_raytrace.glsl's snap_try says more).
+uvec4 g_lo, g_hi;
 
 void load_batch(uint first, uint n) {
     for (uint i = gl_LocalInvocationIndex; i < n; i += uint(THREADS)) {
@@ -90,25 +95,30 @@ void consider(uint d, uint j) {
     }
 }
 
-// Test discs [from, to) of the batch in shared memory; with `remember`, note the hits of the first
-// MASK_DISCS in mask.
-void walk(uint from, uint to, bool remember, inout uvec2 mask) {
+// Test discs [from, to) of the batch in shared memory; the bits of the hits, from bit 0 for disc
+// `from` (meaningful for up to 32 discs).
+uint walk(uint from, uint to) {
+    uint mask = 0u;
     for (uint j = from; j < to; ++j) {
         uvec2 b = s_box[j];
         if (g_px.x < (b.x & 0xFFFFu) || g_px.x > (b.y & 0xFFFFu) || g_px.y < (b.x >> 16) || g_px.y > (b.y >> 16))
             continue;
         uint d = hit_bits(j);
         if (d == 0u) continue;
-        if (remember && j < uint(MASK_DISCS)) {
-            if (j < 32u) mask.x |= 1u << j;
-            else mask.y |= 1u << (j - 32u);
-        }
+        mask |= 1u << ((j - from) & 31u);
         consider(d, j);
     }
+    return mask;
 }
 
-// The remembered hits again: those at or in front of the last layer leave the mask for good.
-uint walk_mask(uint word, uint base) {
+// The first walk over the 32 discs from `base`: their hit mask.
+uint first_word(uint base) {
+    return base < g_count ? walk(base, min(g_count, base + 32u)) : 0u;
+}
+
+// A later walk over the remembered hits of a word; those at or in front of the last layer leave
+// the mask for good.
+uint again(uint word, uint base) {
     uint m = word;
     while (m != 0u) {
         int b = findLSB(m);
@@ -131,12 +141,12 @@ void main() {
     g_uv = vec2(p) + 0.5;  // the pixel centre, as in every splat path
     g_prev_d = 0u;
     g_prev_l = ~0u;
-    uvec2 mask = uvec2(0u);
     uint found = 0u;
 
     uint off = offsets[tile];
     uint count = offsets[tile + 1u] - off;
     count = min(count, u_capacity - min(off, u_capacity));  // entries past the buffer were dropped
+    g_count = count;
     bool cached = count <= uint(BATCH);
     if (lid < 3u) s_found[lid] = 0u;
     if (cached) load_batch(off, count);
@@ -148,12 +158,13 @@ void main() {
         g_best_l = EMPTY_BITS;
         if (cached) {
             if (searching && layer == 0u) {
-                walk(0u, count, true, mask);
+                g_lo = uvec4(first_word(0u), first_word(32u), first_word(64u), first_word(96u));
+                g_hi = uvec4(first_word(128u), first_word(160u), first_word(192u), first_word(224u));
             } else if (searching) {
-                mask.x = walk_mask(mask.x, 0u);
-                mask.y = walk_mask(mask.y, 32u);
-                walk(min(count, uint(MASK_DISCS)), count, false, mask);
+                g_lo = uvec4(again(g_lo.x, 0u), again(g_lo.y, 32u), again(g_lo.z, 64u), again(g_lo.w, 96u));
+                g_hi = uvec4(again(g_hi.x, 128u), again(g_hi.y, 160u), again(g_hi.z, 192u), again(g_hi.w, 224u));
             }
+            if (searching) walk(min(count, uint(MASK_DISCS)), count);
         } else {
             for (uint sb = 0u; sb < count; sb += uint(BATCH)) {
                 uint nb = min(uint(BATCH), count - sb);
@@ -162,7 +173,7 @@ void main() {
                 load_batch(off + sb, nb);
                 memoryBarrierShared();
                 barrier();
-                if (searching) walk(0u, nb, false, mask);
+                if (searching) walk(0u, nb);
             }
         }
         // the flag reset here was last read two walks ago, before a barrier every invocation has
