@@ -62,7 +62,7 @@ uint g_best_d, g_best_l;  // the nearest hit that passes the filter so far
 uint g_count;             // discs in the tile's list
 // The hit masks of discs 0-127 and 128-255, one word of 32 discs a component. Written as vectors
 // filled component by component with constant indices: an array indexed by a loop counter may be
-// kept in local memory (dmrt_raytrace.glsl's snap_try says more).
+// kept in local memory (dmrt_photos.glsl's snap_try says more).
 uvec4 g_lo, g_hi;
 
 void load_batch(uint first, uint n) {
