@@ -45,17 +45,19 @@ B_DMT_BOXES = 21    # n_maps x 2 vec4 bounding boxes
 B_DMT_COMMANDS = 22  # n_maps draw-indirect commands
 B_DMT_STATS = 23    # culled maps, triangles drawn
 # tile-binned visibility (dmrt/runtime/tiles.py)
-B_TILE_ENTRIES = 24  # uvec2 (near key, proxy index) per disc-tile overlap
+B_TILE_ENTRIES = 24  # uint proxy index per disc-tile overlap
 B_TILE_COUNTS = 25   # uint per tile: discs binned
 B_TILE_OFFSETS = 26  # uint per tile + 1: where each tile's entries start
-B_TILE_STATUS = 27   # uint x 4: list length, overflow pixels, long tiles, tiles walked again
-B_TILE_REDO = 31     # dispatch-indirect header (groups x, y, z, tiles), then the tiles walked again
+B_TILE_STATUS = 27   # uint: the list's length (disc-tile overlaps)
 # photometric adjustment
 B_PHOTO_GAINS = 28  # n_photos vec4: each photo's RGB colour gain (bundle.json photo_gains), 1 = unchanged
 # raytracing's lists of holes (shaders/dmrt_raytrace.glsl): a dispatch-indirect header (groups x,
 # y, z, items), then a pixel index per hole
 B_HOLES = 29        # the holes a fill pass walks
 B_HOLES_NEXT = 30   # the holes a pass leaves to the next fill pass
+# the leveling's gains solve on the GPU (shaders/dmrt_leveling_solve.glsl), its scratch buffers
+B_LEVEL_EDGES = 32  # n_photos x n_photos uvec2: row a lists photo a's seam neighbours (index, weight bits)
+B_LEVEL_P = 33      # n_photos vec4: the conjugate-gradient search direction, where shared memory is too small
 
 # -- sentinels ---------------------------------------------------------------------------------
 EMPTY_BITS = 0xFFFFFFFF  # an empty depth (above every positive float's bits: atomicMin keeps the nearest)

@@ -5,14 +5,20 @@ The seams of the frame tell how the photos differ: ``shaders/dmrt_leveling_seams
 every pair of neighbouring pixels that lie on one surface but carry different labels ``a < b``,
 samples both photos at the same surface point and sums ``log(colour in a) - log(colour in b)``
 per channel. Exposure and white balance differences are per-photo factors, so they show up as
-constant log offsets ``d_ab``; this module solves for one log gain ``x_j`` per photo and channel
+constant log offsets ``d_ab``; the leveling solves for one log gain ``x_j`` per photo and channel
 
     minimise   sum_(a,b) w_ab (d_ab + x_a - x_b)^2  +  reg * sum_a deg_a x_a^2
 
 (``w_ab`` = seam samples of the pair, ``deg_a`` = seam samples of photo ``a``: the small second
 term fixes the free common offset and keeps a photo without seams at gain 1), then shifts the
 gains so that the frame's mean brightness (pixel-weighted over the leveled photos) is unchanged.
-``shaders/dmrt_leveling_apply.glsl`` multiplies every pixel by its photo's gain.
+``shaders/dmrt_leveling_solve.glsl`` solves it on the GPU, in one workgroup (Jacobi-preconditioned
+conjugate gradients; the shader says why that converges in a bounded number of iterations), from
+the seam sums and this frame's label histogram, both on the GPU: nothing is read back and the CPU
+never waits for the frame (the read-back and a numpy solve took 4.6-5.3 ms a frame on an H200).
+``shaders/dmrt_leveling_apply.glsl`` multiplies every pixel by its photo's gain. :func:`solve_gains`
+is the plain-numpy twin of the solve (float64, a direct solve), the truth the tests compare the
+shader with; no frame runs it.
 
 One gain per photo is the leveling function of Lempitsky and Ivanov's seam leveling with infinite
 smoothness inside each region: it removes the global exposure and white-balance steps between
@@ -25,10 +31,19 @@ from __future__ import annotations
 import numpy as np
 
 from dmrt.gl import abi
-from dmrt.gl.kernels import fill_u32
+from dmrt.gl.kernels import fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 
 LOG_SCALE = 1024.0  # fixed point of the seam sums: shaders/dmrt_leveling_seams.glsl
+REGULARIZATION = 0.01  # reg of the problem above
+# the GPU solve (shaders/dmrt_leveling_solve.glsl says why these suffice): a channel stops at
+# |residual| <= TOLERANCE |rhs|, after at most min(used photos + 16, MAX_ITERATIONS) iterations
+TOLERANCE = 1e-6
+MAX_ITERATIONS = 256
+# the solve's one workgroup: on an H200 (probe, 192 photos, 30 of them on screen) 0.065 ms with 256
+# invocations, 0.15 ms with 128, 0.07 with 512 (whose reductions leave less shared memory for p)
+SOLVE_THREADS = 256
+GL_SHARED_BYTES = 32768  # shared memory GL guarantees a compute workgroup (llvmpipe has exactly this)
 
 
 def pair_offsets(pairs: np.ndarray, min_samples: int = 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -55,9 +70,10 @@ def pair_offsets(pairs: np.ndarray, min_samples: int = 16) -> tuple[np.ndarray, 
     return np.stack([a, b], axis=1), weight, offset
 
 
-def solve_gains(pairs: np.ndarray, pixel_counts: np.ndarray, regularization: float = 0.01,
+def solve_gains(pairs: np.ndarray, pixel_counts: np.ndarray, regularization: float = REGULARIZATION,
                 min_samples: int = 16, max_gain: float = 2.0) -> np.ndarray:
-    """Per-photo RGB gains that level the seams of a frame (the module docstring's problem).
+    """Per-photo RGB gains that level the seams of a frame (the module docstring's problem): the
+    numpy twin of ``shaders/dmrt_leveling_solve.glsl`` (:meth:`ScreenLeveler.solve`).
 
     Parameters
     ----------
@@ -102,60 +118,106 @@ def solve_gains(pairs: np.ndarray, pixel_counts: np.ndarray, regularization: flo
 
 class ScreenLeveler:
     """The leveling stage on the GPU, shared by the DMRT and DMT renderers (they write the same
-    per-pixel ``Hit`` records and colours, see ``shaders/dmrt_frame.glsl``).
+    per-pixel ``Hit`` records and colours, see ``shaders/dmrt_frame.glsl``): seams, gains solve,
+    apply, with nothing read back.
 
     Parameters
     ----------
     ctx : moderngl.Context
     n_photos : int
-    min_samples, max_gain : see :func:`solve_gains`
+    min_samples, max_gain, regularization : see :func:`solve_gains`
     threshold : float, metres: neighbouring pixels further apart in depth are not a seam
     visibility_tol : float, metres: a photo must see the seam point this closely (its depth map)
+    p_in_shared : bool, optional
+        Where the solve keeps its search direction (n_photos x 12 bytes): shared memory, or the
+        scratch buffer ``B_LEVEL_P``. Default: shared memory when it fits the 32 KiB that GL
+        guarantees a workgroup. Tests force the buffer path.
+
+    Attributes
+    ----------
+    pairs : moderngl.Buffer, (n, n, 4) int32 seam sums of the last frame (see :func:`pair_offsets`)
+    gains_buffer : moderngl.Buffer, (n, 4) float32: RGB gain, 1 per photo, solved for the last frame
     """
 
     def __init__(self, ctx, n_photos: int, min_samples: int = 16, max_gain: float = 2.0,
-                 threshold: float = 0.20, visibility_tol: float = 0.05):
+                 threshold: float = 0.20, visibility_tol: float = 0.05, regularization: float = REGULARIZATION,
+                 p_in_shared: bool | None = None):
         self.ctx, self.n = ctx, int(n_photos)
-        self.min_samples, self.max_gain = min_samples, max_gain
+        self.min_samples, self.max_gain, self.regularization = min_samples, max_gain, float(regularization)
         self.threshold, self.visibility_tol = float(threshold), float(visibility_tol)
+        n = self.n
+        if p_in_shared is None:
+            p_in_shared = 12 * n + 48 * SOLVE_THREADS + 16 <= GL_SHARED_BYTES  # s_p, s_red, s_used
         self._seams = load_program(ctx, "dmrt_leveling_seams")
+        self._solve = load_program(ctx, "dmrt_leveling_solve", {"N_PHOTOS": n, "THREADS": SOLVE_THREADS,
+                                                                "P_SHARED": bool(p_in_shared), "LOG_SCALE": LOG_SCALE})
         self._apply = load_program(ctx, "dmrt_leveling_apply")
-        # the seam pass adds into `pairs` (GPU only), copied into `_pairs_host` for the CPU, as the
-        # label histogram does (FrameShading: why)
-        self.pairs = ctx.buffer(reserve=16 * self.n * self.n)
-        self._pairs_host = ctx.buffer(reserve=16 * self.n * self.n)
-        self.gains_buffer = ctx.buffer(reserve=16 * self.n)
-        self.gains = np.ones((self.n, 3), np.float32)
+        self.pairs = ctx.buffer(reserve=16 * n * n)
+        self._edges = ctx.buffer(reserve=8 * n * n)
+        self._direction = ctx.buffer(reserve=16 * n)
+        self.gains_buffer = ctx.buffer(np.ones((n, 4), np.float32).tobytes())
+        # the gains are read back through a copy, as the label histogram is (FrameShading: why)
+        self._gains_host = ctx.buffer(reserve=16 * n)
 
     @property
     def nbytes(self) -> int:
-        return 2 * self.pairs.size + self.gains_buffer.size
+        return self.pairs.size + self._edges.size + self._direction.size + 2 * self.gains_buffer.size
 
-    def run(self, timer, hits, colors, photos, images, depthmaps, cam_uniforms: dict, counts) -> float:
-        """Level the frame's colours in place.
+    def solve(self, counts) -> None:
+        """Dispatch the gains solve (``shaders/dmrt_leveling_solve.glsl``, the GPU twin of
+        :func:`solve_gains`): :attr:`pairs` and ``counts`` in, :attr:`gains_buffer` out. The caller
+        puts the memory barriers around it.
 
         Parameters
         ----------
-        timer : dmrt.gl.GpuTimer, the passes are timed as ``leveling``
+        counts : moderngl.Buffer, (n_photos,) uint32 pixels per label in the frame (the
+            mean-brightness weights), e.g. ``FrameShading``'s label histogram
+        """
+        self.pairs.bind_to_storage_buffer(abi.B_PAIRS)
+        counts.bind_to_storage_buffer(abi.B_COUNTS)
+        self.gains_buffer.bind_to_storage_buffer(abi.B_GAINS)
+        self._edges.bind_to_storage_buffer(abi.B_LEVEL_EDGES)
+        self._direction.bind_to_storage_buffer(abi.B_LEVEL_P)
+        set_uniforms(self._solve, u_min_samples=max(1, int(self.min_samples)), u_reg=self.regularization,
+                     u_max_gain=float(self.max_gain), u_max_iters=MAX_ITERATIONS, u_tol=TOLERANCE)
+        self._solve.run(1)
+
+    def read_gains(self) -> np.ndarray:
+        """(n_photos, 3) float32 gains of the last frame (waits for the GPU: read-back frames only)."""
+        import moderngl
+
+        self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
+        self.ctx.copy_buffer(self._gains_host, self.gains_buffer)
+        return np.frombuffer(self._gains_host.read(), np.float32).reshape(self.n, 4)[:, :3].copy()
+
+    def run(self, timer, hits, colors, photos, images, depthmaps, cam_uniforms: dict, counts) -> float:
+        """Level the frame's colours in place: seams, solve, apply, all on the GPU.
+
+        Parameters
+        ----------
+        timer : dmrt.gl.GpuTimer, the passes are timed as ``leveling:seams``, ``leveling:solve``
+            and ``leveling:apply`` (together the stage ``leveling``)
         hits, colors : moderngl.Buffer, the frame's ``Hit`` records and packed RGBA8 colours
         photos : moderngl.Buffer, the ``Photo`` records (``dmrt.runtime.renderer.photo_params``)
         images : dmrt.runtime.texturing.ImageCache
         depthmaps : moderngl.TextureArray, the photos' depth maps (as ``photos`` describes them)
         cam_uniforms : dict, ``u_R, u_t, u_K, u_size`` of the frame
-        counts : (n_photos,) int, pixels per label in the frame
+        counts : moderngl.Buffer, (n_photos,) uint32 pixels per label in this frame, on the GPU
 
         Returns
         -------
-        float, CPU ms of reading the seam sums back and solving (:attr:`gains` holds the result).
+        float, CPU ms of issuing the passes (nothing waits for the GPU; :meth:`read_gains` reads
+        the gains).
         """
         import time
 
         import moderngl
 
+        t0 = time.perf_counter()
         barrier = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
         w, h = cam_uniforms["u_size"]
         n, ctx = self.n, self.ctx
-        with timer.section("leveling"):
+        with timer.section("leveling:seams"):
             fill_u32(ctx, self.pairs, 0, 4 * n * n)
             ctx.memory_barrier(barrier)
             hits.bind_to_storage_buffer(abi.B_HITS)
@@ -171,23 +233,25 @@ class ScreenLeveler:
                          u_low_dims=images.low_dims, u_high_dims=(images.high.width, images.high.height),
                          **cam_uniforms)
             self._seams.run(-(-w // 8), -(-h // 8))
-            ctx.memory_barrier(barrier | moderngl.BUFFER_UPDATE_BARRIER_BIT)
-            ctx.copy_buffer(self._pairs_host, self.pairs)
-        t0 = time.perf_counter()
-        pairs = np.frombuffer(self._pairs_host.read(), np.int32).reshape(n, n, 4)
-        self.gains = solve_gains(pairs, counts, min_samples=self.min_samples, max_gain=self.max_gain)
-        self.gains_buffer.write(np.concatenate([self.gains, np.ones((n, 1), np.float32)], axis=1).tobytes())
-        cpu_ms = (time.perf_counter() - t0) * 1e3
-        with timer.section("leveling"):
-            hits.bind_to_storage_buffer(abi.B_HITS)
-            colors.bind_to_storage_buffer(abi.B_COLORS)
-            self.gains_buffer.bind_to_storage_buffer(abi.B_GAINS)
-            set_uniforms(self._apply, u_count=w * h)
-            self._apply.run(max(1, min(-(-w * h // 64), 65535)))
+            ctx.memory_barrier(barrier)
+        with timer.section("leveling:solve"):
+            self.solve(counts)
+            ctx.memory_barrier(barrier)
+        with timer.section("leveling:apply"):
+            self.apply(hits, colors, w * h)
             ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        return cpu_ms
+        return (time.perf_counter() - t0) * 1e3
+
+    def apply(self, hits, colors, count: int) -> None:
+        """Dispatch ``shaders/dmrt_leveling_apply.glsl``: the first ``count`` pixels' colours times
+        the gain of their final label (:attr:`gains_buffer`). The caller puts the memory barriers
+        around it."""
+        hits.bind_to_storage_buffer(abi.B_HITS)
+        colors.bind_to_storage_buffer(abi.B_COLORS)
+        self.gains_buffer.bind_to_storage_buffer(abi.B_GAINS)
+        set_uniforms(self._apply, u_count=int(count))
+        self._apply.run(groups(count, 64))
 
     def release(self) -> None:
-        self.pairs.release()
-        self._pairs_host.release()
-        self.gains_buffer.release()
+        for buf in (self.pairs, self._edges, self._direction, self.gains_buffer, self._gains_host):
+            buf.release()

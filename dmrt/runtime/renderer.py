@@ -17,7 +17,8 @@ Per frame, each stage its own shader and GPU timer section:
 
 6. ``leveling`` (``RenderConfig.leveling``) - screen-space leveling (paper 5.2.3, last step): the
    colour offsets between photos measured along the frame's seams, one gain per photo solved on
-   the CPU, applied to every pixel (:mod:`dmrt.runtime.leveling`).
+   the GPU (``shaders/dmrt_leveling_solve.glsl``: nothing read back, the CPU does not wait),
+   applied to every pixel (:mod:`dmrt.runtime.leveling`).
 
 Ablations and statistics: ``RenderConfig.raytrace=False`` takes the first splat layer as the
 surface (the paper's coarse splats, Fig. 8a), ``labeling=False`` keeps each layer's splat label
@@ -89,8 +90,8 @@ class RenderConfig:
     # 1.5 ms at 720p and 5.9 ms at 4K against 8.9 / 41 ms for compute peeling and 9.7 / 75 ms for the
     # k-buffer; every layer equal to compute peeling's; reports/frame-h200/, session 7)
     method: Visibility = option(
-        "tiles", "visibility stage: tiles (all layers from one tile-binned pass, each pixel's nearest fragments "
-                 "kept in registers: dmrt/runtime/tiles.py), compute (depth peeling by atomicMin splatting, a "
+        "tiles", "visibility stage: tiles (the discs binned into screen tiles, each pixel's layers found in "
+                 "registers: dmrt/runtime/tiles.py), compute (depth peeling by atomicMin splatting, a "
                  "pass per layer), kbuffer (one splat pass into a per-pixel list of the nearest fragments in "
                  "global memory) or raster (the paper's GL_POINTS depth peeling); the same layers")
     tile_check: Literal["frame", "lagged"] = option(
@@ -243,10 +244,10 @@ class Renderer:
             the camera's aspect ratio).
         readback : bool
             False: the frame stays on the GPU and only ``timings``, ``cpu_ms`` (and
-            ``leveling_gains``, ``step_stats``) are returned. Timing runs use it: reading every
-            buffer back costs more wall time than the frame itself, and with the GPU idle that long
-            between frames the stage times of light frames came out inflated (H200: 1 layer read
-            26.6 ms, more than 5 layers).
+            ``step_stats``) are returned. Timing runs use it: reading every buffer back costs
+            more wall time than the frame itself, and with the GPU idle that long between frames
+            the stage times of light frames came out inflated (H200: 1 layer read 26.6 ms, more
+            than 5 layers).
 
         Returns
         -------
@@ -260,9 +261,10 @@ class Renderer:
             :class:`dmrt.gl.GpuTimer`; ``leveling`` 0 when off) and ``cpu_ms``
             {``label_readback``: wall ms waiting for the label histogram (the GPU finishing the
             frame so far), ``image_management``: wall ms choosing, decoding (synchronous
-            streaming) and uploading photos, ``leveling``: reading the seam sums back and solving
-            the gains}. With ``config.leveling`` also ``leveling_gains`` (n_photos, 3) float32;
-            with ``config.statistics`` also ``step_stats`` (see :meth:`_read_step_stats`).
+            streaming) and uploading photos, with leveling ``leveling``: wall ms issuing its passes
+            (the gains are solved on the GPU)}. With ``config.leveling`` and ``readback`` also
+            ``leveling_gains`` (n_photos, 3) float32; with ``config.statistics`` also
+            ``step_stats`` (see :meth:`_read_step_stats`).
         """
         cfg = self.config
         cam = camera.resized(width or cfg.width, height or cfg.height)

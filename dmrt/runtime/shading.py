@@ -8,7 +8,9 @@ of ``shaders/dmrt_frame.glsl``, and from there on a frame is the same work:
    H200), and photos stream in over several frames anyway;
 2. ``texturing`` - colour from each pixel's photo (:func:`dmrt.runtime.texturing.texture_frame`),
    times the photo's photometric gain (bundle.json ``photo_gains``; all 1 with ``photometric`` off);
-3. ``leveling`` (optional) - screen-space leveling (:class:`dmrt.runtime.leveling.ScreenLeveler`);
+3. ``leveling`` (optional) - screen-space leveling (:class:`dmrt.runtime.leveling.ScreenLeveler`),
+   all on the GPU: the seams, the gains solved from them and this frame's label histogram (which
+   never leaves the GPU for it), the gains applied;
 4. the GL error check, the read-back (unless timing) and the per-stage timings.
 """
 
@@ -94,7 +96,8 @@ class FrameShading:
         self.gains = ctx.buffer(gains_buffer_data(self.photo_gains, n).tobytes())
         # The pass adds into a buffer that only the GPU touches, copied after it into the one the CPU
         # reads: the NVIDIA driver moves a buffer the CPU reads every frame to host memory, where
-        # the pass's global atomics took 1.4 ms a 4K frame (0.07 ms in GPU memory; H200).
+        # the pass's global atomics took 1.4 ms a 4K frame (0.07 ms in GPU memory; H200). The
+        # leveling's gains solve reads this frame's counts here, on the GPU.
         self._counts_gpu = ctx.buffer(reserve=4 * n)
         # two read-back histograms, this frame's and the last one's (see the module doc)
         self.counts = [ctx.buffer(reserve=4 * n), ctx.buffer(reserve=4 * n)]
@@ -121,8 +124,9 @@ class FrameShading:
         -------
         frame : dict
             With ``readback`` the frame contract (``depth``, ``label``, ``color``, ``normal``);
-            always ``timings`` {stage: GPU ms} for ``stages``, ``cpu_ms`` and, with leveling,
-            ``leveling_gains`` (n_photos, 3) float32.
+            always ``timings`` {stage: GPU ms} for ``stages`` and ``cpu_ms``; with leveling
+            ``cpu_ms["leveling"]`` (issuing its passes) and, with ``readback`` only,
+            ``leveling_gains`` (n_photos, 3) float32 (reading them waits for the GPU).
         records : (h, w) HIT_DTYPE or None (without ``readback``)
         """
         ctx, timer = self.ctx, self.timer
@@ -148,18 +152,18 @@ class FrameShading:
         if self.leveler is not None:  # its seams compare the photos' colours after the gains
             self.gains.bind_to_storage_buffer(abi.B_PHOTO_GAINS)
             cpu_ms["leveling"] = self.leveler.run(timer, hits, colors, self.photos, self.images, depthmaps,
-                                                  cam_uniforms, counts)
+                                                  cam_uniforms, self._counts_gpu)
         check_gl(ctx, what)
         frame, records = {}, None
         if readback:
             frame, records = read_gpu_frame(hits, colors, w, h)
+            if self.leveler is not None:
+                frame["leveling_gains"] = self.leveler.read_gains()
         timer.check_executed(what)
         ms = timer.ms
         frame["timings"] = {stage: ms.get(stage, 0.0) for stage in stages}
         frame["part_timings"] = {k: v for k, v in timer.part_ms.items() if ":" in k}
         frame["cpu_ms"] = cpu_ms
-        if self.leveler is not None:
-            frame["leveling_gains"] = self.leveler.gains.copy()
         return frame, records
 
     def flush_photos(self) -> int:
