@@ -39,6 +39,7 @@
 // STATISTICS 1: every iterative step's length along the ray (metres) is accumulated per layer and
 // step index into the StepStats buffer (the paper's Figs. 9 and 10).
 #include "splat_depth_common.glsl"
+#define NORMALS_BUFFER
 #include "dmrt_frame.glsl"
 #include "dmrt_photos.glsl"
 
@@ -355,11 +356,11 @@ void main() {
         int iters = 0;
         float s_hit = 0.0;
         vec3 n = vec3(0.0);
-        Hit nb = Hit(0.0, -1, -1, 0, 0.0, 0.0, 0.0, -1);
+        Hit nb = Hit(0.0, -1, -1, 0u);
         bool found = false;
         if (all(greaterThanEqual(q, ivec2(0))) && all(lessThan(q, u_size))) {
             nb = hits[uint(q.y * u_size.x + q.x)];
-            if (nb.layer >= 0 && nb.layer < u_layers + u_pass && nb.depth > 0.0) {
+            if (hit_layer(nb) >= 0 && hit_layer(nb) < u_layers + u_pass && nb.depth > 0.0) {
                 // only the neighbour's own surface: within the discontinuity threshold of its depth
                 found = trace(-1, nb.label, C, dir, dlen, nb.depth, iters, s_hit, n) &&
                         abs(s_hit - nb.depth) <= u_threshold;
@@ -371,9 +372,10 @@ void main() {
         barrier();
         uint best = s_best;
         if (best == lid) {
-            hits[pix] = Hit(s_hit, nb.label, u_layers + u_pass, iters_through(best, hits[pix].iters), n.x, n.y, n.z, -1);
+            hits[pix] = Hit(s_hit, nb.label, -1, layer_iters(u_layers + u_pass, iters_through(best, hit_iters(hits[pix]))));
+            write_normal(pix, n);
         } else if (best == NONE && lid == 0u) {
-            hits[pix].iters = iters_through(best, hits[pix].iters);
+            hits[pix].layer_iters = layer_iters(-1, iters_through(best, hit_iters(hits[pix])));
             if (u_fill != 0) push_hole(pix);
         }
         memoryBarrierShared();
@@ -392,33 +394,36 @@ void raytrace_pixel() {
     vec3 dir = Rt * camera_ray(vec2(p) + 0.5);
     float dlen = length(dir);
 
-    Hit hit = Hit(0.0, -1, -1, 0, 0.0, 0.0, 0.0, -1);
-    int iters = 0;
+    Hit hit = Hit(0.0, -1, -1, layer_iters(-1, 0));
+    vec3 n = vec3(0.0);
 #if !RAYTRACE
     uint bits0 = layer_depth[pix];
     if (bits0 != EMPTY_BITS) {
-        vec3 n = -dir / dlen;
-        hit = Hit(uintBitsToFloat(bits0), layer_label[pix], 0, 0, n.x, n.y, n.z, -1);
+        n = -dir / dlen;
+        hit = Hit(uintBitsToFloat(bits0), layer_label[pix], -1, layer_iters(0, 0));
     }
     hits[pix] = hit;
+    write_normal(pix, n);
     return;
 #endif
+    int iters = 0, found_layer = -1;
     for (int layer = 0; layer < u_layers; ++layer) {
         uint bits = layer_depth[uint(layer) * npix + pix];
         if (bits == EMPTY_BITS) break;  // peeling: every later layer is empty too
         int l = layer_label[uint(layer) * npix + pix];
         float s_hit;
-        vec3 n;
-        if (trace(layer, l, C, dir, dlen, uintBitsToFloat(bits), iters, s_hit, n)) {
+        vec3 n_hit;
+        if (trace(layer, l, C, dir, dlen, uintBitsToFloat(bits), iters, s_hit, n_hit)) {
             hit.depth = s_hit;
             hit.label = l;
-            hit.layer = layer;
-            hit.nx = n.x; hit.ny = n.y; hit.nz = n.z;
+            found_layer = layer;
+            n = n_hit;
             break;
         }
     }
-    hit.iters = iters;
+    hit.layer_iters = layer_iters(found_layer, iters);
     hits[pix] = hit;
+    write_normal(pix, n);
     if (u_fill != 0 && hit.depth <= 0.0 && layer_depth[pix] != EMPTY_BITS) push_hole(pix);
 }
 

@@ -25,10 +25,8 @@ void main() {
     int i = int(gl_GlobalInvocationID.x);
     hits[i].depth = 1.5 + float(i);
     hits[i].label = 10 + i;
-    hits[i].layer = 20 + i;
-    hits[i].iters = 30 + i;
-    hits[i].nx = 0.25; hits[i].ny = -0.5; hits[i].nz = 0.75 + float(i);
     hits[i].final_label = -1 - i;
+    hits[i].layer_iters = layer_iters(i == 0 ? -1 : 20 + i, 300000 + i);
     if (i == 0) {
         o[0] = uint(B_HITS); o[1] = uint(B_PHOTOS); o[2] = EMPTY_BITS; o[3] = uint(EMPTY_LABEL);
         o[4] = uint(STEP_BINS); o[5] = uint(STAT_LAYERS); o[6] = floatBitsToUint(EMPTY_Z);
@@ -65,10 +63,10 @@ def test_hit_and_photo_records_match(ctx, probe):
     i = np.arange(n)
     np.testing.assert_array_equal(got["depth"], 1.5 + i)
     np.testing.assert_array_equal(got["label"], 10 + i)
-    np.testing.assert_array_equal(got["layer"], 20 + i)
-    np.testing.assert_array_equal(got["iters"], 30 + i)
-    np.testing.assert_array_equal(got["normal"], np.stack([np.full(n, 0.25), np.full(n, -0.5), 0.75 + i], 1))
     np.testing.assert_array_equal(got["final_label"], -1 - i)
+    layer, iters = abi.hit_layer_iters(got)
+    np.testing.assert_array_equal(layer, np.where(i == 0, -1, 20 + i))
+    np.testing.assert_array_equal(iters, 300000 + i)
     o = np.frombuffer(out.read(), np.uint32)
     assert list(o[:6]) == [abi.B_HITS, abi.B_PHOTOS, abi.EMPTY_BITS, abi.EMPTY_LABEL, abi.STEP_BINS, abi.STAT_LAYERS]
     assert o[6:7].view(np.float32)[0] == np.float32(abi.EMPTY_Z)

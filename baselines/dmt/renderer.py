@@ -275,13 +275,14 @@ class DMTRenderer:
             fb["surface"].use(3)
             fb["ids"].use(4)
             fb["hits"].bind_to_storage_buffer(abi.B_HITS)
-            set_uniforms(self._resolve, u_surface=3, u_ids=4, **cam_uniforms)
+            fb["normals"].bind_to_storage_buffer(abi.B_NORMALS)
+            set_uniforms(self._resolve, u_surface=3, u_ids=4, u_normals=int(readback), **cam_uniforms)
             self._resolve.run(groups(w, 8), groups(h, 8))
             ctx.memory_barrier(_BARRIER)
 
         # the end of the frame: DMRT's (dmrt.runtime.shading) on the DMT hits
-        frame, hits = self.shading.finish(fb["hits"], fb["colors"], self.depthmaps, cam_uniforms, STAGES,
-                                          "rendering a DMT frame", readback)
+        frame, hits = self.shading.finish(fb["hits"], fb["colors"], fb["normals"], self.depthmaps, cam_uniforms,
+                                          STAGES, "rendering a DMT frame", readback)
         self.label_counts = self.shading.label_counts
         stats = np.frombuffer(self._stats.read(), np.uint32)
         if readback:
@@ -331,7 +332,8 @@ class DMTRenderer:
         fb = {"front": ctx.texture((w, h), 1, dtype="f4"), "zbuf1": ctx.depth_texture((w, h)),
               "surface": ctx.texture((w, h), 4, dtype="f4"), "ids": ctx.texture((w, h), 4, dtype="f4"),
               "zbuf2": ctx.depth_texture((w, h)),
-              "hits": ctx.buffer(reserve=HIT_DTYPE.itemsize * w * h), "colors": ctx.buffer(reserve=4 * w * h)}
+              "hits": ctx.buffer(reserve=HIT_DTYPE.itemsize * w * h), "normals": ctx.buffer(reserve=12 * w * h),
+              "colors": ctx.buffer(reserve=4 * w * h)}
         for key in ("front", "surface", "ids"):
             fb[key].filter = (moderngl.NEAREST, moderngl.NEAREST)
         fb["fbo1"] = ctx.framebuffer([fb["front"]], fb["zbuf1"])
@@ -341,7 +343,7 @@ class DMTRenderer:
         fb["scope2"] = ctx.scope(fb["fbo2"], enable_only=moderngl.DEPTH_TEST)
         self._fb = fb
         self._size = (w, h)
-        self.gpu_bytes["frame"] = (4 + 4 + 16 + 16 + 4 + HIT_DTYPE.itemsize + 4) * w * h
+        self.gpu_bytes["frame"] = (4 + 4 + 16 + 16 + 4 + HIT_DTYPE.itemsize + 12 + 4) * w * h
 
     def _release_frame(self) -> None:
         for obj in self._fb.values():

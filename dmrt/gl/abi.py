@@ -58,6 +58,7 @@ B_HOLES_NEXT = 30   # the holes a pass leaves to the next fill pass
 # the leveling's gains solve on the GPU (shaders/dmrt_leveling_solve.glsl), its scratch buffers
 B_LEVEL_EDGES = 32  # n_photos x n_photos uvec2: row a lists photo a's seam neighbours (index, weight bits)
 B_LEVEL_P = 33      # n_photos vec4: the conjugate-gradient search direction, where shared memory is too small
+B_NORMALS = 34      # h x w x 3 float: unit world normals, written only for a frame that is read back
 
 # -- sentinels ---------------------------------------------------------------------------------
 EMPTY_BITS = 0xFFFFFFFF  # an empty depth (above every positive float's bits: atomicMin keeps the nearest)
@@ -65,9 +66,27 @@ EMPTY_LABEL = 0x7FFFFFFF  # an empty label layer entry
 EMPTY_Z = float(np.finfo(np.float32).max)  # raster targets' clear value (MIN blending keeps the nearest)
 
 # -- record layouts ----------------------------------------------------------------------------
-# struct Hit (shaders/dmrt_frame.glsl): one per pixel, written by every DMRT/DMT pass
-HIT_DTYPE = np.dtype([("depth", "<f4"), ("label", "<i4"), ("layer", "<i4"), ("iters", "<i4"),
-                      ("normal", "<f4", 3), ("final_label", "<i4")])
+# struct Hit (shaders/dmrt_frame.glsl): one per pixel, written by every DMRT/DMT pass; 16 bytes
+HIT_DTYPE = np.dtype([("depth", "<f4"), ("label", "<i4"), ("final_label", "<i4"), ("layer_iters", "<u4")])
+MAX_HIT_LAYER = 254  # layer index + 1 fills the low 8 bits of Hit.layer_iters
+
+
+def hit_layer_iters(hits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The layer and iteration count packed in ``Hit.layer_iters``.
+
+    Parameters
+    ----------
+    hits : (...) HIT_DTYPE records
+
+    Returns
+    -------
+    layer : (...) int32, 0-based index of the layer whose depth map gave the hit, -1 = none
+    iters : (...) int32, iterative-search steps over every layer tried
+    """
+    packed = hits["layer_iters"]
+    return (packed & 0xFF).astype(np.int32) - 1, (packed >> 8).astype(np.int32)
+
+
 PHOTO_FLOATS = 24   # struct Photo (shaders/dmrt_photos.glsl): 6 vec4
 PROXY_FLOATS = 8    # proxy disc: position xyz, radius, normal xyz, label bits (dmrt_splat_common.glsl)
 SPLAT_FLOATS = 7    # P_HD disc: position xyz, normal xyz, radius (splat_depth_buffers.glsl)

@@ -48,7 +48,7 @@ from dmrt.io.bundle import Bundle
 from dmrt.camera import Camera
 from dmrt.errors import ConfigError, InputError
 from dmrt.gl import abi
-from dmrt.gl.abi import EMPTY_BITS, EMPTY_LABEL, HIT_DTYPE, STAT_LAYERS, STEP_BINS
+from dmrt.gl.abi import EMPTY_BITS, EMPTY_LABEL, HIT_DTYPE, MAX_HIT_LAYER, STAT_LAYERS, STEP_BINS, hit_layer_iters
 from dmrt.gl.context import get_context
 from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups, max_groups
 from dmrt.gl.shaders import load_program, set_uniforms
@@ -140,6 +140,9 @@ class RenderConfig:
         validate(self)
         if self.statistics and self.layers > STAT_LAYERS:
             raise ConfigError("layers", f"the step statistics record at most {STAT_LAYERS} layers, not {self.layers}")
+        if self.layers + self.fill_passes > MAX_HIT_LAYER:
+            raise ConfigError("layers", f"layers + fill_passes must be at most {MAX_HIT_LAYER} (the Hit record's "
+                                        f"layer field), not {self.layers + self.fill_passes}")
 
 
 class Renderer:
@@ -285,9 +288,10 @@ class Renderer:
         # the search, which lists the holes it leaves; then the fill passes, each over the holes the
         # one before left (work lists: shaders/dmrt_raytrace.glsl)
         fill_passes = cfg.fill_passes if cfg.raytrace else 0
+        # normals only for a frame that is read back (dmrt_frame.glsl: the Hit record leaves them out)
         search = {"u_layers": cfg.layers, "u_max_steps": cfg.max_steps, "u_binary_steps": cfg.binary_steps,
                   "u_threshold": float(cfg.discontinuity_threshold), "u_depthmaps": 0,
-                  "u_max_groups": self._max_groups, **cam_uniforms}
+                  "u_max_groups": self._max_groups, "u_normals": int(readback), **cam_uniforms}
         holes = (b["holes_a"], b["holes_b"])
         with timer.section("raytracing:search"):
             if self.step_stats is not None:
@@ -299,6 +303,7 @@ class Renderer:
             b["layer_label"].bind_to_storage_buffer(abi.B_LAYER_LABEL)
             b["hits"].bind_to_storage_buffer(abi.B_HITS)
             holes[0].bind_to_storage_buffer(abi.B_HOLES_NEXT)
+            b["normals"].bind_to_storage_buffer(abi.B_NORMALS)
             self.photos.bind_to_storage_buffer(abi.B_PHOTOS)
             self.depthmaps.use(0)
             set_uniforms(self._raytrace, u_fill=int(fill_passes > 0), **search)
@@ -343,13 +348,12 @@ class Renderer:
                          u_visibility_tol=float(cfg.label_check_tolerance), u_depthmaps=0, **cam_uniforms)
             self._finalize.run(*grid)
             ctx.memory_barrier(_BARRIER)
-        frame, hits = self.shading.finish(b["hits"], b["colors"], self.depthmaps, cam_uniforms, STAGES,
+        frame, hits = self.shading.finish(b["hits"], b["colors"], b["normals"], self.depthmaps, cam_uniforms, STAGES,
                                           "rendering a DMRT frame", readback)
         self.label_counts = self.shading.label_counts
         if readback:
             frame["label_raw"] = hits["label"].copy()
-            frame["layer_used"] = hits["layer"].copy()
-            frame["iterations"] = hits["iters"].copy()
+            frame["layer_used"], frame["iterations"] = hit_layer_iters(hits)
         if self.step_stats is not None:
             frame["step_stats"] = self._read_step_stats()
         return frame
@@ -407,6 +411,7 @@ class Renderer:
             "layer_depth": self.ctx.buffer(reserve=4 * k * npix),
             "layer_label": self.ctx.buffer(reserve=4 * k * npix),
             "hits": self.ctx.buffer(reserve=HIT_DTYPE.itemsize * npix),
+            "normals": self.ctx.buffer(reserve=12 * npix),
             "key": self.ctx.buffer(reserve=8 * npix),  # 64-bit keys on the int64 path
             "vlabel": self.ctx.buffer(reserve=4 * npix),
             "colors": self.ctx.buffer(reserve=4 * npix),
@@ -418,7 +423,7 @@ class Renderer:
         self.gpu_bytes["layers"] = 8 * k * npix
         if self.config.method == "kbuffer":
             self.gpu_bytes["kbuffer"] = 4 * npix * (self.config.kbuffer_slots or 6 * k + 2)
-        self.gpu_bytes["frame"] = (HIT_DTYPE.itemsize + 12 + 8) * npix
+        self.gpu_bytes["frame"] = (HIT_DTYPE.itemsize + 12 + 12 + 8) * npix
 
     def _release_frame(self) -> None:
         for buf in self._buffers.values():

@@ -48,8 +48,9 @@ def photo_params(cameras, origin, depth_sizes, low_sizes) -> np.ndarray:
     return out
 
 
-def read_gpu_frame(hits_buffer: moderngl.Buffer, colors_buffer: moderngl.Buffer, w: int, h: int) -> tuple[dict, np.ndarray]:
-    """Read a frame's ``Hit`` records and packed RGBA8 colours back.
+def read_gpu_frame(hits_buffer: moderngl.Buffer, colors_buffer: moderngl.Buffer, normals_buffer: moderngl.Buffer,
+                   w: int, h: int) -> tuple[dict, np.ndarray]:
+    """Read a frame's ``Hit`` records, packed RGBA8 colours and normals back.
 
     Returns
     -------
@@ -62,7 +63,7 @@ def read_gpu_frame(hits_buffer: moderngl.Buffer, colors_buffer: moderngl.Buffer,
     frame["depth"] = hits["depth"].copy()
     frame["label"] = hits["final_label"].copy()
     frame["color"] = colors[..., :3].copy()
-    frame["normal"] = hits["normal"].copy()
+    frame["normal"] = np.frombuffer(normals_buffer.read(12 * w * h), np.float32).reshape(h, w, 3).copy()
     return frame, hits
 
 
@@ -116,9 +117,10 @@ class FrameShading:
             out["leveling"] = self.leveler.nbytes
         return out
 
-    def finish(self, hits, colors, depthmaps, cam_uniforms: dict, stages, what: str,
+    def finish(self, hits, colors, normals, depthmaps, cam_uniforms: dict, stages, what: str,
                readback: bool) -> tuple[dict, np.ndarray | None]:
-        """Shade the frame whose ``Hit`` records are in ``hits`` and return it.
+        """Shade the frame whose ``Hit`` records are in ``hits`` (and, with ``readback``, normals in
+        ``normals``: h x w x 3 float32) and return it.
 
         Returns
         -------
@@ -156,7 +158,7 @@ class FrameShading:
         check_gl(ctx, what)
         frame, records = {}, None
         if readback:
-            frame, records = read_gpu_frame(hits, colors, w, h)
+            frame, records = read_gpu_frame(hits, colors, normals, w, h)
             if self.leveler is not None:
                 frame["leveling_gains"] = self.leveler.read_gains()
         timer.check_executed(what)
