@@ -1,18 +1,23 @@
 """The benchmark report: ``dmrt report RESULTS_DIR --out reports/<name>/``.
 
 Built only from the result files of :mod:`bench.harness` (``<machine>/<commit>-<preset>/*.json``
-and the ``.npz`` image maps beside them), asv-style. The newest result set gives the tables; all
-sets of the same machine and preset give the history plot. Output::
+and the ``.npz`` image maps beside them), asv-style. The newest result set gives the tables and the
+report's commit. An experiment that set lacks (neither a result nor a failure there: a run of some
+experiments only, ``dmrt bench --only``) is *carried*: its result comes from the newest older set of
+the same machine and preset that has one, and the header and its section name that set's commit and
+date (:func:`carry_forward`). A failure in the newest set stays a failure. All sets of the same
+machine and preset give the history plot. Output::
 
     OUT/index.html   OUT/REPORT.md   the same tables (numbers formatted once, by fmt) and figures
     OUT/figures/*.png                matplotlib figures
     OUT/csv/*.csv                    every table, raw numbers
-    OUT/results/*.json               the result files the report was built from
+    OUT/results/*.json               the result files the report was built from (carried ones too)
 
 The report is assembled in ``OUT.partial`` and renamed: an interrupted build never leaves a
-report that looks whole. An experiment whose result file is missing shows as "not run", one that
-failed as "FAILED", and the report's first line then says INCOMPLETE; :func:`missing_experiments`
-is the completeness check (``dmrt report --check``).
+report that looks whole. An experiment with a result neither in the newest set nor in an older one
+shows as "not run", one that failed in the newest set as "FAILED", and the report's first line then
+says INCOMPLETE; :func:`missing_experiments` is the completeness check (``dmrt report --check``):
+carried experiments count as run.
 """
 
 from __future__ import annotations
@@ -49,24 +54,33 @@ SECTIONS = list(EXPERIMENTS)
 # ----------------------------------------------------------------------------------------------
 @dataclass
 class ResultSet:
-    """The result files of one machine, commit and preset (one folder)."""
+    """The result files of one machine, commit and preset (one folder), and the results carried
+    into it from older sets of the same machine and preset (:func:`carry_forward`)."""
 
     dir: Path
     machine: str
     commit: str
     preset: str
-    experiments: dict = field(default_factory=dict)  # name -> result payload
+    experiments: dict = field(default_factory=dict)  # name -> result payload (carried ones included)
     failed: dict = field(default_factory=dict)       # name -> error message
+    carried: dict = field(default_factory=dict)      # name -> the older ResultSet its result comes from
+
+    def source(self, name: str) -> ResultSet:
+        """The result set whose folder holds experiment ``name``'s files: an older one when carried."""
+        return self.carried.get(name, self)
+
+    def _own(self) -> list[dict]:
+        return [p for name, p in self.experiments.items() if name not in self.carried]
 
     @property
     def date(self) -> str:
-        """The newest result's date (ISO), '' when none."""
-        return max((p.get("date") or "" for p in self.experiments.values()), default="")
+        """The newest own (not carried) result's date (ISO), '' when none."""
+        return max((p.get("date") or "" for p in self._own()), default="")
 
     @property
     def info(self) -> dict:
-        """Machine and commit of the newest result."""
-        newest = max(self.experiments.values(), key=lambda p: p.get("date") or "", default={})
+        """Machine and commit of the newest own (not carried) result."""
+        newest = max(self._own(), key=lambda p: p.get("date") or "", default={})
         return {"machine": newest.get("machine", {}), "commit": newest.get("commit", {})}
 
 
@@ -120,8 +134,26 @@ def load_results(results_dir) -> list[ResultSet]:
     return sorted(sets, key=lambda s: s.date)
 
 
+def carry_forward(rs: ResultSet, older: list[ResultSet], names=None) -> ResultSet:
+    """``rs`` completed from ``older`` (result sets of the same machine and preset, oldest first): each
+    experiment of ``names`` (default: every section's) that ``rs`` has neither a result nor a failure
+    of takes the result of the newest set of ``older`` that has one, recorded in ``carried``. A failure
+    in ``rs`` is kept (the new commit broke it). A new ResultSet: ``rs`` itself is not changed (the
+    history plot reads it as it is)."""
+    out = ResultSet(rs.dir, rs.machine, rs.commit, rs.preset, dict(rs.experiments), dict(rs.failed), dict(rs.carried))
+    for name in (SECTIONS if names is None else names):
+        if name in out.experiments or name in out.failed:
+            continue
+        src = next((s for s in reversed(older) if name in s.experiments and name not in s.carried), None)
+        if src is not None:
+            out.experiments[name] = src.experiments[name]
+            out.carried[name] = src
+    return out
+
+
 def missing_experiments(rs: ResultSet, required=None) -> list[str]:
-    """Required experiments neither run nor failed in ``rs`` (see ``rs.failed`` for the others)."""
+    """Required experiments neither run nor failed in ``rs`` (carried ones count as run; see
+    ``rs.failed`` for the failed ones)."""
     return [name for name in (REQUIRED_EXPERIMENTS if required is None else required)
             if name not in rs.experiments and name not in rs.failed]
 
@@ -196,14 +228,15 @@ def render_markdown(title: str, header: list[str], sections: list[Section]) -> s
 _CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
 table{border-collapse:collapse;margin:.5em 0 1.5em;font-size:90%}td,th{border:1px solid #ccc;padding:3px 8px;
 text-align:right}th{background:#f3f3f3}td:first-child{text-align:left}img{max-width:100%;border:1px solid #ddd}
-.bad{background:#fde2e2;padding:.5em 1em;border-left:4px solid #c00}.ok{background:#e6f4e6;padding:.5em 1em;
+.bad{background:#fde2e2;padding:.5em 1em;border-left:4px solid #c00}.carried{background:#fff4d6;padding:.5em 1em;
+border-left:4px solid #c90}.ok{background:#e6f4e6;padding:.5em 1em;
 border-left:4px solid #080}figure{margin:0 0 2em}figcaption{font-style:italic;color:#555}"""
 
 
 def render_html(title: str, header: list[str], sections: list[Section]) -> str:
     def para(s: str) -> str:
         cls = ' class="bad"' if s.startswith(("**INCOMPLETE", "**Not run", "**FAILED", "**Note")) else (
-            ' class="ok"' if s.startswith("**Complete") else "")
+            ' class="ok"' if s.startswith("**Complete") else ' class="carried"' if s.startswith("**Carried") else "")
         body = html.escape(s).replace("\n", "<br>")
         # the Markdown emphasis used in paragraphs: **bold** and `code`
         body = re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", body)
@@ -265,9 +298,10 @@ MAP_FIGURES = {"fig8": "fig8_heatmaps.png", "fig13": "fig13_holes.png", "real_vi
 
 
 def _maps(rs: ResultSet, name: str) -> dict | None:
-    """The image maps of experiment ``name`` (its .npz beside the JSON); None when the file is
-    not there (a result set rebuilt from reports/history), an error when it is unreadable."""
-    path = rs.dir / _meas(rs, name)["maps_file"]
+    """The image maps of experiment ``name`` (its .npz beside the JSON, in the folder of the set it
+    comes from when carried); None when the file is not there (a result set rebuilt from
+    reports/history), an error when it is unreadable."""
+    path = rs.source(name).dir / _meas(rs, name)["maps_file"]
     if not path.exists():
         return None
     try:
@@ -921,7 +955,7 @@ def section_history(sets: list[ResultSet], out: Path) -> Section | None:
 @dataclass
 class ReportResult:
     out: Path
-    result_set: ResultSet
+    result_set: ResultSet  # the newest set, with the experiments carried into it (its ``carried``)
     missing: list
     failed: list
 
@@ -937,16 +971,19 @@ def select(sets: list[ResultSet], preset: str | None = None, machine: str | None
 
 def build_report(results_dir, out, preset: str | None = None, machine: str | None = None,
                  required=None) -> ReportResult:
-    """Build the report of the newest result set under ``results_dir`` into ``out``.
+    """Build the report of the newest result set under ``results_dir`` into ``out``; the experiments
+    it lacks are carried from older sets of its machine and preset (:func:`carry_forward`).
 
     Returns
     -------
     ReportResult
-        ``out``, the result set used, and the ``missing`` required / ``failed`` experiments.
+        ``out``, the result set used (with the carried experiments), and the ``missing`` required /
+        ``failed`` experiments.
     """
     sets = load_results(results_dir)
-    rs = select(sets, preset, machine)
-    history = [s for s in sets if s.machine == rs.machine and s.preset == rs.preset]
+    newest = select(sets, preset, machine)
+    history = [s for s in sets if s.machine == newest.machine and s.preset == newest.preset]
+    rs = carry_forward(newest, history[:-1], list(dict.fromkeys([*SECTIONS, *(required or [])])))
     out = Path(out)
     with atomic_dir(out, what="report") as tmp:
         for sub in ("figures", "csv", "results"):
@@ -963,8 +1000,13 @@ def build_report(results_dir, out, preset: str | None = None, machine: str | Non
             except InputError:
                 raise
             except (KeyError, TypeError, ValueError, IndexError) as exc:
-                raise InputError(rs.dir / f"{key}.json", f"cannot build the {key} section: "
-                                                         f"{type(exc).__name__}: {exc}") from exc
+                raise InputError(rs.source(key).dir / f"{key}.json", f"cannot build the {key} section: "
+                                                                    f"{type(exc).__name__}: {exc}") from exc
+            if key in rs.carried:
+                src = rs.carried[key]
+                sections[-1].blocks.insert(0, f"**Carried**: `{key}` was not run at commit `{rs.commit}`; this "
+                                              f"section shows the result of commit `{src.commit}` "
+                                              f"({rs.experiments[key].get('date') or src.date}, `{src.dir.name}`).")
         # Table 1 at the paper's own Scene 2 size is a preset of its own (bench/scale_run.sh): its
         # newest result on this machine stands beside this preset's
         full = [f for f in sets if f.machine == rs.machine and f.preset == FULL_PRESET and "table1" in f.experiments]
@@ -987,6 +1029,8 @@ def build_report(results_dir, out, preset: str | None = None, machine: str | Non
         (tmp / "index.html").write_text(render_html(title, header, sections))
         for f in sorted(rs.dir.glob("*.json")):
             shutil.copy2(f, tmp / "results" / f.name)
+        for name, src in rs.carried.items():  # the newest set has no file of that name
+            shutil.copy2(src.dir / f"{name}.json", tmp / "results" / f"{name}.json")
         mfile = rs.dir.parent / "machine.json"
         if mfile.is_file():
             shutil.copy2(mfile, tmp / "results" / "machine.json")
@@ -1001,7 +1045,16 @@ def _header(rs: ResultSet, missing: list, failed: list) -> list[str]:
         parts = [f"{what}: {', '.join(names)}" for what, names in (("not run", missing), ("failed", failed)) if names]
         lines.append(f"**INCOMPLETE** ({'; '.join(parts)}).")
     else:
-        lines.append("**Complete**: every required experiment has a result.")
+        lines.append("**Complete**: every required experiment has a result"
+                     + (" (some carried from earlier runs: see below)." if rs.carried else "."))
+    if rs.carried:
+        groups: dict = {}  # (commit, day) -> experiments, in the report's order
+        for name, src in rs.carried.items():
+            day = (rs.experiments[name].get("date") or src.date)[:10]
+            groups.setdefault((src.commit, day), []).append(name)
+        lines.append(f"**Carried** from earlier runs of this machine and preset, not run at commit `{rs.commit}`: "
+                     + "; ".join(f"{', '.join(names)} (commit {commit}, {day})"
+                                 for (commit, day), names in groups.items()) + ".")
     lines.append(f"Machine `{rs.machine}`: GL renderer {mach.get('gl_renderer')} ({mach.get('gl_version')}); CPU "
                  f"{mach.get('cpu')}, {mach.get('cpu_cores')} cores, {fmt(mach.get('memory_gib'))} GiB.")
     lines.append(f"Commit `{com.get('hash', rs.commit)}`{' (uncommitted changes)' if com.get('dirty') else ''}, "
@@ -1011,6 +1064,11 @@ def _header(rs: ResultSet, missing: list, failed: list) -> list[str]:
         lines.append("**Note**: a software GL renderer (Mesa llvmpipe): its GPU timer values are meaningless, so "
                      "every millisecond, fps and speed ratio below is not a measurement of anything; the quality "
                      "numbers (depth error, holes, steps) are.")
-    lines.append(f"Paper: {paper.MACHINE}. Experiments: " + ", ".join(
-        f"{k} ({'ok' if k in rs.experiments else 'FAILED' if k in rs.failed else 'not run'})" for k in SECTIONS) + ".")
+
+    def state(k: str) -> str:
+        if k in rs.carried:
+            return f"carried from {rs.carried[k].commit}"
+        return "ok" if k in rs.experiments else "FAILED" if k in rs.failed else "not run"
+
+    lines.append(f"Paper: {paper.MACHINE}. Experiments: " + ", ".join(f"{k} ({state(k)})" for k in SECTIONS) + ".")
     return lines

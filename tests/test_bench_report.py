@@ -471,3 +471,114 @@ def test_a_set_without_its_image_maps_keeps_the_earlier_figure(ci_run, tmp_path)
     build_report(copy, tmp_path / "fresh")  # no earlier build: no figure, a line instead
     assert not (tmp_path / "fresh" / "figures" / "fig8_heatmaps.png").exists()
     assert "No figure: fig8's image maps (.npz) are not in the results folder." in (tmp_path / "fresh" / "REPORT.md").read_text()
+
+
+# ----------------------------------------------------------------------------------------------
+# A newest result set of some experiments only (dmrt bench --only): the others carried
+# ----------------------------------------------------------------------------------------------
+# the committed JSON of a complete paper run (reports/history keeps it): real result files
+HISTORY_SET = Path(__file__).parents[1] / "reports" / "history" / "nvidia-h200-pcie-sse2" / "fdb23828dc27-paper"
+NEW_COMMIT = "123456789abc"
+
+
+def _rerun(name: str) -> dict:
+    """The history set's result of ``name`` as if run again at NEW_COMMIT a month later."""
+    r = json.loads((HISTORY_SET / f"{name}.json").read_text())
+    r["commit"] = dict(r["commit"], hash=NEW_COMMIT)
+    r["date"] = "2026-12-24T00:00:00+0000"
+    return r
+
+
+def _partial_run(root: Path, **files) -> tuple[Path, Path]:
+    """The history set (complete, older) and a set of ``files`` only at NEW_COMMIT, of one machine and
+    preset: (older dir, newer dir)."""
+    older = root / HISTORY_SET.parent.name / HISTORY_SET.name
+    shutil.copytree(HISTORY_SET, older)
+    newer = older.parent / f"{NEW_COMMIT}-paper"
+    newer.mkdir()
+    for name, payload in files.items():
+        (newer / f"{name}.json").write_text(json.dumps(payload))
+    return older, newer
+
+
+def _write_fig8_maps(set_dir: Path) -> None:
+    """Small image maps (.npz) with every array fig8.json lists: colours RGB8, the rest float."""
+    m = json.loads((set_dir / "fig8.json").read_text())["measurements"]
+    rng = np.random.default_rng(0)
+    maps = {k: rng.integers(0, 256, (6, 9, 3), dtype=np.uint8) if k.endswith("color")
+            else rng.random((6, 9)) > 0.5 if k == "representable" else rng.random((6, 9)).astype(np.float32)
+            for k in m["maps"]}
+    np.savez_compressed(set_dir / m["maps_file"], **maps)
+
+
+def _sections(md: str) -> dict[str, str]:
+    """REPORT.md's sections by their title up to a ':' (e.g. 'Table 2', 'Fig. 8')."""
+    return {part.splitlines()[0].split(":")[0]: part for part in md.split("\n## ")[1:]}
+
+
+def test_a_partial_run_carries_the_other_experiments_from_an_older_set(tmp_path):
+    """A newest set with Table 2 only: the report is complete, Table 2 and the report's commit are
+    the new ones, the others are carried from the older set and named in the header and in each
+    section; the carried Fig. 8 is drawn from the maps in the older folder; results/ has every JSON."""
+    from bench.report import build_report, missing_experiments
+
+    t2 = _rerun("table2")
+    t2["measurements"]["runs"][0]["median_ms"]["raytracing"] = 4321.0  # tiles, 1 layer
+    older, newer = _partial_run(tmp_path / "results", table2=t2)
+    _write_fig8_maps(older)
+    r = build_report(tmp_path / "results", tmp_path / "report")
+    carried = [n for n in REQUIRED_EXPERIMENTS if n != "table2"]
+    rs = r.result_set
+    assert rs.dir == newer and rs.commit == NEW_COMMIT and list(rs.carried) == carried
+    assert {rs.carried[n].dir for n in carried} == {older}
+    assert r.missing == [] and r.failed == [] and missing_experiments(rs) == []
+
+    md = (tmp_path / "report" / "REPORT.md").read_text()
+    assert md.splitlines()[2].startswith("**Complete**")
+    assert (f"**Carried** from earlier runs of this machine and preset, not run at commit `{NEW_COMMIT}`: "
+            f"{', '.join(carried)} (commit fdb23828dc27, 2026-11-23).") in md
+    assert f"Commit `{NEW_COMMIT}`" in md and "newest result 2026-12-24T00:00:00+0000" in md
+    sections = _sections(md)
+    assert "| raytracing | 4321 | 1.2 |" in sections["Table 2"] and "**Carried**" not in sections["Table 2"]
+    for title in ("Table 1", "Table 3 and Fig. 12", "Fig. 7", "Fig. 8", "Figs. 9 and 10", "Fig. 13",
+                  "Section 6.2", "Real views"):
+        assert sections[title].count("**Carried**: `") == 1, title
+        assert "shows the result of commit `fdb23828dc27` (2026-11-23T" in sections[title], title
+    assert 'class="carried"' in (tmp_path / "report" / "index.html").read_text()
+    # Fig. 8's maps are in the older folder only
+    assert not list(newer.glob("*.npz"))
+    assert "figures/fig8_heatmaps.png" in sections["Fig. 8"] and "No figure" not in sections["Fig. 8"]
+    assert (tmp_path / "report" / "figures" / "fig8_heatmaps.png").stat().st_size > 10_000
+    # every JSON used, each under its own name: the new Table 2, the carried ones as they were
+    res = tmp_path / "report" / "results"
+    assert sorted(p.name for p in res.glob("*.json")) == sorted(f"{n}.json" for n in REQUIRED_EXPERIMENTS)
+    assert json.loads((res / "table2.json").read_text())["commit"]["hash"] == NEW_COMMIT
+    for n in carried:
+        assert (res / f"{n}.json").read_bytes() == (older / f"{n}.json").read_bytes()
+    # the history reads each set as it is: one row per set with a Table 2 of its own
+    history = _md_rows(sections["History (nightly trend)"])
+    assert {"fdb23828dc27", NEW_COMMIT} <= {row.split(" | ")[1] for row in history}
+
+    # without the maps, the carried Fig. 8 keeps the figure this report drew before
+    (older / "fig8.npz").unlink()
+    build_report(tmp_path / "results", tmp_path / "report")
+    md = (tmp_path / "report" / "REPORT.md").read_text()
+    assert "the image maps of this result set are not in the results folder" in _sections(md)["Fig. 8"]
+
+
+def test_a_failure_in_the_newest_set_is_not_replaced_by_an_older_result(tmp_path):
+    """The new commit broke Fig. 8: FAILED (not the older set's Fig. 8), the report incomplete; the
+    experiments it did not run are carried."""
+    from bench.report import build_report
+
+    _, newer = _partial_run(tmp_path / "results", table2=_rerun("table2"),
+                            **{"fig8.failed": {"experiment": "fig8", "error": "RuntimeError: boom"}})
+    r = build_report(tmp_path / "results", tmp_path / "report")
+    assert r.failed == ["fig8"] and r.missing == [] and "fig8" not in r.result_set.carried
+    assert "fig8" not in r.result_set.experiments and "table1" in r.result_set.carried
+    md = (tmp_path / "report" / "REPORT.md").read_text()
+    assert md.splitlines()[2] == "**INCOMPLETE** (failed: fig8)."
+    assert "**FAILED**: `fig8` raised RuntimeError: boom" in _sections(md)["Fig. 8"]
+    assert "fig8 (FAILED)" in md and "table1 (carried from fdb23828dc27)" in md
+    res = tmp_path / "report" / "results"
+    assert (res / "fig8.failed.json").is_file() and not (res / "fig8.json").exists()
