@@ -86,9 +86,9 @@ class RenderConfig:
     fill_passes: int = option(2, "addition to the paper: passes in which a covered pixel that no layer gave a "
                                  "surface searches its neighbours' depth maps near their depths; 0 = the paper",
                               minimum=0)
-    # tiles is the fastest path that keeps the layers (H200, paper preset, 5 layers, visibility stage:
-    # 1.5 ms at 720p and 5.9 ms at 4K against 8.9 / 41 ms for compute peeling and 9.7 / 75 ms for the
-    # k-buffer; every layer equal to compute peeling's; reports/frame-h200/, session 7)
+    # tiles is the fastest path, with every layer equal to compute peeling's (H200, paper preset, 5
+    # layers, visibility stage in Table 2: 1.3 ms at 720p and 4.0 ms at 4K against 8.8 / 41.6 ms for
+    # compute peeling and 9.8 / 76.6 ms for the k-buffer; reports/latest, commit f8e28ef)
     method: Visibility = option(
         "tiles", "visibility stage: tiles (the discs binned into screen tiles, each pixel's layers found in "
                  "registers: dmrt/runtime/tiles.py), compute (depth peeling by atomicMin splatting, a "
