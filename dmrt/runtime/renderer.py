@@ -362,7 +362,7 @@ class Renderer:
         """``mean_step_m`` (k, STEP_BINS) float64 mean step length along the ray (metres) of the
         i-th iterative-search step in layer l (0 where none; the last bin pools later steps) and
         ``count`` (k, STEP_BINS) int64 number of such steps."""
-        raw = np.frombuffer(self.step_stats.read(), np.uint32).reshape(self.config.layers, STEP_BINS, 4)
+        raw = np.frombuffer(self.shading.staging.read(self.step_stats), np.uint32).reshape(self.config.layers, STEP_BINS, 4)
         count = raw[..., 0].astype(np.int64)
         total = (raw[..., 1].astype(np.float64) + raw[..., 2].astype(np.float64) * 2.0 ** 32) * 1e-5
         return {"mean_step_m": np.divide(total, count, out=np.zeros_like(total), where=count > 0),
@@ -384,8 +384,9 @@ class Renderer:
         """
         w, h = self._size
         k = self.config.layers
-        bits = np.frombuffer(self._buffers["layer_depth"].read(), np.uint32)[:k * w * h].reshape(k, h, w)
-        label = np.frombuffer(self._buffers["layer_label"].read(), np.int32)[:k * w * h].reshape(k, h, w).copy()
+        read = self.shading.staging.read  # the layer buffers stay in GPU memory (Staging: why)
+        bits = np.frombuffer(read(self._buffers["layer_depth"], 4 * k * w * h), np.uint32).reshape(k, h, w)
+        label = np.frombuffer(read(self._buffers["layer_label"], 4 * k * w * h), np.int32).reshape(k, h, w).copy()
         depth = bits.view(np.float32).copy()
         depth[bits == EMPTY_BITS] = 0.0
         label[label == EMPTY_LABEL] = -1

@@ -24,7 +24,7 @@ import numpy as np
 from dmrt.gl import abi
 from dmrt.gl.abi import HIT_DTYPE, PHOTO_FLOATS
 from dmrt.gl.context import check_gl
-from dmrt.gl.kernels import fill_u32, groups
+from dmrt.gl.kernels import Staging, fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.io.frames import empty_frame
 from dmrt.runtime.leveling import ScreenLeveler
@@ -48,22 +48,24 @@ def photo_params(cameras, origin, depth_sizes, low_sizes) -> np.ndarray:
     return out
 
 
-def read_gpu_frame(hits_buffer: moderngl.Buffer, colors_buffer: moderngl.Buffer, normals_buffer: moderngl.Buffer,
-                   w: int, h: int) -> tuple[dict, np.ndarray]:
-    """Read a frame's ``Hit`` records, packed RGBA8 colours and normals back.
+def read_gpu_frame(staging: Staging, hits_buffer: moderngl.Buffer, colors_buffer: moderngl.Buffer,
+                   normals_buffer: moderngl.Buffer, w: int, h: int) -> tuple[dict, np.ndarray]:
+    """Read a frame's ``Hit`` records, packed RGBA8 colours and normals back (through ``staging``:
+    the frame's own buffers stay in GPU memory, see :class:`dmrt.gl.kernels.Staging`).
 
     Returns
     -------
     frame : dict, the contract of :mod:`dmrt.io.frames` (``depth``, ``label``, ``color``, ``normal``)
     hits : (h, w) HIT_DTYPE records, for the renderer's own extra buffers
     """
-    hits = np.frombuffer(hits_buffer.read(), HIT_DTYPE).reshape(h, w)
-    colors = np.frombuffer(colors_buffer.read(), np.uint8).reshape(h, w, 4)
+    n = w * h
+    hits = np.frombuffer(staging.read(hits_buffer, HIT_DTYPE.itemsize * n), HIT_DTYPE).reshape(h, w)
+    colors = np.frombuffer(staging.read(colors_buffer, 4 * n), np.uint8).reshape(h, w, 4)
     frame = empty_frame(h, w)
     frame["depth"] = hits["depth"].copy()
     frame["label"] = hits["final_label"].copy()
     frame["color"] = colors[..., :3].copy()
-    frame["normal"] = np.frombuffer(normals_buffer.read(12 * w * h), np.float32).reshape(h, w, 3).copy()
+    frame["normal"] = np.frombuffer(staging.read(normals_buffer, 12 * n), np.float32).reshape(h, w, 3).copy()
     return frame, hits
 
 
@@ -108,6 +110,7 @@ class FrameShading:
         self.leveler = ScreenLeveler(ctx, n, config.leveling_min_samples, config.leveling_max_gain,
                                      config.discontinuity_threshold, seam_tolerance) if config.leveling else None
         self.label_counts: np.ndarray | None = None  # (n,) uint32 pixels per label of the last frame
+        self.staging = Staging(ctx)  # frame read-backs (and the renderers' own, e.g. their layers)
 
     @property
     def nbytes(self) -> dict:
@@ -158,7 +161,7 @@ class FrameShading:
         check_gl(ctx, what)
         frame, records = {}, None
         if readback:
-            frame, records = read_gpu_frame(hits, colors, normals, w, h)
+            frame, records = read_gpu_frame(self.staging, hits, colors, normals, w, h)
             if self.leveler is not None:
                 frame["leveling_gains"] = self.leveler.read_gains()
         timer.check_executed(what)
@@ -175,6 +178,6 @@ class FrameShading:
 
     def release(self) -> None:
         self.images.release()
-        for obj in (self.photos, self.gains, self._counts_gpu, *self.counts, self.leveler):
+        for obj in (self.photos, self.gains, self._counts_gpu, *self.counts, self.leveler, self.staging):
             if obj is not None:
                 obj.release()
