@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from dmrt.camera import Camera
-from dmrt.gl.abi import EMPTY_BITS, EMPTY_LABEL
+from dmrt.gl.abi import EMPTY_LABEL
 
 W = 192  # frame width (llvmpipe time); heights follow the photos' aspect
 AGREE = 0.995  # whole frames (test_renderer_frames_match_compute): see there
