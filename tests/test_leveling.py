@@ -87,6 +87,7 @@ def test_gpu_solve_matches_numpy_twin(ctx, name, p_in_shared):
     solve_gains, its float64 numpy twin, within LOG_GAIN_TOL in log gain; photos without a pair of
     min_samples keep exactly 1. Both homes of the search direction: shared memory and, as for
     thousands of photos, the scratch buffer."""
+    from dmrt.gl.kernels import Staging
     from dmrt.runtime.leveling import ScreenLeveler, solve_gains
 
     pairs, pixels = _case(name)
@@ -94,12 +95,14 @@ def test_gpu_solve_matches_numpy_twin(ctx, name, p_in_shared):
     twin = solve_gains(pairs, pixels, min_samples=16, max_gain=2.0)
     leveler = ScreenLeveler(ctx, n, min_samples=16, max_gain=2.0, p_in_shared=p_in_shared)
     counts = ctx.buffer(pixels.astype(np.uint32).tobytes())
+    staging = Staging(ctx)
     try:
         leveler.pairs.write(pairs.tobytes())
         leveler.solve(counts)
-        gains = leveler.read_gains()
+        gains = leveler.read_gains(staging)
     finally:
         leveler.release()
+        staging.release()
         counts.release()
     assert gains.shape == (n, 3) and gains.dtype == np.float32
     diff = np.abs(np.log(gains.astype(np.float64)) - np.log(twin.astype(np.float64))).max()

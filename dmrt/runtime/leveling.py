@@ -156,12 +156,10 @@ class ScreenLeveler:
         self._edges = ctx.buffer(reserve=8 * n * n)
         self._direction = ctx.buffer(reserve=16 * n)
         self.gains_buffer = ctx.buffer(np.ones((n, 4), np.float32).tobytes())
-        # the gains are read back through a copy, as the label histogram is (FrameShading: why)
-        self._gains_host = ctx.buffer(reserve=16 * n)
 
     @property
     def nbytes(self) -> int:
-        return self.pairs.size + self._edges.size + self._direction.size + 2 * self.gains_buffer.size
+        return self.pairs.size + self._edges.size + self._direction.size + self.gains_buffer.size
 
     def solve(self, counts) -> None:
         """Dispatch the gains solve (``shaders/dmrt_leveling_solve.glsl``, the GPU twin of
@@ -182,13 +180,11 @@ class ScreenLeveler:
                      u_max_gain=float(self.max_gain), u_max_iters=MAX_ITERATIONS, u_tol=TOLERANCE)
         self._solve.run(1)
 
-    def read_gains(self) -> np.ndarray:
-        """(n_photos, 3) float32 gains of the last frame (waits for the GPU: read-back frames only)."""
-        import moderngl
-
-        self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        self.ctx.copy_buffer(self._gains_host, self.gains_buffer)
-        return np.frombuffer(self._gains_host.read(), np.float32).reshape(self.n, 4)[:, :3].copy()
+    def read_gains(self, staging) -> np.ndarray:
+        """(n_photos, 3) float32 gains of the last frame, read through ``staging``
+        (:class:`dmrt.gl.kernels.Staging`: the gains buffer stays in GPU memory); waits for the GPU,
+        read-back frames only."""
+        return np.frombuffer(staging.read(self.gains_buffer), np.float32).reshape(self.n, 4)[:, :3].copy()
 
     def run(self, timer, hits, colors, photos, images, depthmaps, cam_uniforms: dict, counts) -> float:
         """Level the frame's colours in place: seams, solve, apply, all on the GPU.
@@ -253,5 +249,5 @@ class ScreenLeveler:
         self._apply.run(groups(count, 64))
 
     def release(self) -> None:
-        for buf in (self.pairs, self._edges, self._direction, self.gains_buffer, self._gains_host):
+        for buf in (self.pairs, self._edges, self._direction, self.gains_buffer):
             buf.release()

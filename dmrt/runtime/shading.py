@@ -97,10 +97,9 @@ class FrameShading:
                                               self.images.low_sizes).tobytes())
         self.photo_gains = (bundle.photo_gains if config.photometric else np.ones((n, 3), np.float32)).copy()
         self.gains = ctx.buffer(gains_buffer_data(self.photo_gains, n).tobytes())
-        # The pass adds into a buffer that only the GPU touches, copied after it into the one the CPU
-        # reads: the NVIDIA driver moves a buffer the CPU reads every frame to host memory, where
-        # the pass's global atomics took 1.4 ms a 4K frame (0.07 ms in GPU memory; H200). The
-        # leveling's gains solve reads this frame's counts here, on the GPU.
+        # The pass adds into a buffer that only the GPU touches, copied after it into the ones the
+        # CPU reads (dmrt.gl.kernels.Staging says why). The leveling's gains solve reads this
+        # frame's counts here, on the GPU.
         self._counts_gpu = ctx.buffer(reserve=4 * n)
         # two read-back histograms, this frame's and the last one's (see the module doc)
         self.counts = [ctx.buffer(reserve=4 * n), ctx.buffer(reserve=4 * n)]
@@ -163,7 +162,7 @@ class FrameShading:
         if readback:
             frame, records = read_gpu_frame(self.staging, hits, colors, normals, w, h)
             if self.leveler is not None:
-                frame["leveling_gains"] = self.leveler.read_gains()
+                frame["leveling_gains"] = self.leveler.read_gains(self.staging)
         timer.check_executed(what)
         ms = timer.ms
         frame["timings"] = {stage: ms.get(stage, 0.0) for stage in stages}

@@ -168,7 +168,7 @@ class TileVisibility:
         slot = self._frame % _RING
         status = self._status[slot]
         tile_uniforms = {**uniforms, "u_tiles": grid, "u_count": self.splats.n, "u_tile_count": grid[0] * grid[1]}
-        raster = (tile_uniforms, layers, layer_depth, layer_label, status)
+        raster = (tile_uniforms, layers, layer_depth, layer_label)
 
         with timed(timer, "visibility:tile_lists"):
             self._build_list(tile_uniforms, status, size_after_scan=first and self.check == "lagged")
@@ -225,7 +225,7 @@ class TileVisibility:
                 program.run(groups(self.splats.n, 64))
             self.ctx.memory_barrier(_BARRIER)
 
-    def _raster_pass(self, tile_uniforms: dict, layers: int, layer_depth, layer_label, status) -> None:
+    def _raster_pass(self, tile_uniforms: dict, layers: int, layer_depth, layer_label) -> None:
         self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label,
                    entries=self.entries, offsets=self.offsets)
         set_uniforms(self._raster, u_capacity=self.capacity, u_layers=int(layers), **tile_uniforms)
