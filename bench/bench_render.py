@@ -96,7 +96,11 @@ def main(argv=None) -> None:
             print(f"{w}x{h} {method:8s} {refine:9s} {check:6s} k={k:2d}  {stages}"
                   + f"  | GPU median {r['median_total_ms']:.3f} p95 {r['p95_total_ms']:.3f} ms, wall median "
                     f"{r['median_wall_ms']:.3f} p95 {r['p95_wall_ms']:.3f} ms, sustained {r['sustained_ms']:.3f} "
-                    f"ms/frame, {r['mean_iterations']:.2f} steps, "
+                    f"ms/frame, {r['mean_iterations']:.2f} steps, status reads {r['status_reads_per_frame']:.2f}/frame, "
+                    f"sustained timed: wall {r['sustained_timed']['wall_ms']:.3f} ms/frame, GPU median "
+                    f"{r['sustained_timed']['median_total_ms']:.3f} = " + "  ".join(
+                        f"{k} {v:.3f}" for k, v in {**r['sustained_timed']['median_ms'],
+                                                    **r['sustained_timed']['median_part_ms']}.items()) + ", "
                     f"clocks {r['gpu_clocks']}", flush=True)
     result = {"benchmark": "render", "version": 2, "bundle": str(bundle.root), "preset": args.preset,
               "fenced": args.fenced,

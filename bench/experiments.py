@@ -58,17 +58,33 @@ def fps_summary(totals_ms) -> dict:
     return {"fps_min_avg_max": [1e3 / t.max(), 1e3 / t.mean(), 1e3 / t.min()], "fps_median": 1e3 / float(np.median(t))}
 
 
+def _stage_summary(frames: list[dict]) -> dict:
+    """Medians of per-frame timer sections (:meth:`dmrt.gl.GpuTimer.collect`): ``median_ms``
+    {stage}, ``median_part_ms`` {``stage:part``}, ``median_total_ms``, ``p95_total_ms``,
+    ``total_ms_per_frame``."""
+    parts = sorted({k for f in frames for k in f})
+    stages = sorted({k.split(":", 1)[0] for k in parts})
+    per_stage = [{s: sum(v for k, v in f.items() if k.split(":", 1)[0] == s) for s in stages} for f in frames]
+    totals = [float(sum(f.values())) for f in frames]
+    return {"median_ms": {s: float(np.median([f[s] for f in per_stage])) for s in stages},
+            "median_part_ms": {k: float(np.median([f.get(k, 0.0) for f in frames])) for k in parts if ":" in k},
+            "median_total_ms": float(np.median(totals)), "p95_total_ms": float(np.percentile(totals, 95)),
+            "total_ms_per_frame": totals}
+
+
 def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
                         on_frame: Callable[[dict], None] | None = None, progress: bool = True,
                         fenced: bool = False) -> dict:
-    """Render ``cameras`` three times with a fresh renderer: a statistics pass that reads every
+    """Render ``cameras`` four times with a fresh renderer: a statistics pass that reads every
     frame back (and warms up: the photo cache reaches its steady state), the timed pass, whose
     frames stay on the GPU as in interactive use (``Renderer.render(readback=False)``) and whose
-    stages are timed with GL timer queries, and the sustained pass: the same frames back to back
-    with no timer query to wait for, one wall clock over all of them. Waiting for each frame's
-    timers leaves the GPU idle between frames, and an idle GPU lowers its clocks (an H200 ran a
-    light 720p walkthrough at 1200 of its 1980 MHz), so the stage times are upper bounds and the
-    sustained ms per frame is what a viewer gets.
+    stages are timed with GL timer queries, the sustained pass: the same frames back to back
+    with no timer query, one wall clock over all of them, and the sustained timed pass: back to
+    back again with each frame's queries read only after the last frame
+    (:attr:`dmrt.gl.GpuTimer.deferred`). Waiting for each frame's timers leaves the GPU idle
+    between frames, and an idle GPU lowers its clocks (an H200 ran a light 720p walkthrough at
+    1200 of its 1980 MHz), so the timed pass's stage times are upper bounds; the sustained ms per
+    frame is what a viewer gets, and the sustained timed pass splits it into stages.
 
     Parameters
     ----------
@@ -85,6 +101,9 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         of the stages' timed parts, e.g. ``image_management:histogram``}, ``median_total_ms``, ``p95_total_ms``,
         ``mean_total_ms`` (the paper's Table 2 averages), ``median_wall_ms``, ``p95_wall_ms``,
         ``frame_size`` (w, h), ``sustained_ms`` (wall ms per frame of the sustained pass),
+        ``sustained_timed`` {``wall_ms`` per frame, ``median_ms`` {stage}, ``median_part_ms``
+        {part}, ``median_total_ms``, ``p95_total_ms``, ``total_ms_per_frame``} of the sustained
+        timed pass, ``status_reads_per_frame`` (status records read back a frame, sustained pass),
         ``gpu_clocks`` {``before``, ``after``, ``sustained``: :func:`gpu_clocks` around the timed
         pass and after the sustained one, None without nvidia-smi}, ``fps_min_avg_max``, ``fps_median``,
         per frame ``total_ms_per_frame``, ``stage_ms_per_frame`` {stage: list}, ``wall_ms_per_frame``
@@ -121,13 +140,26 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         renderer.timer.fenced = False
         renderer.timer.enabled = False
         renderer.ctx.finish()
+        reads0 = renderer.shading.status.reads
         t0 = time.perf_counter()
         for cam in cameras:
             renderer.render(cam, readback=False)
         renderer.ctx.finish()
         sustained = (time.perf_counter() - t0) * 1e3 / len(cameras)
+        reads = (renderer.shading.status.reads - reads0) / len(cameras)
         renderer.timer.enabled = True
         clocks["sustained"] = gpu_clocks()
+        renderer.timer.deferred = True
+        t0 = time.perf_counter()
+        for cam in cameras:
+            renderer.render(cam, readback=False)
+        renderer.ctx.finish()
+        timed_wall = (time.perf_counter() - t0) * 1e3 / len(cameras)
+        renderer.timer.reset()
+        frames = renderer.timer.collect()
+        renderer.timer.deferred = False
+        sustained_timed = _stage_summary(frames)
+        sustained_timed["wall_ms"] = timed_wall
         tiles = renderer.visibility.tiles  # its list length: the tile raster's work (disc-tile pairs)
         tile_stats = tiles.stats() if tiles is not None else None
         stages = list(timings[0])
@@ -138,7 +170,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
                 "median_total_ms": float(np.median(totals)), "mean_total_ms": float(np.mean(totals)),
                 "p95_total_ms": float(np.percentile(totals, 95)), "p95_wall_ms": float(np.percentile(wall, 95)),
                 "frame_size": [cameras[0].width, cameras[0].height], "sustained_ms": sustained,
-                "gpu_clocks": clocks,
+                "gpu_clocks": clocks, "sustained_timed": sustained_timed, "status_reads_per_frame": reads,
                 **fps_summary(totals),
                 "total_ms_per_frame": totals, "stage_ms_per_frame": {s: [t[s] for t in timings] for s in stages},
                 "wall_ms_per_frame": wall, "median_wall_ms": float(np.median(wall)),

@@ -6,7 +6,8 @@
 // a multi-workgroup scan would only pay off at millions.
 //
 // Buffers (binding: layout):
-//   B_TILE_STATUS   uint total: entries this frame (the host sizes the list from it)
+//   B_FRAME_STATUS  the frame's FrameStatus record (dmrt/runtime/status.py): its first word, the
+//                   entries this frame (the host sizes the list from it)
 //   B_TILE_COUNTS   uint[tiles] (dmrt_tiles_bin.glsl SCATTER 0)
 //   B_TILE_OFFSETS  uint[tiles + 1]: Offsets[t] = sum of Counts[0..t), Offsets[tiles] = total
 #if defined COMPUTE_SHADER
@@ -17,7 +18,7 @@
 
 layout(local_size_x = SCAN_THREADS) in;
 
-layout(std430, binding = B_TILE_STATUS) buffer Status { uint total; };
+layout(std430, binding = B_FRAME_STATUS) buffer Status { uint total; };  // tile_total
 layout(std430, binding = B_TILE_COUNTS) readonly buffer Counts { uint counts[]; };
 layout(std430, binding = B_TILE_OFFSETS) writeonly buffer Offsets { uint offsets[]; };
 

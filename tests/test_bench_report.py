@@ -117,6 +117,13 @@ def test_report_numbers_are_the_measured_ones(ci_run):
     t2 = _result(set_dir, "table2")["measurements"]
     assert [r["method"] for r in t2["runs"]] == ["tiles"] * 3 + ["compute"] * 3 + ["raster"] * 3
     k1 = t2["runs"][0]
+    for r in t2["runs"]:
+        # every frame of the sustained pass read one status record (the walkthrough's lists were
+        # sized by the passes before it), and the sustained timed pass timed every stage
+        assert r["status_reads_per_frame"] == 1.0, (r["method"], r["status_reads_per_frame"])
+        st = r["sustained_timed"]
+        assert len(st["total_ms_per_frame"]) == len(r["wall_ms_per_frame"])  # the same walkthrough
+        assert {"visibility", "raytracing", "texturing"} <= set(st["median_ms"])
     # the raytracing row of the default path's table starts with the 1-layer median and the paper's 1.2 ms
     assert any(r.startswith(f"| raytracing | {fmt(k1['median_ms']['raytracing'])} | 1.2 |") for r in rows)
     # the larger frame: every path but raster at 5 layers, its total in the larger-frames table

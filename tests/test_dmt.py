@@ -259,7 +259,7 @@ def test_frame_contract(dmt128, bundle):
     for key in ("label", "depth_map"):
         assert frame[key].shape == (h, W) and frame[key].dtype == np.int32, key
     assert set(frame["timings"]) == set(STAGES)
-    assert set(frame["cpu_ms"]) == {"label_readback", "image_management"}
+    assert set(frame["cpu_ms"]) == {"status_read", "image_management"}
     hit = frame["depth"] > 0
     assert 0.5 < hit.mean() <= 1.0
     assert (frame["label"][~hit] == -1).all() and (frame["depth_map"][~hit] == -1).all()

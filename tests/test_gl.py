@@ -172,6 +172,22 @@ def test_timer_measures_draw_and_dispatch(ctx, shader_dir):
     assert timer.counts == {"draw": 1} and 0 < timer.ms["draw"] < 4000
     timer.reset()
     assert timer.ms == {}
+    # deferred: nothing read per frame, every frame's sections read at the end, in order
+    timer.deferred = True
+    with ctx.scope(fbo):
+        for uses in (1, 2):
+            for _ in range(uses):
+                with timer.section("draw:a"):
+                    vao.render(moderngl.TRIANGLES)
+            with timer.section("draw:b"):
+                vao.render(moderngl.TRIANGLES)
+            assert timer.ms == {}
+            timer.reset()
+    frames = timer.collect()
+    timer.deferred = False
+    assert [set(f) for f in frames] == [{"draw:a", "draw:b"}] * 2
+    assert all(0 < v < 8000 for f in frames for v in f.values())
+    assert timer.collect() == [] and timer.ms == {}
     for obj in (vao, vbo, fbo, buf):
         obj.release()
 

@@ -54,7 +54,7 @@ def test_frame_contract(renderers, bundle):
     assert set(frame["timings"]) == {"visibility", "raytracing", "labeling", "image_management", "texturing",
                                      "leveling"}
     assert frame["timings"]["leveling"] == 0.0  # off by default
-    assert set(frame["cpu_ms"]) == {"label_readback", "image_management"}
+    assert set(frame["cpu_ms"]) == {"status_read", "image_management"}
     hit = frame["depth"] > 0
     assert 0.5 < hit.mean() <= 1.0
     # background is background in every buffer, surface is surface in every buffer

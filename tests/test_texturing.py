@@ -35,12 +35,12 @@ def test_image_cache_and_texturing(ctx, bundle):
         assert low.images.n_slots == 0 and two.images.n_slots == 2
         assert full.images.n_slots == len(bundle.cameras)  # the default 1 GB holds them all
         f_two = two.render(cam)
-        counts = two.label_counts.astype(np.int64)
+        counts = two.shading.read_label_counts().astype(np.int64)
         labelled = f_two["label"][f_two["label"] >= 0]
         np.testing.assert_array_equal(counts, np.bincount(labelled, minlength=len(bundle.cameras)))
         # a frame whose sides are no multiple of the histogram's 64 x 64 blocks: every pixel once
         odd = two.render(cam, 101, 70)["label"]
-        np.testing.assert_array_equal(two.label_counts, np.bincount(odd[odd >= 0], minlength=len(bundle.cameras)))
+        np.testing.assert_array_equal(two.shading.read_label_counts(), np.bincount(odd[odd >= 0], minlength=len(bundle.cameras)))
         two.render(cam)
         assert set(np.flatnonzero(two.images.slot_of >= 0)) == set(np.argsort(-counts, kind="stable")[:2])
         uploads = two.images.uploads

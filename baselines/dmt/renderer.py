@@ -217,7 +217,7 @@ class DMTRenderer:
             background), ``label`` (h, w) int32 (-1 = none), ``color`` (h, w, 3) uint8, ``normal``
             (h, w, 3) float32 unit world normal facing the camera - plus ``depth_map`` (h, w) int32
             (the depth map that won the pixel, -1 = none), ``timings`` {stage: GPU ms} for
-            :data:`STAGES` (meaningless on llvmpipe), ``cpu_ms`` {``label_readback``,
+            :data:`STAGES` (meaningless on llvmpipe), ``cpu_ms`` {``status_read``,
             ``image_management``} as DMRT's, and ``stats`` {``maps``, ``maps_culled``,
             ``maps_drawn``, ``triangles_drawn`` (upper bound: triangles of the drawn maps, before
             the discontinuity drop)}.
@@ -234,6 +234,7 @@ class DMTRenderer:
                         "u_size": (w, h)}
         vp_bytes = np.ascontiguousarray(vp.T, np.float32)  # GLSL reads column-major
         timer.reset()
+        self.shading.begin_frame()
 
         with timer.section("culling"):
             fill_u32(ctx, self._stats, 0, 2)
@@ -283,7 +284,6 @@ class DMTRenderer:
         # the end of the frame: DMRT's (dmrt.runtime.shading) on the DMT hits
         frame, hits = self.shading.finish(fb["hits"], fb["colors"], fb["normals"], self.depthmaps, cam_uniforms,
                                           STAGES, "rendering a DMT frame", readback)
-        self.label_counts = self.shading.label_counts
         stats = np.frombuffer(self._stats.read(), np.uint32)
         if readback:
             frame["depth_map"] = hits["label"].copy()

@@ -48,7 +48,7 @@ B_DMT_STATS = 23    # culled maps, triangles drawn
 B_TILE_ENTRIES = 24  # uint proxy index per disc-tile overlap
 B_TILE_COUNTS = 25   # uint per tile: discs binned
 B_TILE_OFFSETS = 26  # uint per tile + 1: where each tile's entries start
-B_TILE_STATUS = 27   # uint: the list's length (disc-tile overlaps)
+B_FRAME_STATUS = 27  # FrameStatus record: STATUS_HEADER_WORDS uint, then int wanted[] (dmrt/runtime/status.py)
 # photometric adjustment
 B_PHOTO_GAINS = 28  # n_photos vec4: each photo's RGB colour gain (bundle.json photo_gains), 1 = unchanged
 # raytracing's lists of holes (shaders/dmrt_raytrace.glsl): a dispatch-indirect header (groups x,
@@ -66,6 +66,9 @@ EMPTY_LABEL = 0x7FFFFFFF  # an empty label layer entry
 EMPTY_Z = float(np.finfo(np.float32).max)  # raster targets' clear value (MIN blending keeps the nearest)
 
 # -- record layouts ----------------------------------------------------------------------------
+# FrameStatus (dmrt/runtime/status.py): uint tile_total (the tile list's length), uint n_wanted, two
+# spare words, then int wanted[] (photos for the full-resolution cache, most frequent first)
+STATUS_HEADER_WORDS = 4
 # struct Hit (shaders/dmrt_frame.glsl): one per pixel, written by every DMRT/DMT pass; 16 bytes
 HIT_DTYPE = np.dtype([("depth", "<f4"), ("label", "<i4"), ("final_label", "<i4"), ("layer_iters", "<u4")])
 MAX_HIT_LAYER = 254  # layer index + 1 fills the low 8 bits of Hit.layer_iters
@@ -98,4 +101,4 @@ STAT_LAYERS = 16    # layers the per-workgroup step sums hold in shared memory
 BINDINGS = {name: value for name, value in globals().items() if name.startswith("B_")}
 DEFINES = {**BINDINGS, "EMPTY_BITS": "0xFFFFFFFFu", "EMPTY_LABEL": "0x7FFFFFFF", "EMPTY_Z": EMPTY_Z,
            "STEP_BINS": STEP_BINS, "STAT_LAYERS": STAT_LAYERS, "PROXY_FLOATS": PROXY_FLOATS,
-           "SPLAT_FLOATS": SPLAT_FLOATS}
+           "SPLAT_FLOATS": SPLAT_FLOATS, "STATUS_HEADER_WORDS": STATUS_HEADER_WORDS}

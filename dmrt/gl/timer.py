@@ -10,6 +10,8 @@ Usage::
         ...  # a part of a stage: counted in ``ms["image_management"]``, alone in ``part_ms``
 
 Results are read lazily (reading :attr:`ms` waits for the GPU), so timing a frame does not stall it.
+With :attr:`GpuTimer.deferred` they are not read per frame at all: frames run back to back with
+warm clocks, and :meth:`GpuTimer.collect` reads every frame's sections afterwards.
 There is deliberately no CPU-clock fallback: a context without timer queries raises.
 
 Caveats, both measured:
@@ -64,6 +66,11 @@ class GpuTimer:
         Without the fence a section can take in the end of the work issued before it: the stages'
         sum is right, their split only approximate. Fenced frames are slower, and light ones let
         the clocks fall (an H200 at 1425 MHz for 720p frames); for profiling only.
+    deferred : bool
+        True: nothing is read until :meth:`collect`; each :meth:`reset` closes a frame, and
+        :attr:`ms` stays empty meanwhile. Waiting for each frame's queries leaves the GPU idle
+        between frames and its clocks fall; deferred, the stage times are those of frames rendered
+        back to back (what a viewer gets).
     """
 
     def __init__(self, ctx: moderngl.Context):
@@ -76,6 +83,8 @@ class GpuTimer:
         self._open: str | None = None
         self.enabled = True
         self.fenced = False
+        self.deferred = False
+        self._frames: list[list[tuple[str, moderngl.Query]]] = []  # deferred frames' sections
         try:
             probe = ctx.query(time=True)
         except Exception as exc:
@@ -105,6 +114,8 @@ class GpuTimer:
             self._pending.append((name, query))
 
     def _resolve(self) -> None:
+        if self.deferred:
+            return
         for name, query in self._pending:
             ns = query.elapsed  # blocks until the GPU has finished the section
             self._ms[name] = self._ms.get(name, 0.0) + ns / 1e6
@@ -141,10 +152,34 @@ class GpuTimer:
         return dict(self._counts)
 
     def reset(self) -> None:
-        """Forget all accumulated times (outstanding queries are waited for and dropped)."""
+        """Forget all accumulated times (outstanding queries are waited for and dropped; deferred,
+        they are kept as a frame for :meth:`collect`)."""
+        if self.deferred and self._pending:
+            self._frames.append(self._pending)
+            self._pending = []
         self._resolve()
         self._ms.clear()
         self._counts.clear()
+
+    def collect(self) -> list[dict[str, float]]:
+        """The sections of every frame timed while :attr:`deferred` (waits for the GPU).
+
+        Returns
+        -------
+        list of {section name: GPU ms}, one per frame (per :meth:`reset`), oldest first.
+        """
+        if self._pending:
+            self._frames.append(self._pending)
+            self._pending = []
+        out = []
+        for sections in self._frames:
+            ms: dict[str, float] = {}
+            for name, query in sections:
+                ms[name] = ms.get(name, 0.0) + query.elapsed / 1e6
+                self._free.append(query)
+            out.append(ms)
+        self._frames = []
+        return out
 
 
 def timed(timer: "GpuTimer | None", name: str):

@@ -10,9 +10,11 @@ Per frame, each stage its own shader and GPU timer section:
 3. ``labeling`` - the proxies splatted again with the 3D distance to the raytraced point as depth:
    each pixel takes the label of its nearest covering proxy (``shaders/dmrt_labeling.glsl``);
 4. ``image_management`` - final labels (``shaders/dmrt_label_finalize.glsl``), the label
-   histogram on the GPU (``shaders/dmrt_label_histogram.glsl``), read back (CPU time, reported in
-   ``frame["cpu_ms"]``, not in the GPU timings), and the most frequent photos streamed into the
-   full-resolution cache (:mod:`dmrt.runtime.texturing`);
+   histogram and the choice of the most frequent photos on the GPU
+   (``shaders/dmrt_label_histogram.glsl``, ``shaders/dmrt_photo_choice.glsl``), and the chosen
+   photos streamed into the full-resolution cache (:mod:`dmrt.runtime.texturing`). The CPU learns
+   the choice from the frame's one status read-back (:mod:`dmrt.runtime.status`), which also
+   carries the tiles path's list length;
 5. ``texturing`` - colour from the label's photo at the projection of the raytraced point.
 
 6. ``leveling`` (``RenderConfig.leveling``) - screen-space leveling (paper 5.2.3, last step): the
@@ -209,7 +211,7 @@ class Renderer:
         self.splats = ProxySplats(self.ctx, bundle.proxy, self.config.max_thread_pixels)
         self.visibility = VisibilityStage(self.ctx, self.splats, self.config.method, self.int64,
                                           self.config.kbuffer_slots or 6 * self.config.layers + 2, n,
-                                          self.config.tile_check)
+                                          self.config.tile_check, self.shading.status)
         defines = {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
                    "SECANT": int(self.config.search == "secant"), "RAYTRACE": int(self.config.raytrace),
                    "STATISTICS": int(self.config.statistics), "ILLINOIS": int(self.config.refine == "illinois")}
@@ -262,9 +264,10 @@ class Renderer:
             int32 (0-based layer, -1 = none), ``iterations`` (h, w) int32 (iterative-search steps
             over all layers tried), ``timings`` {stage: GPU ms} (meaningless on llvmpipe, see
             :class:`dmrt.gl.GpuTimer`; ``leveling`` 0 when off) and ``cpu_ms``
-            {``label_readback``: wall ms waiting for the label histogram (the GPU finishing the
-            frame so far), ``image_management``: wall ms choosing, decoding (synchronous
-            streaming) and uploading photos, with leveling ``leveling``: wall ms issuing its passes
+            {``status_read``: wall ms reading the photo choice (0 when the tiles path read the
+            frame's status record already; with synchronous photos it waits for the frame so
+            far), ``image_management``: wall ms decoding (synchronous streaming) and uploading
+            photos, with leveling ``leveling``: wall ms issuing its passes
             (the gains are solved on the GPU)}. With ``config.leveling`` and ``readback`` also
             ``leveling_gains`` (n_photos, 3) float32; with ``config.statistics`` also
             ``step_stats`` (see :meth:`_read_step_stats`).
@@ -282,6 +285,7 @@ class Renderer:
         ctx, timer = self.ctx, self.timer
         timer.reset()
         self.splats.begin_frame()
+        self.shading.begin_frame()
 
         self.visibility.run(cam_uniforms, (w, h), cfg.layers, b["layer_depth"], b["layer_label"], timer)
 
@@ -350,7 +354,6 @@ class Renderer:
             ctx.memory_barrier(_BARRIER)
         frame, hits = self.shading.finish(b["hits"], b["colors"], b["normals"], self.depthmaps, cam_uniforms, STAGES,
                                           "rendering a DMRT frame", readback)
-        self.label_counts = self.shading.label_counts
         if readback:
             frame["label_raw"] = hits["label"].copy()
             frame["layer_used"], frame["iterations"] = hit_layer_iters(hits)

@@ -1,11 +1,13 @@
 """The end of a frame, shared by the DMRT and DMT renderers: both write the per-pixel ``Hit`` records
 of ``shaders/dmrt_frame.glsl``, and from there on a frame is the same work:
 
-1. ``image_management`` - the label histogram on the GPU, read back, and the most frequent photos
-   streamed into the full-resolution cache (:class:`dmrt.runtime.texturing.ImageCache`). While
-   streaming (``async_photos``) the previous frame's histogram chooses them: reading the current
-   one back would make the CPU wait for the frame so far (9-13 ms a frame at paper scale on an
-   H200), and photos stream in over several frames anyway;
+1. ``image_management`` - the label histogram and the choice of the most frequent photos on the
+   GPU (``shaders/dmrt_photo_choice.glsl``), the choice read back with the frame's one status
+   record (:mod:`dmrt.runtime.status`), and the chosen photos streamed into the full-resolution
+   cache (:class:`dmrt.runtime.texturing.ImageCache`). While streaming (``async_photos``) an
+   earlier frame's choice is followed: reading the current one back would make the CPU wait for
+   the frame so far (9-13 ms a frame at paper scale on an H200), and photos stream in over
+   several frames anyway;
 2. ``texturing`` - colour from each pixel's photo (:func:`dmrt.runtime.texturing.texture_frame`),
    times the photo's photometric gain (bundle.json ``photo_gains``; all 1 with ``photometric`` off);
 3. ``leveling`` (optional) - screen-space leveling (:class:`dmrt.runtime.leveling.ScreenLeveler`),
@@ -28,6 +30,7 @@ from dmrt.gl.kernels import Staging, fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.io.frames import empty_frame
 from dmrt.runtime.leveling import ScreenLeveler
+from dmrt.runtime.status import FrameStatus
 from dmrt.runtime.texturing import ImageCache, gains_buffer_data, texture_frame
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
@@ -86,6 +89,8 @@ class FrameShading:
     ----------
     photo_gains : (n_photos, 3) float32, the photometric gains applied (the bundle's, or all 1).
     seam_tolerance : float, metres: how closely a photo's depth map must see a seam point to count
+    status : dmrt.runtime.status.FrameStatus, the frames' status records (the renderer's tiles
+        path writes and reads them too)
     """
 
     def __init__(self, ctx, bundle, timer, depth_sizes, config, seam_tolerance: float):
@@ -97,18 +102,14 @@ class FrameShading:
                                               self.images.low_sizes).tobytes())
         self.photo_gains = (bundle.photo_gains if config.photometric else np.ones((n, 3), np.float32)).copy()
         self.gains = ctx.buffer(gains_buffer_data(self.photo_gains, n).tobytes())
-        # The pass adds into a buffer that only the GPU touches, copied after it into the ones the
-        # CPU reads (dmrt.gl.kernels.Staging says why). The leveling's gains solve reads this
-        # frame's counts here, on the GPU.
+        # the label histogram: the photo choice and the leveling's gains solve read it on the GPU
         self._counts_gpu = ctx.buffer(reserve=4 * n)
-        # two read-back histograms, this frame's and the last one's (see the module doc)
-        self.counts = [ctx.buffer(reserve=4 * n), ctx.buffer(reserve=4 * n)]
-        self.latency = 1 if config.async_photos else 0
-        self.frames = 0
         self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
+        self._choice = load_program(ctx, "dmrt_photo_choice", {"N_PHOTOS": n})
+        self.status = FrameStatus(ctx, self.images.n_slots)
+        self.sync_photos = not config.async_photos
         self.leveler = ScreenLeveler(ctx, n, config.leveling_min_samples, config.leveling_max_gain,
                                      config.discontinuity_threshold, seam_tolerance) if config.leveling else None
-        self.label_counts: np.ndarray | None = None  # (n,) uint32 pixels per label of the last frame
         self.staging = Staging(ctx)  # frame read-backs (and the renderers' own, e.g. their layers)
 
     @property
@@ -118,6 +119,10 @@ class FrameShading:
         if self.leveler is not None:
             out["leveling"] = self.leveler.nbytes
         return out
+
+    def begin_frame(self) -> moderngl.Buffer:
+        """Start a frame: its status record (:meth:`dmrt.runtime.status.FrameStatus.begin`)."""
+        return self.status.begin()
 
     def finish(self, hits, colors, normals, depthmaps, cam_uniforms: dict, stages, what: str,
                readback: bool) -> tuple[dict, np.ndarray | None]:
@@ -135,24 +140,30 @@ class FrameShading:
         """
         ctx, timer = self.ctx, self.timer
         w, h = cam_uniforms["u_size"]
-        counts_now = self.counts[self.frames % 2]
+        n_photos = self._counts_gpu.size // 4
         with timer.section("image_management:histogram"):
-            fill_u32(ctx, self._counts_gpu, 0, self._counts_gpu.size // 4)
+            fill_u32(ctx, self._counts_gpu, 0, n_photos)
             ctx.memory_barrier(_BARRIER)
             hits.bind_to_storage_buffer(abi.B_HITS)
             self._counts_gpu.bind_to_storage_buffer(abi.B_COUNTS)
             set_uniforms(self._histogram, u_size=(w, h))
             self._histogram.run(groups(w, 64), groups(h, 64))
-            ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
-            ctx.copy_buffer(counts_now, self._counts_gpu)
+            ctx.memory_barrier(_BARRIER)
+            if self.images.n_slots:  # into the next frame's status record
+                self.status.record(-1).bind_to_storage_buffer(abi.B_FRAME_STATUS)
+                set_uniforms(self._choice, u_slots=self.images.n_slots)
+                self._choice.run(groups(n_photos, 64))
+                ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
         t0 = time.perf_counter()
-        chooser = self.counts[(self.frames - min(self.latency, self.frames)) % 2]
-        counts = np.frombuffer(chooser.read(), np.uint32).copy()
-        cpu_ms = {"label_readback": (time.perf_counter() - t0) * 1e3}
-        self.frames += 1
-        cpu_ms["image_management"] = texture_frame(ctx, timer, self.images, counts, hits, colors, self.photos,
+        if not self.images.n_slots:
+            wanted = np.zeros(0, np.int64)
+        elif self.sync_photos:  # this frame's own choice: waits for the frame so far
+            wanted = self.status.read(-1)[1]
+        else:  # an earlier frame's, read already in this frame or read now without a wait
+            wanted = self.status.wanted()
+        cpu_ms = {"status_read": (time.perf_counter() - t0) * 1e3}
+        cpu_ms["image_management"] = texture_frame(ctx, timer, self.images, wanted, hits, colors, self.photos,
                                                    cam_uniforms, self.gains)
-        self.label_counts = counts
         if self.leveler is not None:  # its seams compare the photos' colours after the gains
             self.gains.bind_to_storage_buffer(abi.B_PHOTO_GAINS)
             cpu_ms["leveling"] = self.leveler.run(timer, hits, colors, self.photos, self.images, depthmaps,
@@ -170,13 +181,20 @@ class FrameShading:
         frame["cpu_ms"] = cpu_ms
         return frame, records
 
+    def read_label_counts(self) -> np.ndarray:
+        """(n_photos,) uint32 pixels per final label of the last frame (waits for the GPU; the
+        frames themselves never read the histogram)."""
+        return np.frombuffer(self.staging.read(self._counts_gpu), np.uint32).copy()
+
     def flush_photos(self) -> int:
-        """Wait for the photos being streamed and upload all that the last frame wanted; the next
+        """Wait for the photos being streamed and upload all that the last frame chose; the next
         frame of the same view is then textured as with synchronous, unbounded streaming."""
+        if self.images.n_slots and self.status.frame >= 0:
+            self.images.update(self.status.read(-1)[1])  # the last frame's own choice
         return self.images.flush()
 
     def release(self) -> None:
         self.images.release()
-        for obj in (self.photos, self.gains, self._counts_gpu, *self.counts, self.leveler, self.staging):
+        for obj in (self.photos, self.gains, self._counts_gpu, self.status, self.leveler, self.staging):
             if obj is not None:
                 obj.release()

@@ -4,11 +4,13 @@
   GPU in one RGB8 texture array, one layer per photo: the fallback of every lookup.
 * Full-resolution photos are cached in a second RGB8 texture array of as many layers ("slots")
   as ``cache_mb`` holds. Relevance of a photo = the frequency of its label in the frame's final
-  label buffer, counted on the GPU (``atomicAdd``; the readback is 4 bytes per photo). After each
-  frame's labeling, the most relevant photos (count > 0, at most as many as there are slots) are
-  made resident, most frequent first; a photo already resident keeps its slot, so a steady view
-  uploads nothing, and a newcomer takes an empty slot, else that of the least recently wanted
-  photo. :attr:`ImageCache.uploads` counts uploads. ``cache_mb = 0``: low-res copies only.
+  label buffer, counted on the GPU, and the most relevant photos (count > 0, at most as many as
+  there are slots, most frequent first: :func:`choose_photos`) are chosen on the GPU too
+  (``shaders/dmrt_photo_choice.glsl``); the CPU reads only the choice, with the frame's one
+  status read (:mod:`dmrt.runtime.status`). The chosen photos are made resident; a photo already
+  resident keeps its slot, so a steady view uploads nothing, and a newcomer takes an empty slot,
+  else that of the least recently wanted photo. :attr:`ImageCache.uploads` counts uploads.
+  ``cache_mb = 0``: low-res copies only.
 * Streaming (the paper streams photos out of core [8]). Photos are decoded from the bundle's
   files into a CPU-side LRU of ``cpu_cache_mb``. With ``asynchronous`` the decoding runs on
   background threads: a wanted photo whose decode is not finished is uploaded by a later frame
@@ -96,16 +98,15 @@ class ImageCache:
         return {"images_low": self.low.width * self.low.height * self.low.layers * 3,
                 "image_cache": self.high.width * self.high.height * self.high.layers * 3 if self.n_slots else 0}
 
-    def update(self, counts: np.ndarray) -> int:
-        """Make the most frequent labels resident. ``counts`` (n_photos,) label histogram.
+    def update(self, wanted) -> int:
+        """Make ``wanted`` resident: (m,) photo indices, most relevant first, m <= ``n_slots``
+        (:func:`choose_photos`, or its GPU twin's list).
 
         Returns the number of photos uploaded.
         """
         if self.n_slots == 0:
             return 0
-        counts = np.asarray(counts).astype(np.int64)
-        order = np.argsort(-counts, kind="stable")
-        self._wanted = [int(j) for j in order[:self.n_slots] if counts[j] > 0]
+        self._wanted = [int(j) for j in wanted][:self.n_slots]
         self._frame += 1
         for j in self._wanted:
             if self.slot_of[j] >= 0:
@@ -181,6 +182,24 @@ class ImageCache:
             obj.release()
 
 
+def choose_photos(counts: np.ndarray, n_slots: int) -> np.ndarray:
+    """The photos the cache should hold (the numpy twin of ``shaders/dmrt_photo_choice.glsl``).
+
+    Parameters
+    ----------
+    counts : (n_photos,) integer pixels per label in the frame (the label histogram)
+    n_slots : int, the cache's slots
+
+    Returns
+    -------
+    (m,) int64 photo indices with count > 0, most pixels first (equal counts: smaller index
+    first), m <= n_slots
+    """
+    counts = np.asarray(counts).astype(np.int64)
+    order = np.argsort(-counts, kind="stable")[:max(int(n_slots), 0)]
+    return order[counts[order] > 0]
+
+
 def gains_buffer_data(gains: np.ndarray | None, n_photos: int) -> np.ndarray:
     """(n_photos, 4) float32 rows of the ``photo_gains`` buffer (``shaders/dmrt_photo_color.glsl``):
     RGB gain and 1; ``gains`` (n_photos, 3) or None (all 1)."""
@@ -190,7 +209,7 @@ def gains_buffer_data(gains: np.ndarray | None, n_photos: int) -> np.ndarray:
     return out
 
 
-def texture_frame(ctx, timer, images: ImageCache, counts: np.ndarray, hits, colors, photos, cam_uniforms: dict,
+def texture_frame(ctx, timer, images: ImageCache, wanted: np.ndarray, hits, colors, photos, cam_uniforms: dict,
                   gains=None) -> float:
     """Image management after the label histogram, then the texturing pass; shared by the DMRT and
     DMT renderers (both write the ``Hit`` records of ``shaders/dmrt_frame.glsl``).
@@ -200,7 +219,7 @@ def texture_frame(ctx, timer, images: ImageCache, counts: np.ndarray, hits, colo
     ctx : moderngl.Context
     timer : dmrt.gl.GpuTimer, sections ``image_management`` (uploads) and ``texturing``
     images : ImageCache
-    counts : (n_photos,) uint32 pixels per label (the label histogram) that choose the resident photos
+    wanted : (m,) photo indices to make resident, most relevant first (:meth:`ImageCache.update`)
     hits, colors : moderngl.Buffer, the frame's ``Hit`` records and packed RGBA8 colours (written)
     photos : moderngl.Buffer, the ``Photo`` records (``dmrt.runtime.shading.photo_params``)
     cam_uniforms : dict, ``u_R, u_t, u_K, u_size`` of the frame
@@ -217,7 +236,7 @@ def texture_frame(ctx, timer, images: ImageCache, counts: np.ndarray, hits, colo
 
     t1 = time.perf_counter()
     with timer.section("image_management:photo_uploads"):
-        images.update(counts)
+        images.update(wanted)
     t2 = time.perf_counter()
     w, h = cam_uniforms["u_size"]
     program = load_program(ctx, "dmrt_texturing")

@@ -19,12 +19,12 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
    layer equals compute peeling's to the bit; no order among the discs is needed and nothing is
    approximated.
 
-The list's length is only known on the GPU. By default (``check="frame"``) the stage ends by reading
-back its length (4 bytes), which waits for the stage (a CPU wait after its last pass, so its GPU
-time is not stretched; the renderer waits once per frame anyway, for the label histogram): a frame
-whose list outgrew the buffer is built again in a larger one (x 2, kept >= 25 % above the last
-length). ``check="lagged"`` never waits (but on a
-frame size's first frame): it sizes the list from the length of the frame two frames back, so a view
+The list's length is only known on the GPU: the scan writes it into the frame's status record
+(:mod:`dmrt.runtime.status`), the frame's one read-back. By default (``check="frame"``) the stage
+ends by reading that record, which waits for the stage (a CPU wait after its last pass, so its GPU
+time is not stretched): a frame whose list outgrew the buffer is built again in a larger one (x 2,
+kept >= 25 % above the last length). ``check="lagged"`` never waits (but on a frame size's first
+frame): it reads the record of two frames back and sizes the list from its length, so a view
 whose list grows by more than the headroom within two frames loses the discs past the buffer's end
 in that frame (``dropped``).
 """
@@ -32,16 +32,16 @@ in that frame (``dropped``).
 from __future__ import annotations
 
 import moderngl
-import numpy as np
 
 from dmrt.gl import abi
 from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import timed
+from dmrt.runtime.status import RING, FrameStatus
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 ENTRY_BYTES = 4  # a disc index per disc-tile overlap
-_RING = 3  # status buffers in flight: the one read back was written two frames before
+LAG = RING - 1  # check="lagged" reads the record of the frame this many frames back
 
 
 class TileVisibility:
@@ -62,6 +62,9 @@ class TileVisibility:
         Discs over more tiles are binned by a workgroup each instead of one thread.
     check : ``"frame"`` or ``"lagged"``
         When the list length that sizes the list buffer is read back (module doc).
+    status : dmrt.runtime.status.FrameStatus, optional
+        The renderer's status records (the renderer begins each frame's); None: a ring of its own,
+        whose frames :meth:`run` begins.
 
     Attributes
     ----------
@@ -72,7 +75,7 @@ class TileVisibility:
     """
 
     def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = 512,
-                 max_thread_tiles: int = 16, check: str = "frame"):
+                 max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None):
         if not 1 <= tile <= 32:
             raise ValueError(f"tile must be 1..32 (tile^2 invocations per workgroup), not {tile}")
         if batch < 1:
@@ -91,9 +94,9 @@ class TileVisibility:
         n = max(splats.n, 1)
         # large-disc list: dispatch-indirect header (groups x, y, z), its length, proxy indices
         self.large = ctx.buffer(reserve=16 + 4 * n)
-        self._status = [ctx.buffer(reserve=4) for _ in range(_RING)]
-        self._status_capacity = [0] * _RING  # the list capacity of the frame that wrote each status
-        self._frame = 0
+        self._own_status = status is None
+        self.status = FrameStatus(ctx) if status is None else status
+        self._capacity_of: dict[int, int] = {}  # the list capacity of each recent frame
         self._grid: tuple[int, int] | None = None
         self.counts = self.offsets = None
         # a first guess (two tiles per disc); sized from the real length on the first frame
@@ -120,16 +123,12 @@ class TileVisibility:
         self.entries.release()
         self.entries = self.ctx.buffer(reserve=ENTRY_BYTES * self.capacity)
 
-    def _read_status(self, slot: int) -> int:
-        """The list length (entries) of the frame that wrote status buffer ``slot``."""
-        return int(np.frombuffer(self._status[slot].read(), np.uint32)[0])
-
     @staticmethod
     def _bind(**buffers) -> None:
         points = {"proxies": abi.B_PROXIES, "layer_depth": abi.B_LAYER_DEPTH, "layer_label": abi.B_LAYER_LABEL,
                   "large": abi.B_LARGE, "entries": abi.B_TILE_ENTRIES,
                   "counts": abi.B_TILE_COUNTS, "offsets": abi.B_TILE_OFFSETS,
-                  "status": abi.B_TILE_STATUS}
+                  "status": abi.B_FRAME_STATUS}
         for name, buf in buffers.items():
             buf.bind_to_storage_buffer(points[name])
 
@@ -155,18 +154,19 @@ class TileVisibility:
         """
         w, h = size
         grid = (-(-w // self.tile), -(-h // self.tile))
+        if self._own_status:
+            self.status.begin()
+        frame = self.status.frame
         self._fit(self._grow_to)
         first = grid != self._grid
         if first:
             self._allocate_tiles(grid)
-        if self.check == "lagged" and self._frame >= _RING - 1:
-            # the frame two back has finished by now (the renderer read its label histogram since)
-            back = (self._frame - (_RING - 1)) % _RING
-            total = self._read_status(back)
-            self.dropped_frames += total > self._status_capacity[back]
+        if self.check == "lagged" and frame - LAG in self._capacity_of:
+            # the GPU has finished the frame two back by now (or the read waits for it, not for this one)
+            total = self.status.read(LAG)[0]
+            self.dropped_frames += total > self._capacity_of[frame - LAG]
             self._fit(total)
-        slot = self._frame % _RING
-        status = self._status[slot]
+        status = self.status.record(0)
         tile_uniforms = {**uniforms, "u_tiles": grid, "u_count": self.splats.n, "u_tile_count": grid[0] * grid[1]}
         raster = (tile_uniforms, layers, layer_depth, layer_label)
 
@@ -177,16 +177,16 @@ class TileVisibility:
         if self.check == "frame" or first:
             # wait for the stage (its GPU time is not stretched: nothing is issued after it) and redo
             # the frame if it outgrew the list
-            self._redo(tile_uniforms, raster, status, slot, timer)
-        self._status_capacity[slot] = self.capacity
-        self._frame += 1
+            self._redo(tile_uniforms, raster, status, timer)
+        self._capacity_of[frame] = self.capacity
+        self._capacity_of.pop(frame - RING, None)
 
-    def _redo(self, tile_uniforms, raster, status, slot, timer) -> None:
+    def _redo(self, tile_uniforms, raster, status, timer) -> None:
         """Wait for the frame's list length and build the list again, larger, if it outgrew its
         buffer. The wait is outside any timed section: a section open while the CPU waits would
         count the idle GPU."""
         while True:
-            total = self._read_status(slot)
+            total = self.status.read(0)[0]
             if total <= self.capacity:
                 break
             self.dropped_frames += 1
@@ -210,7 +210,7 @@ class TileVisibility:
         self._scan.run(1)
         ctx.memory_barrier(_BARRIER)
         if size_after_scan:
-            self._fit(self._read_status(self._status.index(status)))
+            self._fit(self.status.read(0)[0])
         self._bin_pass(1, tile_uniforms)
 
     def _bin_pass(self, scatter: int, tile_uniforms: dict) -> None:
@@ -264,10 +264,9 @@ class TileVisibility:
             ``entries`` (list length: disc-tile overlaps), ``capacity`` (entries the buffer held),
             ``dropped`` (bool: the list outgrew the buffer, entries past it were lost).
         """
-        if self._frame == 0:
+        if self.status.frame not in self._capacity_of:
             return {"entries": 0, "capacity": self.capacity, "dropped": False}
-        slot = (self._frame - 1) % _RING
-        entries, capacity = self._read_status(slot), self._status_capacity[slot]
+        entries, capacity = self.status.read(0)[0], self._capacity_of[self.status.frame]
         return {"entries": entries, "capacity": capacity, "dropped": entries > capacity}
 
     def read_overflow(self) -> int:
@@ -279,9 +278,10 @@ class TileVisibility:
 
     @property
     def nbytes(self) -> int:
-        """GPU bytes of the path's own buffers (list, tile counts and offsets, large list, status)."""
-        bufs = [self.entries, self.large, self.counts, self.offsets, *self._status]
-        return sum(b.size for b in bufs if b is not None)
+        """GPU bytes of the path's own buffers (list, tile counts and offsets, large list, status
+        records if its own)."""
+        bufs = [self.entries, self.large, self.counts, self.offsets]
+        return sum(b.size for b in bufs if b is not None) + (self.status.nbytes if self._own_status else 0)
 
     def release(self) -> None:
         for name in ("entries", "large", "counts", "offsets"):
@@ -289,6 +289,5 @@ class TileVisibility:
             if buf is not None:
                 buf.release()
                 setattr(self, name, None)
-        for buf in self._status:
-            buf.release()
-        self._status = []
+        if self._own_status:
+            self.status.release()

@@ -1,0 +1,98 @@
+"""The one small record a frame reads back (``FrameStatus`` of :mod:`dmrt.gl.abi`).
+
+Two things a frame decides on the GPU need the CPU: the tile-binned visibility stage's list length
+(the CPU sizes the list buffer, :mod:`dmrt.runtime.tiles`) and the photos the full-resolution cache
+should hold (the CPU decodes and uploads them, :mod:`dmrt.runtime.texturing`). Both go into one
+record of ``4 + wanted_max`` uint32 words: ``tile_total``, ``n_wanted``, two spare words, then
+``wanted`` - the photos the label histogram ranks first, most frequent first
+(``shaders/dmrt_photo_choice.glsl``).
+
+Three records turn in a ring. Frame N's visibility stage writes ``tile_total`` into record N; frame
+N's photo choice writes the ``wanted`` list into record N + 1, so one read of record N after frame
+N's visibility stage returns both its list length and the previous frame's choice. A frame reads
+one record at most:
+
+* the tiles path with ``tile_check="frame"`` reads record N after its visibility stage (it waits
+  for that stage, which it must: the list may have outgrown its buffer);
+* with ``tile_check="lagged"`` it reads record N - 2, which the GPU has finished: no wait;
+* the other visibility paths read record N when the photo cache is updated; the last write to it
+  was the previous frame's choice, long done;
+* only with synchronous photos (``async_photos`` off, the tests' deterministic mode) a frame also
+  reads its own choice (record N + 1), which waits for the frame so far.
+"""
+
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+
+from dmrt.gl.abi import STATUS_HEADER_WORDS
+
+RING = 3
+
+
+class FrameStatus:
+    """The ring of ``FrameStatus`` records and what was read from it.
+
+    Parameters
+    ----------
+    ctx : moderngl.Context
+    wanted_max : int
+        Photos the ``wanted`` list holds at most (the photo cache's slots; 0: no list).
+
+    Attributes
+    ----------
+    frame : int
+        The frame being rendered (-1 before the first :meth:`begin`).
+    reads : int
+        Records read back so far (the benchmarks count them per frame).
+    """
+
+    def __init__(self, ctx: moderngl.Context, wanted_max: int = 0):
+        self.wanted_max = max(int(wanted_max), 0)
+        zeros = np.zeros(STATUS_HEADER_WORDS + self.wanted_max, np.uint32).tobytes()
+        self.records = [ctx.buffer(zeros) for _ in range(RING)]  # zeros: frame 0 wants no photo yet
+        self.frame = -1
+        self.reads = 0
+        self._last: tuple[int, np.ndarray] | None = None  # (frame it was read in, its wanted list)
+
+    def begin(self) -> moderngl.Buffer:
+        """Start the next frame; its record (the visibility stage binds it as ``B_FRAME_STATUS``)."""
+        self.frame += 1
+        return self.record(0)
+
+    def record(self, back: int = 0) -> moderngl.Buffer:
+        """The record of frame ``frame - back``; ``back=-1``: the next frame's, which this frame's
+        photo choice writes."""
+        return self.records[(self.frame - back) % RING]
+
+    def read(self, back: int = 0) -> tuple[int, np.ndarray]:
+        """Read the record of frame ``frame - back`` (waits for the GPU's writes to it).
+
+        Returns
+        -------
+        tile_total : int, the list length its frame's tiles path wrote (entries)
+        wanted : (n_wanted,) int64 photo indices, most frequent first, of the choice it holds
+        """
+        raw = np.frombuffer(self.record(back).read(), np.uint32)
+        self.reads += 1
+        n = min(int(raw[1]), self.wanted_max)
+        wanted = raw[STATUS_HEADER_WORDS:STATUS_HEADER_WORDS + n].astype(np.int64)
+        self._last = (self.frame, wanted)
+        return int(raw[0]), wanted
+
+    def wanted(self) -> np.ndarray:
+        """The photo choice of the record read last in this frame, else of this frame's record
+        (the previous frame's choice): what the photo cache follows this frame."""
+        if self._last is not None and self._last[0] == self.frame:
+            return self._last[1]
+        return self.read(0)[1]
+
+    @property
+    def nbytes(self) -> int:
+        return sum(r.size for r in self.records)
+
+    def release(self) -> None:
+        for r in self.records:
+            r.release()
+        self.records = []

@@ -1,0 +1,92 @@
+"""The frame's one status read-back (:mod:`dmrt.runtime.status`): the photo choice on the GPU
+against its numpy twin, and how many records a frame reads on each visibility path.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dmrt.gl import abi
+from dmrt.runtime.texturing import choose_photos
+
+from helpers import W
+
+
+@pytest.mark.parametrize("n_photos, n_slots", [(1, 1), (7, 3), (192, 480), (1000, 64)])
+def test_photo_choice_matches_numpy(ctx, n_photos, n_slots):
+    """``shaders/dmrt_photo_choice.glsl`` writes exactly :func:`choose_photos`'s list (same photos,
+    same order, ties to the smaller index) into the record, whatever it held before, and leaves
+    the record's tile total alone."""
+    from dmrt.gl.kernels import groups
+    from dmrt.gl.shaders import load_program, set_uniforms
+    from dmrt.runtime.status import FrameStatus
+
+    rng = np.random.default_rng(n_photos)
+    program = load_program(ctx, "dmrt_photo_choice", {"N_PHOTOS": n_photos})
+    status = FrameStatus(ctx, n_slots)
+    counts_buf = ctx.buffer(reserve=4 * n_photos)
+    try:
+        # many ties and zeros (labels come in few sizes), then all zero, then all distinct
+        cases = [rng.integers(0, 4, n_photos) * rng.integers(0, 3, n_photos), np.zeros(n_photos, np.int64),
+                 rng.permutation(n_photos) + 1]
+        for counts in cases:
+            status.begin()
+            record = status.record(-1)
+            stale = np.full(abi.STATUS_HEADER_WORDS + n_slots, 7, np.uint32)  # what a reused record holds
+            stale[0] = 12345
+            record.write(stale.tobytes())
+            counts_buf.write(counts.astype(np.uint32).tobytes())
+            counts_buf.bind_to_storage_buffer(abi.B_COUNTS)
+            record.bind_to_storage_buffer(abi.B_FRAME_STATUS)
+            set_uniforms(program, u_slots=n_slots)
+            program.run(groups(n_photos, 64))
+            ctx.finish()
+            total, wanted = status.read(-1)
+            np.testing.assert_array_equal(wanted, choose_photos(counts, n_slots))
+            assert total == 12345
+    finally:
+        counts_buf.release()
+        status.release()
+
+
+def test_choose_photos():
+    """The twin itself, on a case worked by hand."""
+    np.testing.assert_array_equal(choose_photos([0, 5, 2, 5, 0, 1], 3), [1, 3, 2])
+    np.testing.assert_array_equal(choose_photos([0, 0, 1], 5), [2])
+    assert choose_photos([3, 1], 0).size == 0
+
+
+# Records read in each of five frames of one view, with streamed photos and with synchronous ones:
+# the tiles path reads its list length after its visibility stage (frame) or that of two frames
+# back (lagged: from the third frame; its first frame reads the length after the scan too, to size
+# the list); the photo cache takes the choice from that read, or reads this frame's record itself
+# (other paths, the lagged path's second frame), or with synchronous photos reads its own choice.
+@pytest.mark.parametrize("method, check, streamed, synchronous", [
+    ("tiles", "frame", [1, 1, 1, 1, 1], [2, 2, 2, 2, 2]),
+    ("tiles", "lagged", [2, 1, 1, 1, 1], [3, 1, 2, 2, 2]),
+    ("compute", "frame", [1, 1, 1, 1, 1], [1, 1, 1, 1, 1])])
+def test_one_read_back_a_frame(ctx, bundle, method, check, streamed, synchronous):
+    """With streamed photos (the default) a frame reads one status record on every path (the
+    lagged tiles path's first frame: two), and the cache follows the GPU's choice: after a flush
+    it holds exactly the photos :func:`choose_photos` picks from the last frame's histogram."""
+    from dmrt.runtime.renderer import RenderConfig, Renderer
+
+    cam = bundle.cameras[1].resized(W)
+    slot_mb = max(c.width * c.height for c in bundle.cameras) * 3 / 2 ** 20
+    for sync, expected in ((False, streamed), (True, synchronous)):
+        r = Renderer(bundle, RenderConfig(layers=2, method=method, tile_check=check, cache_mb=2.5 * slot_mb,
+                                          async_photos=not sync), ctx)
+        try:
+            reads = []
+            for _ in range(5):
+                before = r.shading.status.reads
+                r.render(cam, readback=False)
+                reads.append(r.shading.status.reads - before)
+            assert reads == expected, (sync, reads)
+            counts = r.shading.read_label_counts()
+            r.flush_photos()
+            resident = set(np.flatnonzero(r.images.slot_of >= 0))
+            assert resident == set(choose_photos(counts, r.images.n_slots)) and len(resident) == 2
+        finally:
+            r.release()
