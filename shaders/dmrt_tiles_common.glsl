@@ -8,6 +8,12 @@
 #define TILE 16
 #endif
 
+// The raster's first walk notes, per pixel, which of its tile's first MASK_DISCS discs hit it (a bit
+// each, eight words); with TILE 16 the labeling pass's first batch of TILE^2 discs is exactly those,
+// so it reads the bits (B_TILE_MASKS) instead of testing the discs again.
+#define MASK_DISCS 256
+#define HIT_MASKS (TILE * TILE == MASK_DISCS)
+
 // Binding points (B_PROXIES, B_LARGE, B_LAYER_DEPTH, B_LAYER_LABEL, B_TILE_*) and the sentinels
 // EMPTY_BITS, EMPTY_LABEL come from dmrt/gl/abi.py, injected as #defines by the loader.
 uniform ivec2 u_tiles;  // tiles per row, tile rows

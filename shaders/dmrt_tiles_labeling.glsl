@@ -6,6 +6,10 @@
 // workgroup walks its tile's list, THREADS discs at a time through shared memory, and each
 // invocation keeps its pixel's nearest (distance bits, label) in registers. A disc covers a pixel
 // by the same test (splat_depth_at), so the labels equal dmrt_labeling.glsl's to the bit.
+// HIT_MASKS (TILE 16): in a tile whose list the raster held in shared memory (at most BATCH discs),
+// the raster's first walk left each pixel the bits of which of the first 256 discs hit it, the very
+// test made here; the first batch then visits only those discs (a few of the tile's tens to
+// hundreds), and only discs past the 256th are tested.
 //
 // Output as dmrt_label_finalize.glsl reads it: PACKED_LABELS 1 -> Key uvec2 (label, distance bits),
 // else Key uint distance bits and Label int label; EMPTY_BITS / EMPTY_LABEL where no disc covers.
@@ -16,6 +20,9 @@
 
 #ifndef PACKED_LABELS
 #define PACKED_LABELS 0
+#endif
+#ifndef BATCH
+#define BATCH 512  // as dmrt_tiles_raster.glsl's: tiles of up to BATCH discs have hit masks
 #endif
 #define THREADS (TILE * TILE)
 
@@ -30,11 +37,36 @@ layout(std430, binding = B_KEY) writeonly buffer Key { uint key[]; };
 layout(std430, binding = B_VLABEL) writeonly buffer Label { int vlabel[]; };
 #endif
 
+#if HIT_MASKS
+layout(std430, binding = B_TILE_MASKS) readonly buffer Masks { uvec4 masks[]; };
+#endif
+
 uniform uint u_capacity;  // entries the list holds (a slice past it was lost: see tiles.py)
 
 shared Splat s_disc[THREADS];
 shared int s_label[THREADS];
 shared ivec4 s_box[THREADS];
+
+vec3 g_q;         // the pixel's raytraced point, camera space (m)
+uint g_best;      // distance bits of the nearest covering disc so far
+int g_best_label;
+
+void consider(uint j) {
+    uint bits = floatBitsToUint(distance(g_q, s_disc[j].pc));
+    if (bits < g_best || (bits == g_best && s_label[j] < g_best_label)) {
+        g_best = bits;
+        g_best_label = s_label[j];
+    }
+}
+
+// The discs of a mask word (32 discs from `base`) that hit the pixel.
+void visit(uint word, uint base) {
+    while (word != 0u) {
+        int b = findLSB(word);
+        word &= word - 1u;
+        consider(base + uint(b));
+    }
+}
 
 void main() {
     uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
@@ -44,11 +76,13 @@ void main() {
     uint pix = uint(px.y * u_size.x + px.x);
     vec2 uv = vec2(px) + 0.5;
     float z = inside ? hits[pix].depth : 0.0;
-    vec3 q = z * camera_ray(uv);
-    uint best = EMPTY_BITS;
-    int best_label = EMPTY_LABEL;
+    g_q = z * camera_ray(uv);
+    g_best = EMPTY_BITS;
+    g_best_label = EMPTY_LABEL;
     uint start = offsets[tile];
     uint end = min(offsets[tile + 1u], u_capacity);
+    // the raster's condition for holding the list in shared memory, on the same (cut) length
+    bool masked = HIT_MASKS && min(end, u_capacity) - min(start, u_capacity) <= uint(BATCH);
     for (uint base = start; base < end; base += uint(THREADS)) {
         if (base + lid < end) {
             int label;
@@ -59,26 +93,29 @@ void main() {
         }
         barrier();
         uint n = min(uint(THREADS), end - base);
+#if HIT_MASKS
+        if (z > 0.0 && masked && base == start) {
+            uvec4 lo = masks[2u * pix], hi = masks[2u * pix + 1u];
+            visit(lo.x, 0u); visit(lo.y, 32u); visit(lo.z, 64u); visit(lo.w, 96u);
+            visit(hi.x, 128u); visit(hi.y, 160u); visit(hi.z, 192u); visit(hi.w, 224u);
+        } else
+#endif
         if (z > 0.0) {
             for (uint j = 0u; j < n; ++j) {
                 ivec4 b = s_box[j];
                 if (px.x < b.x || px.x > b.z || px.y < b.y || px.y > b.w) continue;
                 if (splat_depth_at(s_disc[j], uv) <= 0.0) continue;
-                uint bits = floatBitsToUint(distance(q, s_disc[j].pc));
-                if (bits < best || (bits == best && s_label[j] < best_label)) {
-                    best = bits;
-                    best_label = s_label[j];
-                }
+                consider(j);
             }
         }
         barrier();
     }
     if (!inside) return;
 #if PACKED_LABELS
-    key[pix] = uvec2(uint(best_label), best);
+    key[pix] = uvec2(uint(g_best_label), g_best);
 #else
-    key[pix] = best;
-    vlabel[pix] = best_label;
+    key[pix] = g_best;
+    vlabel[pix] = g_best_label;
 #endif
 }
 

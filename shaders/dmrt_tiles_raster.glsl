@@ -29,6 +29,8 @@
 //   B_LAYER_LABEL   k x h x w int: label, EMPTY_LABEL = none
 //   B_TILE_ENTRIES  uint[capacity]: proxy indices, tile after tile (dmrt_tiles_bin.glsl)
 //   B_TILE_OFFSETS  uint[tiles + 1] (dmrt_tiles_scan.glsl)
+//   B_TILE_MASKS    h x w x 2 uvec4: the first walk's hit bits of discs 0-255, written for pixels of
+//                   tiles of up to BATCH discs (HIT_MASKS: read by dmrt_tiles_labeling.glsl)
 #include "dmrt_tiles_common.glsl"
 
 #if defined COMPUTE_SHADER
@@ -36,7 +38,6 @@
 #ifndef BATCH
 #define BATCH 512  // discs in shared memory at once: 40 bytes each
 #endif
-#define MASK_DISCS 256  // the first walk's hits remembered per pixel: eight uint words
 #define THREADS (TILE * TILE)
 
 layout(local_size_x = TILE, local_size_y = TILE) in;
@@ -45,6 +46,9 @@ layout(std430, binding = B_LAYER_DEPTH) writeonly buffer LayerDepth { uint layer
 layout(std430, binding = B_LAYER_LABEL) writeonly buffer LayerLabel { int layer_label[]; };
 layout(std430, binding = B_TILE_ENTRIES) readonly buffer Entries { uint entries[]; };
 layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
+#if HIT_MASKS
+layout(std430, binding = B_TILE_MASKS) writeonly buffer Masks { uvec4 masks[]; };  // 2 per pixel: g_lo, g_hi
+#endif
 
 uniform uint u_capacity;  // entries the buffer holds (a slice past it was cut short)
 uniform int u_layers;     // k
@@ -160,6 +164,10 @@ void main() {
             if (searching && layer == 0u) {
                 g_lo = uvec4(first_word(0u), first_word(32u), first_word(64u), first_word(96u));
                 g_hi = uvec4(first_word(128u), first_word(160u), first_word(192u), first_word(224u));
+#if HIT_MASKS
+                masks[2u * pix] = g_lo;  // for the labeling pass (dmrt_tiles_labeling.glsl)
+                masks[2u * pix + 1u] = g_hi;
+#endif
             } else if (searching) {
                 g_lo = uvec4(again(g_lo.x, 0u), again(g_lo.y, 32u), again(g_lo.z, 64u), again(g_lo.w, 96u));
                 g_hi = uvec4(again(g_hi.x, 128u), again(g_hi.y, 160u), again(g_hi.z, 192u), again(g_hi.w, 224u));

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from dmrt.camera import Camera
-from dmrt.gl.abi import EMPTY_LABEL
+from dmrt.gl.abi import EMPTY_BITS, EMPTY_LABEL
 
 W = 192  # frame width (llvmpipe time); heights follow the photos' aspect
 AGREE = 0.995  # whole frames (test_renderer_frames_match_compute): see there
@@ -137,9 +137,43 @@ def test_long_tile_lists(ctx, discs, batch):
         assert (ref[1][2][16:32, 16:32] != EMPTY_LABEL).mean() > 0.5  # most of the tile has 3+ layers
         _assert_equal(ref, _layers(ctx, tiles, cam, 5), 5, f"{discs} discs, batch {batch}")
         assert tiles.stats()["entries"] == discs
+        # the labeling pass on the same lists (with 300 discs and batch 512 the first 256 through
+        # the raster's hit masks, the rest tested) against the splatted one, at the first layer
+        first = ref[0][0].view(np.float32) * (ref[0][0] != EMPTY_BITS)
+        np.testing.assert_array_equal(_tile_labels(ctx, tiles, splats, cam, first),
+                                      _tile_labels(ctx, None, splats, cam, first))
     finally:
         for obj in (tiles, peel, splats):
             obj.release()
+
+
+def _tile_labels(ctx, tiles, splats, cam: Camera, depth: np.ndarray) -> np.ndarray:
+    """(h, w) labels of the labeling pass for raytraced camera z ``depth`` (0 = none): on ``tiles``'
+    lists of the last frame (dmrt_tiles_labeling.glsl), or with None by splatting the proxies
+    again (dmrt_labeling.glsl, portable layout)."""
+    from dmrt.gl import abi
+    from dmrt.gl.kernels import fill_u32
+
+    h, w = depth.shape
+    hits = np.zeros(h * w, abi.HIT_DTYPE)
+    hits["depth"] = depth.ravel()
+    bufs = {abi.B_HITS: ctx.buffer(hits.tobytes()), abi.B_KEY: ctx.buffer(reserve=4 * h * w),
+            abi.B_VLABEL: ctx.buffer(reserve=4 * h * w)}
+    try:
+        if tiles is not None:
+            tiles.label_pass(_uniforms(cam), bufs[abi.B_HITS], bufs[abi.B_KEY], bufs[abi.B_VLABEL], packed=False)
+        else:
+            fill_u32(ctx, bufs[abi.B_KEY], EMPTY_BITS, h * w)
+            fill_u32(ctx, bufs[abi.B_VLABEL], EMPTY_LABEL, h * w)
+            ctx.memory_barrier()
+            for resolve in (0, 1):
+                splats.run("dmrt_labeling", {"RESOLVE": resolve}, _uniforms(cam), bufs)
+        label = np.frombuffer(bufs[abi.B_VLABEL].read(), np.int32).reshape(h, w).copy()
+        assert (label[depth > 0] != EMPTY_LABEL).all()  # a pixel with a point is covered by its disc
+        return label
+    finally:
+        for b in bufs.values():
+            b.release()
 
 
 def test_tiles_match_peeling_with_splat_overlap(ctx, bundle):

@@ -84,13 +84,13 @@ class TileVisibility:
             raise ValueError(f"check must be 'frame' or 'lagged', not {check!r}")
         self.ctx, self.splats = ctx, splats
         self.tile, self.check = int(tile), check
-        self._defines = {"TILE": self.tile}
+        self._defines = {"TILE": self.tile, "BATCH": int(batch)}
         self._bin = {(scatter, large): load_program(ctx, "dmrt_tiles_bin", {**self._defines, "SCATTER": scatter,
                                                                             "LARGE": large,
                                                                             "MAX_THREAD_TILES": max_thread_tiles})
                      for scatter in (0, 1) for large in (0, 1)}
         self._scan = load_program(ctx, "dmrt_tiles_scan")
-        self._raster = load_program(ctx, "dmrt_tiles_raster", {**self._defines, "BATCH": int(batch)})
+        self._raster = load_program(ctx, "dmrt_tiles_raster", self._defines)
         n = max(splats.n, 1)
         # large-disc list: dispatch-indirect header (groups x, y, z), its length, proxy indices
         self.large = ctx.buffer(reserve=16 + 4 * n)
@@ -98,6 +98,9 @@ class TileVisibility:
         self.status = FrameStatus(ctx) if status is None else status
         self._capacity_of: dict[int, int] = {}  # the list capacity of each recent frame
         self._grid: tuple[int, int] | None = None
+        # the raster's hit bits of each pixel's first 256 discs (32 bytes a pixel), which the
+        # labeling pass reads instead of testing those discs again (dmrt_tiles_labeling.glsl)
+        self.masks: moderngl.Buffer | None = None
         self.counts = self.offsets = None
         # a first guess (two tiles per disc); sized from the real length on the first frame
         self.capacity = max(2 * n, 4096)
@@ -127,7 +130,7 @@ class TileVisibility:
     def _bind(**buffers) -> None:
         points = {"proxies": abi.B_PROXIES, "layer_depth": abi.B_LAYER_DEPTH, "layer_label": abi.B_LAYER_LABEL,
                   "large": abi.B_LARGE, "entries": abi.B_TILE_ENTRIES,
-                  "counts": abi.B_TILE_COUNTS, "offsets": abi.B_TILE_OFFSETS,
+                  "counts": abi.B_TILE_COUNTS, "offsets": abi.B_TILE_OFFSETS, "masks": abi.B_TILE_MASKS,
                   "status": abi.B_FRAME_STATUS}
         for name, buf in buffers.items():
             buf.bind_to_storage_buffer(points[name])
@@ -161,6 +164,10 @@ class TileVisibility:
         first = grid != self._grid
         if first:
             self._allocate_tiles(grid)
+        if self.masks is None or self.masks.size != 32 * w * h:
+            if self.masks is not None:
+                self.masks.release()
+            self.masks = self.ctx.buffer(reserve=32 * w * h)
         if self.check == "lagged" and frame - LAG in self._capacity_of:
             # the GPU has finished the frame two back by now (or the read waits for it, not for this one)
             total = self.status.read(LAG)[0]
@@ -227,7 +234,7 @@ class TileVisibility:
 
     def _raster_pass(self, tile_uniforms: dict, layers: int, layer_depth, layer_label) -> None:
         self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label,
-                   entries=self.entries, offsets=self.offsets)
+                   entries=self.entries, offsets=self.offsets, masks=self.masks)
         set_uniforms(self._raster, u_capacity=self.capacity, u_layers=int(layers), **tile_uniforms)
         self._raster.run(*self._grid)
         self.ctx.memory_barrier(_BARRIER)
@@ -245,7 +252,7 @@ class TileVisibility:
             bits); else ``key`` (h x w) uint distance bits and ``vlabel`` (h x w) int label.
         """
         program = load_program(self.ctx, "dmrt_tiles_labeling", {**self._defines, "PACKED_LABELS": int(packed)})
-        self._bind(proxies=self.splats.buffer, entries=self.entries, offsets=self.offsets)
+        self._bind(proxies=self.splats.buffer, entries=self.entries, offsets=self.offsets, masks=self.masks)
         hits.bind_to_storage_buffer(abi.B_HITS)
         key.bind_to_storage_buffer(abi.B_KEY)
         if not packed:
@@ -280,11 +287,11 @@ class TileVisibility:
     def nbytes(self) -> int:
         """GPU bytes of the path's own buffers (list, tile counts and offsets, large list, status
         records if its own)."""
-        bufs = [self.entries, self.large, self.counts, self.offsets]
+        bufs = [self.entries, self.large, self.counts, self.offsets, self.masks]
         return sum(b.size for b in bufs if b is not None) + (self.status.nbytes if self._own_status else 0)
 
     def release(self) -> None:
-        for name in ("entries", "large", "counts", "offsets"):
+        for name in ("entries", "large", "counts", "offsets", "masks"):
             buf = getattr(self, name)
             if buf is not None:
                 buf.release()
