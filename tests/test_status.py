@@ -90,3 +90,25 @@ def test_one_read_back_a_frame(ctx, bundle, method, check, streamed, synchronous
             assert resident == set(choose_photos(counts, r.images.n_slots)) and len(resident) == 2
         finally:
             r.release()
+
+
+def test_a_frame_that_outgrows_its_tile_list_is_rendered_again(ctx, bundle):
+    """``tile_check="frame"`` in a renderer checks the list length late in the frame (from the
+    record read for the photo cache): a frame whose list outgrew the buffer is rendered again with a
+    larger one, and equals the frame of a renderer whose list was large enough."""
+    from dmrt.runtime.renderer import RenderConfig, Renderer
+
+    cam = bundle.cameras[2].resized(W)
+    cfg = RenderConfig(layers=3, async_photos=False, max_uploads_per_frame=0)
+    small, ok = Renderer(bundle, cfg, ctx), Renderer(bundle, cfg, ctx)
+    try:
+        tiles = small.visibility.tiles
+        tiles.entries.release()  # a list buffer of 16 entries: the frame loses its discs past them
+        tiles.capacity, tiles.entries = 16, ctx.buffer(reserve=64)
+        got, want = small.render(cam), ok.render(cam)
+        assert tiles.dropped_frames == 1 and tiles.capacity >= tiles.stats()["entries"] > 16
+        for key in ("depth", "label", "color"):
+            np.testing.assert_array_equal(got[key], want[key])
+    finally:
+        small.release()
+        ok.release()

@@ -175,13 +175,22 @@ def set_uniforms(program, **values) -> None:
 
     Values are Python scalars/tuples, or numpy arrays written as raw bytes (floats as float32,
     integers as int32; a matrix must already be flattened column-major, e.g. ``R.T.ravel()``).
+    A value equal to the one this function last set on the program is not written again: a
+    program keeps its uniforms, and a DMRT frame sets ~100, most as the frame before did, each a
+    GL call the CPU makes while a light frame's GPU waits for it. Set uniforms only through here.
     """
+    last = program.__dict__.setdefault("_dmrt_uniforms", {})
     for name, value in values.items():
+        if hasattr(value, "dtype"):
+            value = value.astype("f4" if value.dtype.kind == "f" else "i4").tobytes()
+        if name in last and last[name] == value:
+            continue
         try:
             member = program[name]
         except KeyError:
             continue
-        if hasattr(value, "dtype"):
-            member.write(value.astype("f4" if value.dtype.kind == "f" else "i4").tobytes())
+        if isinstance(value, bytes):
+            member.write(value)
         else:
             member.value = value
+        last[name] = value

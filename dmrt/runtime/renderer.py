@@ -97,9 +97,10 @@ class RenderConfig:
                  "pass per layer), kbuffer (one splat pass into a per-pixel list of the nearest fragments in "
                  "global memory) or raster (the paper's GL_POINTS depth peeling); the same layers")
     tile_check: Literal["frame", "lagged"] = option(
-        "frame", "tiles: frame (the stage ends by reading back its list length and builds the list again if "
-                 "the frame outgrew it: no frame loses discs) or lagged (reads the status of two frames back and never "
-                 "waits; a frame whose list outgrew the buffer loses the disks past its end)")
+        "frame", "tiles: frame (each frame's list length is read back late in the frame, with the photo choice, "
+                 "and a frame that outgrew the list is rendered again: no frame loses discs) or lagged (reads "
+                 "the length of two frames back and never waits; a frame whose list outgrew the buffer loses "
+                 "the discs past its end)")
     kbuffer_slots: int = option(0, "k-buffer fragments kept per pixel; 0 = 6 per layer + 2 (>= 99.9 % of the "
                                    "peeled layers' pixels); a pixel with more fragments in front of its k-th layer "
                                    "loses its deepest layers", minimum=0)
@@ -354,6 +355,9 @@ class Renderer:
             ctx.memory_barrier(_BARRIER)
         frame, hits = self.shading.finish(b["hits"], b["colors"], b["normals"], self.depthmaps, cam_uniforms, STAGES,
                                           "rendering a DMRT frame", readback)
+        tiles = self.visibility.tiles
+        if tiles is not None and tiles.end_frame():  # the tile list outgrew its buffer: again, larger
+            return self.render(camera, width, height, readback)
         if readback:
             frame["label_raw"] = hits["label"].copy()
             frame["layer_used"], frame["iterations"] = hit_layer_iters(hits)

@@ -12,8 +12,10 @@ N's photo choice writes the ``wanted`` list into record N + 1, so one read of re
 N's visibility stage returns both its list length and the previous frame's choice. A frame reads
 one record at most:
 
-* the tiles path with ``tile_check="frame"`` reads record N after its visibility stage (it waits
-  for that stage, which it must: the list may have outgrown its buffer);
+* with ``tile_check="frame"`` the renderer reads record N when it updates the photo cache, after
+  issuing everything up to the label histogram: the read waits for frame N's visibility stage,
+  which the GPU has finished by then or soon after, with the passes issued since queued behind it;
+  the tiles path then checks the list length it holds (a frame that outgrew it is rendered again);
 * with ``tile_check="lagged"`` it reads record N - 2, which the GPU has finished: no wait;
 * the other visibility paths read record N when the photo cache is updated; the last write to it
   was the previous frame's choice, long done;
@@ -54,7 +56,7 @@ class FrameStatus:
         self.records = [ctx.buffer(zeros) for _ in range(RING)]  # zeros: frame 0 wants no photo yet
         self.frame = -1
         self.reads = 0
-        self._last: tuple[int, np.ndarray] | None = None  # (frame it was read in, its wanted list)
+        self._last: tuple[int, int, int, np.ndarray] | None = None  # frame read in, back, total, wanted
 
     def begin(self) -> moderngl.Buffer:
         """Start the next frame; its record (the visibility stage binds it as ``B_FRAME_STATUS``)."""
@@ -78,15 +80,21 @@ class FrameStatus:
         self.reads += 1
         n = min(int(raw[1]), self.wanted_max)
         wanted = raw[STATUS_HEADER_WORDS:STATUS_HEADER_WORDS + n].astype(np.int64)
-        self._last = (self.frame, wanted)
+        self._last = (self.frame, back, int(raw[0]), wanted)
         return int(raw[0]), wanted
 
     def wanted(self) -> np.ndarray:
         """The photo choice of the record read last in this frame, else of this frame's record
         (the previous frame's choice): what the photo cache follows this frame."""
         if self._last is not None and self._last[0] == self.frame:
-            return self._last[1]
+            return self._last[3]
         return self.read(0)[1]
+
+    def total(self) -> int:
+        """This frame's tile list length: from its record if read in this frame, else read now."""
+        if self._last is not None and self._last[:2] == (self.frame, 0):
+            return self._last[2]
+        return self.read(0)[0]
 
     @property
     def nbytes(self) -> int:

@@ -20,10 +20,12 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
    approximated.
 
 The list's length is only known on the GPU: the scan writes it into the frame's status record
-(:mod:`dmrt.runtime.status`), the frame's one read-back. By default (``check="frame"``) the stage
-ends by reading that record, which waits for the stage (a CPU wait after its last pass, so its GPU
-time is not stretched): a frame whose list outgrew the buffer is built again in a larger one (x 2,
-kept >= 25 % above the last length). ``check="lagged"`` never waits (but on a frame size's first
+(:mod:`dmrt.runtime.status`), the frame's one read-back. By default (``check="frame"``) every
+frame's length is checked: in a renderer, late in the frame (the renderer reads the record when it
+updates the photo cache, by when the GPU has long finished this stage and has the passes issued
+since to work on: no idle gap), and a frame whose list outgrew the buffer is rendered again with a
+larger one (:meth:`TileVisibility.end_frame`); used alone, the stage reads the record at its end
+and builds the list again (x 2, kept >= 25 % above the last length). ``check="lagged"`` never waits (but on a frame size's first
 frame): it reads the record of two frames back and sizes the list from its length, so a view
 whose list grows by more than the headroom within two frames loses the discs past the buffer's end
 in that frame (``dropped``).
@@ -181,12 +183,26 @@ class TileVisibility:
             self._build_list(tile_uniforms, status, size_after_scan=first and self.check == "lagged")
         with timed(timer, "visibility:tile_raster"):
             self._raster_pass(*raster)
-        if self.check == "frame" or first:
+        if (self.check == "frame" and self._own_status) or (self.check == "lagged" and first):
             # wait for the stage (its GPU time is not stretched: nothing is issued after it) and redo
-            # the frame if it outgrew the list
+            # the frame if it outgrew the list; a renderer's frames are checked by end_frame
             self._redo(tile_uniforms, raster, status, timer)
         self._capacity_of[frame] = self.capacity
         self._capacity_of.pop(frame - RING, None)
+
+    def end_frame(self) -> bool:
+        """With ``check="frame"`` in a renderer: this frame's list length, from the record the
+        renderer read this frame (else read now); True if the list outgrew its buffer, which is
+        grown: the renderer must render the frame again (its discs past the end were lost)."""
+        if self.check != "frame" or self._own_status:
+            return False
+        total = self.status.total()
+        if total <= self.capacity:
+            self._grow_to = total  # headroom for the next frames, made then
+            return False
+        self.dropped_frames += 1
+        self._fit(total)
+        return True
 
     def _redo(self, tile_uniforms, raster, status, timer) -> None:
         """Wait for the frame's list length and build the list again, larger, if it outgrew its
