@@ -437,7 +437,7 @@ def section_table2(rs: ResultSet, out: Path) -> Section:
                             for mm in methods},
             "total paper (ms)": pt, f"{main} / paper total": _ratio(d and _gpu_ms(d)[1], pt),
             **{f"visibility {pair}": v.get(str(k)) for pair, v in m["visibility_ratios"].items()},
-            f"fps {main} (min/avg/max)": "/".join(fmt(x) for x in d["fps_min_avg_max"]) if d else None,
+            f"fps {main} (min/avg/max, frames timed one by one)": "/".join(fmt(x) for x in d["fps_min_avg_max"]) if d else None,
             "fps paper": p["fps"][pk] if pk is not None else None,
             "mean search steps": d and d["mean_iterations"],
             "p95 total (ms)": d and (d.get("sustained_timed") or d).get("p95_total_ms"),

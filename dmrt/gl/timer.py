@@ -179,6 +179,9 @@ class GpuTimer:
                 self._free.append(query)
             out.append(ms)
         self._frames = []
+        if self.reliable:
+            for ms in out:
+                require_gpu_work(ms, "timing deferred frames")
         return out
 
 

@@ -265,14 +265,27 @@ class Renderer:
             int32 (0-based layer, -1 = none), ``iterations`` (h, w) int32 (iterative-search steps
             over all layers tried), ``timings`` {stage: GPU ms} (meaningless on llvmpipe, see
             :class:`dmrt.gl.GpuTimer`; ``leveling`` 0 when off) and ``cpu_ms``
-            {``status_read``: wall ms reading the photo choice (0 when the tiles path read the
-            frame's status record already; with synchronous photos it waits for the frame so
-            far), ``image_management``: wall ms decoding (synchronous streaming) and uploading
+            {``status_read``: wall ms reading the frame's status record for the photo choice
+            (with ``tile_check="frame"`` it waits for the visibility stage, issued long before;
+            with synchronous photos for the frame so far; 0 when the lagged tiles path read its
+            record already), ``image_management``: wall ms decoding (synchronous streaming) and uploading
             photos, with leveling ``leveling``: wall ms issuing its passes
             (the gains are solved on the GPU)}. With ``config.leveling`` and ``readback`` also
             ``leveling_gains`` (n_photos, 3) float32; with ``config.statistics`` also
-            ``step_stats`` (see :meth:`_read_step_stats`).
+            ``step_stats`` (see :meth:`_read_step_stats`). A frame whose tile list outgrew its
+            buffer (``tile_check="frame"``) is rendered again with a larger one and carries
+            ``rerendered`` True; its timings are those of the second rendering.
         """
+        frame = self._frame(camera, width, height, readback)
+        if frame is None:  # the tile list outgrew its buffer, grown now: the frame once more
+            frame = self._frame(camera, width, height, readback)
+            if frame is None:
+                raise RuntimeError("the tile list outgrew its buffer twice for the same view")
+            frame["rerendered"] = True
+        return frame
+
+    def _frame(self, camera: Camera, width: int | None, height: int | None, readback: bool) -> dict | None:
+        """One rendering of :meth:`render`'s frame; None if its tile list outgrew its buffer."""
         cfg = self.config
         cam = camera.resized(width or cfg.width, height or cfg.height)
         w, h = cam.width, cam.height
@@ -356,8 +369,8 @@ class Renderer:
         frame, hits = self.shading.finish(b["hits"], b["colors"], b["normals"], self.depthmaps, cam_uniforms, STAGES,
                                           "rendering a DMRT frame", readback)
         tiles = self.visibility.tiles
-        if tiles is not None and tiles.end_frame():  # the tile list outgrew its buffer: again, larger
-            return self.render(camera, width, height, readback)
+        if tiles is not None and tiles.end_frame():
+            return None
         if readback:
             frame["label_raw"] = hits["label"].copy()
             frame["layer_used"], frame["iterations"] = hit_layer_iters(hits)

@@ -139,6 +139,8 @@ class FrameShading:
         records : (h, w) HIT_DTYPE or None (without ``readback``)
         """
         ctx, timer = self.ctx, self.timer
+        if self.status.frame < 0:
+            raise RuntimeError("FrameShading.finish before begin_frame: the status records would be misread")
         w, h = cam_uniforms["u_size"]
         n_photos = self._counts_gpu.size // 4
         with timer.section("image_management:histogram"):

@@ -10,13 +10,16 @@ record of ``4 + wanted_max`` uint32 words: ``tile_total``, ``n_wanted``, two spa
 Three records turn in a ring. Frame N's visibility stage writes ``tile_total`` into record N; frame
 N's photo choice writes the ``wanted`` list into record N + 1, so one read of record N after frame
 N's visibility stage returns both its list length and the previous frame's choice. A frame reads
-one record at most:
+one record (the tiles path's first frame of a size reads its list length once more, right after
+its raster; diagnostics such as ``TileVisibility.stats`` read one too):
 
 * with ``tile_check="frame"`` the renderer reads record N when it updates the photo cache, after
   issuing everything up to the label histogram: the read waits for frame N's visibility stage,
   which the GPU has finished by then or soon after, with the passes issued since queued behind it;
   the tiles path then checks the list length it holds (a frame that outgrew it is rendered again);
-* with ``tile_check="lagged"`` it reads record N - 2, which the GPU has finished: no wait;
+* with ``tile_check="lagged"`` it reads record N - 2, which the GPU has finished: no wait (the
+  photo cache then follows frame N - 3's choice: record N, with N - 1's, would wait for this
+  frame's visibility stage);
 * the other visibility paths read record N when the photo cache is updated; the last write to it
   was the previous frame's choice, long done;
 * only with synchronous photos (``async_photos`` off, the tests' deterministic mode) a frame also
@@ -56,11 +59,13 @@ class FrameStatus:
         self.records = [ctx.buffer(zeros) for _ in range(RING)]  # zeros: frame 0 wants no photo yet
         self.frame = -1
         self.reads = 0
-        self._last: tuple[int, int, int, np.ndarray] | None = None  # frame read in, back, total, wanted
+        self._this: dict[int, tuple[int, np.ndarray]] = {}  # this frame's reads: back -> (total, wanted)
+        self._last: np.ndarray | None = None  # the wanted list of this frame's last read
 
     def begin(self) -> moderngl.Buffer:
         """Start the next frame; its record (the visibility stage binds it as ``B_FRAME_STATUS``)."""
         self.frame += 1
+        self._this, self._last = {}, None
         return self.record(0)
 
     def record(self, back: int = 0) -> moderngl.Buffer:
@@ -80,21 +85,18 @@ class FrameStatus:
         self.reads += 1
         n = min(int(raw[1]), self.wanted_max)
         wanted = raw[STATUS_HEADER_WORDS:STATUS_HEADER_WORDS + n].astype(np.int64)
-        self._last = (self.frame, back, int(raw[0]), wanted)
+        self._this[back] = (int(raw[0]), wanted)
+        self._last = wanted
         return int(raw[0]), wanted
 
     def wanted(self) -> np.ndarray:
         """The photo choice of the record read last in this frame, else of this frame's record
         (the previous frame's choice): what the photo cache follows this frame."""
-        if self._last is not None and self._last[0] == self.frame:
-            return self._last[3]
-        return self.read(0)[1]
+        return self._last if self._last is not None else self.read(0)[1]
 
     def total(self) -> int:
         """This frame's tile list length: from its record if read in this frame, else read now."""
-        if self._last is not None and self._last[:2] == (self.frame, 0):
-            return self._last[2]
-        return self.read(0)[0]
+        return self._this[0][0] if 0 in self._this else self.read(0)[0]
 
     @property
     def nbytes(self) -> int:

@@ -24,11 +24,13 @@ The list's length is only known on the GPU: the scan writes it into the frame's 
 frame's length is checked: in a renderer, late in the frame (the renderer reads the record when it
 updates the photo cache, by when the GPU has long finished this stage and has the passes issued
 since to work on: no idle gap), and a frame whose list outgrew the buffer is rendered again with a
-larger one (:meth:`TileVisibility.end_frame`); used alone, the stage reads the record at its end
-and builds the list again (x 2, kept >= 25 % above the last length). ``check="lagged"`` never waits (but on a frame size's first
-frame): it reads the record of two frames back and sizes the list from its length, so a view
-whose list grows by more than the headroom within two frames loses the discs past the buffer's end
-in that frame (``dropped``).
+larger one (:meth:`TileVisibility.end_frame`); used alone, and on a frame size's first frame
+(whose list the last size's does not bound), the stage reads the record at its end and builds the
+list again (x 2, kept >= 25 % above the last length). ``check="lagged"`` never waits (but on a frame
+size's first frame): it reads the record of two frames back and sizes the list from its length, so
+a view whose list grows by more than the headroom within two frames loses the discs past the
+buffer's end in that frame (``dropped``); the photo cache then follows the choice that record
+holds, three frames old.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from dmrt.runtime.status import RING, FrameStatus
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 ENTRY_BYTES = 4  # a disc index per disc-tile overlap
 LAG = RING - 1  # check="lagged" reads the record of the frame this many frames back
+MASK_DISCS = 256  # the raster's hit masks cover a tile's first 256 discs (dmrt_tiles_common.glsl)
 
 
 class TileVisibility:
@@ -135,7 +138,8 @@ class TileVisibility:
                   "counts": abi.B_TILE_COUNTS, "offsets": abi.B_TILE_OFFSETS, "masks": abi.B_TILE_MASKS,
                   "status": abi.B_FRAME_STATUS}
         for name, buf in buffers.items():
-            buf.bind_to_storage_buffer(points[name])
+            if buf is not None:  # no hit masks with tiles other than 16 x 16
+                buf.bind_to_storage_buffer(points[name])
 
     # -- the frame --------------------------------------------------------------------------
     def run(self, uniforms: dict, size: tuple[int, int], layers: int, layer_depth, layer_label,
@@ -166,7 +170,7 @@ class TileVisibility:
         first = grid != self._grid
         if first:
             self._allocate_tiles(grid)
-        if self.masks is None or self.masks.size != 32 * w * h:
+        if self.tile * self.tile == MASK_DISCS and (self.masks is None or self.masks.size != 32 * w * h):
             if self.masks is not None:
                 self.masks.release()
             self.masks = self.ctx.buffer(reserve=32 * w * h)
@@ -180,12 +184,13 @@ class TileVisibility:
         raster = (tile_uniforms, layers, layer_depth, layer_label)
 
         with timed(timer, "visibility:tile_lists"):
-            self._build_list(tile_uniforms, status, size_after_scan=first and self.check == "lagged")
+            self._build_list(tile_uniforms, status)
         with timed(timer, "visibility:tile_raster"):
             self._raster_pass(*raster)
-        if (self.check == "frame" and self._own_status) or (self.check == "lagged" and first):
+        if (self.check == "frame" and self._own_status) or first:
             # wait for the stage (its GPU time is not stretched: nothing is issued after it) and redo
-            # the frame if it outgrew the list; a renderer's frames are checked by end_frame
+            # the list if it outgrew its buffer; a renderer's frames are checked by end_frame but on
+            # a new size, whose list the last size's does not bound
             self._redo(tile_uniforms, raster, status, timer)
         self._capacity_of[frame] = self.capacity
         self._capacity_of.pop(frame - RING, None)
@@ -215,12 +220,12 @@ class TileVisibility:
             self.dropped_frames += 1
             self._fit(total)
             with timed(timer, "visibility:redo"):
-                self._build_list(tile_uniforms, status, size_after_scan=False)
+                self._build_list(tile_uniforms, status)
                 self._raster_pass(*raster)
         # headroom for the next frames, made then: the labeling pass still walks this list
         self._grow_to = total
 
-    def _build_list(self, tile_uniforms: dict, status, size_after_scan: bool) -> None:
+    def _build_list(self, tile_uniforms: dict, status) -> None:
         """Bin (count), scan, bin (scatter): each tile's slice of the list, unsorted."""
         ctx = self.ctx
         n_tiles = tile_uniforms["u_tile_count"]
@@ -232,8 +237,6 @@ class TileVisibility:
         set_uniforms(self._scan, u_tile_count=n_tiles)
         self._scan.run(1)
         ctx.memory_barrier(_BARRIER)
-        if size_after_scan:
-            self._fit(self.status.read(0)[0])
         self._bin_pass(1, tile_uniforms)
 
     def _bin_pass(self, scatter: int, tile_uniforms: dict) -> None:
