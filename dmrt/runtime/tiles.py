@@ -201,9 +201,14 @@ class TileVisibility:
         grown: the renderer must render the frame again (its discs past the end were lost)."""
         if self.check != "frame" or self._own_status:
             return False
-        total = self.status.total()
+        return self._outgrown(self.status.total())
+
+    def _outgrown(self, total: int) -> bool:
+        """Whether a list of ``total`` entries outgrew the buffer; if so the buffer is grown now,
+        else headroom for the next frames is made at the next frame (the labeling pass still walks
+        this list)."""
         if total <= self.capacity:
-            self._grow_to = total  # headroom for the next frames, made then
+            self._grow_to = total
             return False
         self.dropped_frames += 1
         self._fit(total)
@@ -213,17 +218,10 @@ class TileVisibility:
         """Wait for the frame's list length and build the list again, larger, if it outgrew its
         buffer. The wait is outside any timed section: a section open while the CPU waits would
         count the idle GPU."""
-        while True:
-            total = self.status.read(0)[0]
-            if total <= self.capacity:
-                break
-            self.dropped_frames += 1
-            self._fit(total)
+        while self._outgrown(self.status.read(0)[0]):
             with timed(timer, "visibility:redo"):
                 self._build_list(tile_uniforms, status)
                 self._raster_pass(*raster)
-        # headroom for the next frames, made then: the labeling pass still walks this list
-        self._grow_to = total
 
     def _build_list(self, tile_uniforms: dict, status) -> None:
         """Bin (count), scan, bin (scatter): each tile's slice of the list, unsorted."""
