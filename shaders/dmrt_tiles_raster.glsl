@@ -11,15 +11,22 @@
 //
 // The walk's cost is in the loads and the tests, so:
 // 1. A list of up to BATCH discs is loaded into shared memory once (camera-space centre, normal,
-//    radius, label, pixel box) and serves every layer; a longer one is walked BATCH discs at a
-//    time, loaded again for each layer.
-// 2. The first walk tests every disc against the pixel box and the disc; each invocation notes
-//    which of the first MASK_DISCS (256) discs hit its pixel (a bit mask in eight registers), and
-//    the later walks test only those (findLSB), dropping the hits at or in front of the last layer
-//    (they can never pass a filter again). Most tiles hold fewer discs (paper preset: ~180 a tile
-//    at 1280x720, ~63 at 3840x2160), so after the first layer a pixel visits only its own hits.
-// 3. A pixel without a hit for layer i has none for the layers after it; the workgroup stops when
-//    none of its pixels found a layer (a shared flag per walk).
+//    radius, label, pixel box) and serves every walk; a longer one is walked BATCH discs at a
+//    time, loaded again for each walk.
+// 2. The first walk tests every disc against the pixel box and the disc, and each invocation keeps
+//    its TOP nearest hits sorted, (depth bits, label), in registers. The layers are the peeling
+//    rule applied to the pixel's hits in that order (a hit is the next layer if it lies behind the
+//    last one with another label; one that fails can never pass later, as every later layer lies
+//    at or behind it), so the sorted prefix yields the pixel's first layers exactly: all k of them
+//    when the rule finds k in it (most pixels: the labels of the maps that see a surface
+//    interleave in depth), or all there are when the pixel has at most TOP hits.
+// 3. Only the other pixels walk again, once per missing layer, each keeping the smallest
+//    (depth bits, label) that passes the filter. The first walk also noted which of the tile's
+//    first MASK_DISCS (256) discs hit the pixel (a bit mask in eight registers); these walks
+//    test only those (findLSB), dropping the hits at or in front of the last layer (they can never
+//    pass a filter again). Most tiles hold fewer discs (paper preset: ~180 a tile at 1280x720, ~63
+//    at 3840x2160), so a pixel then visits only its own hits. The workgroup stops when none of its
+//    pixels needs another walk (a shared flag per walk).
 // Every layer of every pixel is written once (empty ones as EMPTY_BITS / EMPTY_LABEL), so the layer
 // buffers need no clearing.
 //
@@ -39,6 +46,9 @@
 #define BATCH 512  // discs in shared memory at once: 40 bytes each
 #endif
 #define THREADS (TILE * TILE)
+#ifndef TOP
+#define TOP 8  // nearest hits a pixel keeps sorted during the first walk: 4, 8, 12 or 16
+#endif
 
 layout(local_size_x = TILE, local_size_y = TILE) in;
 
@@ -68,6 +78,11 @@ uint g_count;             // discs in the tile's list
 // filled component by component with constant indices: an array indexed by a loop counter may be
 // kept in local memory (dmrt_photos.glsl's snap_try says more).
 uvec4 g_lo, g_hi;
+// The TOP nearest hits so far, ascending (depth bits, label); EMPTY_BITS = none. Vectors with
+// constant indices, as the masks.
+uvec4 g_top_d0, g_top_l0, g_top_d1, g_top_l1, g_top_d2, g_top_l2, g_top_d3, g_top_l3;
+uint g_hits;   // hits of the pixel in the first walk
+bool g_first;  // the first walk (collect the nearest hits) or a later one (the filtered minimum)
 
 void load_batch(uint first, uint n) {
     for (uint i = gl_LocalInvocationIndex; i < n; i += uint(THREADS)) {
@@ -99,6 +114,31 @@ void consider(uint d, uint j) {
     }
 }
 
+// One compare-exchange of the insertion: the entry keeps the smaller of itself and (d, l), which
+// carries the larger on.
+#define SORT_STEP(D, L) if (d < D || (d == D && l < L)) { uint t = D; D = d; d = t; t = L; L = l; l = t; }
+
+// Insert a hit into the sorted nearest hits (dropping the farthest when they are full).
+#define SORT_STEPS(D, L) SORT_STEP(D.x, L.x) SORT_STEP(D.y, L.y) SORT_STEP(D.z, L.z) SORT_STEP(D.w, L.w)
+#define FARTHEST_D (TOP > 12 ? g_top_d3.w : TOP > 8 ? g_top_d2.w : TOP > 4 ? g_top_d1.w : g_top_d0.w)
+#define FARTHEST_L (TOP > 12 ? g_top_l3.w : TOP > 8 ? g_top_l2.w : TOP > 4 ? g_top_l1.w : g_top_l0.w)
+
+void keep_nearest(uint d, uint j) {
+    uint l = floatBitsToUint(s_nl[j].w);
+    ++g_hits;
+    if (d > FARTHEST_D || (d == FARTHEST_D && l >= FARTHEST_L)) return;
+    SORT_STEPS(g_top_d0, g_top_l0)
+#if TOP > 4
+    SORT_STEPS(g_top_d1, g_top_l1)
+#endif
+#if TOP > 8
+    SORT_STEPS(g_top_d2, g_top_l2)
+#endif
+#if TOP > 12
+    SORT_STEPS(g_top_d3, g_top_l3)
+#endif
+}
+
 // Test discs [from, to) of the batch in shared memory; the bits of the hits, from bit 0 for disc
 // `from` (meaningful for up to 32 discs).
 uint walk(uint from, uint to) {
@@ -110,7 +150,8 @@ uint walk(uint from, uint to) {
         uint d = hit_bits(j);
         if (d == 0u) continue;
         mask |= 1u << ((j - from) & 31u);
-        consider(d, j);
+        if (g_first) keep_nearest(d, j);
+        else consider(d, j);
     }
     return mask;
 }
@@ -135,17 +176,49 @@ uint again(uint word, uint base) {
     return word;
 }
 
+uint g_npix, g_pix, g_found;  // pixels of the frame, this one's index, its layers written
+
+void write_layer(uint d, uint l) {
+    layer_depth[g_found * g_npix + g_pix] = d;
+    layer_label[g_found * g_npix + g_pix] = int(l);
+    g_prev_d = d;
+    g_prev_l = l;
+    ++g_found;
+}
+
+// The peeling rule over the sorted nearest hits, in order (see the top of the file).
+#define TAKE(D, L) if (g_found < uint(u_layers) && D != EMPTY_BITS && D > g_prev_d && L != g_prev_l) write_layer(D, L);
+
+#define TAKES(D, L) TAKE(D.x, L.x) TAKE(D.y, L.y) TAKE(D.z, L.z) TAKE(D.w, L.w)
+
+void layers_from_nearest() {
+    TAKES(g_top_d0, g_top_l0)
+#if TOP > 4
+    TAKES(g_top_d1, g_top_l1)
+#endif
+#if TOP > 8
+    TAKES(g_top_d2, g_top_l2)
+#endif
+#if TOP > 12
+    TAKES(g_top_d3, g_top_l3)
+#endif
+}
+
 void main() {
     uint lid = gl_LocalInvocationIndex;
     uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
     ivec2 p = ivec2(gl_WorkGroupID.xy) * TILE + ivec2(gl_LocalInvocationID.xy);
-    bool searching = p.x < u_size.x && p.y < u_size.y;  // still finding layers
-    uint npix = uint(u_size.x * u_size.y), pix = searching ? uint(p.y * u_size.x + p.x) : 0u;
+    bool inside = p.x < u_size.x && p.y < u_size.y;
+    g_npix = uint(u_size.x * u_size.y);
+    g_pix = inside ? uint(p.y * u_size.x + p.x) : 0u;
     g_px = uvec2(p);
     g_uv = vec2(p) + 0.5;  // the pixel centre, as in every splat path
     g_prev_d = 0u;
     g_prev_l = ~0u;
-    uint found = 0u;
+    g_found = 0u;
+    g_hits = 0u;
+    g_top_d0 = g_top_l0 = g_top_d1 = g_top_l1 = uvec4(EMPTY_BITS);
+    g_top_d2 = g_top_l2 = g_top_d3 = g_top_l3 = uvec4(EMPTY_BITS);
 
     uint off = offsets[tile];
     uint count = offsets[tile + 1u] - off;
@@ -157,22 +230,51 @@ void main() {
     memoryBarrierShared();
     barrier();
 
-    for (uint layer = 0u; layer < uint(u_layers); ++layer) {
+    // the first walk: every disc, the pixel's nearest hits kept sorted
+    g_first = true;
+    if (cached) {
+        if (inside) {
+            g_lo = uvec4(first_word(0u), first_word(32u), first_word(64u), first_word(96u));
+            g_hi = uvec4(first_word(128u), first_word(160u), first_word(192u), first_word(224u));
+#if HIT_MASKS
+            masks[2u * g_pix] = g_lo;  // for the labeling pass (dmrt_tiles_labeling.glsl)
+            masks[2u * g_pix + 1u] = g_hi;
+#endif
+            walk(min(count, uint(MASK_DISCS)), count);
+        }
+    } else {
+        for (uint sb = 0u; sb < count; sb += uint(BATCH)) {
+            uint nb = min(uint(BATCH), count - sb);
+            memoryBarrierShared();
+            barrier();  // the batch before is no longer read
+            load_batch(off + sb, nb);
+            memoryBarrierShared();
+            barrier();
+            if (inside) walk(0u, nb);
+        }
+    }
+    g_first = false;
+    if (inside) layers_from_nearest();
+    // a pixel whose hits did not all fit in the sorted prefix and which lacks layers walks again
+    bool searching = inside && g_found < uint(u_layers) && g_hits > uint(TOP);
+
+    // then a walk per missing layer, over the pixels that need one, while any does; flag slot
+    // i % 3 says "some pixel needs walk i + 1". A slot is reset (by invocation 0, before the
+    // barrier of walk i) two walks after it was last read, before barriers every invocation has
+    // passed since, and set again only after that barrier.
+    uint slot = 0u;
+    if (searching) s_found[0] = 1u;
+    memoryBarrierShared();
+    barrier();
+    for (uint i = 1u; s_found[slot] != 0u; ++i) {
         g_best_d = EMPTY_BITS;
         g_best_l = EMPTY_BITS;
         if (cached) {
-            if (searching && layer == 0u) {
-                g_lo = uvec4(first_word(0u), first_word(32u), first_word(64u), first_word(96u));
-                g_hi = uvec4(first_word(128u), first_word(160u), first_word(192u), first_word(224u));
-#if HIT_MASKS
-                masks[2u * pix] = g_lo;  // for the labeling pass (dmrt_tiles_labeling.glsl)
-                masks[2u * pix + 1u] = g_hi;
-#endif
-            } else if (searching) {
+            if (searching) {
                 g_lo = uvec4(again(g_lo.x, 0u), again(g_lo.y, 32u), again(g_lo.z, 64u), again(g_lo.w, 96u));
                 g_hi = uvec4(again(g_hi.x, 128u), again(g_hi.y, 160u), again(g_hi.z, 192u), again(g_hi.w, 224u));
+                walk(min(count, uint(MASK_DISCS)), count);
             }
-            if (searching) walk(min(count, uint(MASK_DISCS)), count);
         } else {
             for (uint sb = 0u; sb < count; sb += uint(BATCH)) {
                 uint nb = min(uint(BATCH), count - sb);
@@ -184,29 +286,19 @@ void main() {
                 if (searching) walk(0u, nb);
             }
         }
-        // the flag reset here was last read two walks ago, before a barrier every invocation has
-        // passed since
-        uint slot = layer % 3u;
-        if (lid == 0u) s_found[(layer + 1u) % 3u] = 0u;
-        if (searching && g_best_d != EMPTY_BITS) {
-            layer_depth[layer * npix + pix] = g_best_d;
-            layer_label[layer * npix + pix] = int(g_best_l);
-            g_prev_d = g_best_d;
-            g_prev_l = g_best_l;
-            found = layer + 1u;
-            s_found[slot] = 1u;
-        } else {
-            searching = false;
-        }
+        if (searching && g_best_d != EMPTY_BITS) write_layer(g_best_d, g_best_l);
+        searching = searching && g_best_d != EMPTY_BITS && g_found < uint(u_layers);
+        slot = i % 3u;
+        if (searching) s_found[slot] = 1u;
+        if (lid == 0u) s_found[(i + 1u) % 3u] = 0u;
         memoryBarrierShared();
         barrier();
-        if (s_found[slot] == 0u) break;
     }
 
-    if (p.x < u_size.x && p.y < u_size.y) {
-        for (uint i = found; i < uint(u_layers); ++i) {
-            layer_depth[i * npix + pix] = EMPTY_BITS;
-            layer_label[i * npix + pix] = EMPTY_LABEL;
+    if (inside) {
+        for (uint i = g_found; i < uint(u_layers); ++i) {
+            layer_depth[i * g_npix + g_pix] = EMPTY_BITS;
+            layer_label[i * g_npix + g_pix] = EMPTY_LABEL;
         }
     }
 }

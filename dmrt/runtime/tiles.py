@@ -12,10 +12,12 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
 2. ``dmrt_tiles_scan``: exclusive prefix sum of the tile counts = each tile's slice of one list.
 3. ``dmrt_tiles_bin`` (scatter): the same walk writes the disc indices into the slices.
 4. ``dmrt_tiles_raster``: one workgroup per tile, one invocation per pixel: each layer is the
-   smallest (depth bits, label) among the pixel's hits behind the layer before with another label,
-   so the workgroup walks its tile's discs (held in shared memory) once per layer and each
-   invocation keeps its minimum in registers; after the first walk a pixel tests only the discs
-   that hit it (a bit mask). The ray-disc test is the other paths' (``splat_depth_at``), so every
+   smallest (depth bits, label) among the pixel's hits behind the layer before with another label.
+   The workgroup walks its tile's discs (held in shared memory) once, each invocation keeping its
+   8 nearest hits sorted in registers, and the peeling rule applied to them in order gives the
+   pixel's first layers exactly (all k for most pixels); a pixel still lacking layers walks again
+   per layer, keeping the minimum that passes the filter and testing only the discs that hit it
+   (a bit mask). The ray-disc test is the other paths' (``splat_depth_at``), so every
    layer equals compute peeling's to the bit; no order among the discs is needed and nothing is
    approximated.
 
