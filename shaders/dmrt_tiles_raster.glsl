@@ -47,7 +47,7 @@
 #endif
 #define THREADS (TILE * TILE)
 #ifndef TOP
-#define TOP 8  // nearest hits a pixel keeps sorted during the first walk: 4, 8, 12 or 16
+#define TOP 16  // nearest hits a pixel keeps sorted during the first walk: 4, 8, 12 or 16
 #endif
 
 layout(local_size_x = TILE, local_size_y = TILE) in;

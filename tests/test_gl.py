@@ -219,3 +219,35 @@ def test_gl_errors_raise(ctx):
     with pytest.raises(RuntimeError, match="OpenGL error GL_INVALID_VALUE while testing"):
         check_gl(ctx, "testing")
     check_gl(ctx, "testing")  # reading the flag clears it
+
+
+def test_mapped_buffer_reads_what_the_gpu_wrote(ctx):
+    """A persistently mapped buffer (the status records' storage): its initial bytes, then what
+    passes wrote - read after their fence, after an unfenced bind (the read fences it), and after
+    a CPU write the next pass overwrites in part."""
+    from dmrt.gl.mapped import MappedBuffer
+
+    program = ctx.compute_shader("""#version 430
+        layout(local_size_x = 8) in;
+        layout(std430, binding = 3) buffer B { uint v[]; };
+        uniform uint u_add;
+        void main() { if (gl_LocalInvocationIndex < 4u) v[gl_LocalInvocationIndex] += u_add; }""")
+    buf = MappedBuffer(ctx, np.arange(8, dtype=np.uint32).tobytes())
+    try:
+        np.testing.assert_array_equal(np.frombuffer(buf.read(), np.uint32), np.arange(8))
+        for add, fence in ((10, True), (100, False)):
+            buf.bind_to_storage_buffer(3)
+            program["u_add"].value = add
+            program.run(1)
+            if fence:
+                buf.written()
+            got = np.frombuffer(buf.read(), np.uint32)
+        np.testing.assert_array_equal(got, [110, 111, 112, 113, 4, 5, 6, 7])
+        buf.write(np.full(8, 7, np.uint32).tobytes())
+        buf.bind_to_storage_buffer(3)
+        program.run(1)
+        np.testing.assert_array_equal(np.frombuffer(buf.read(), np.uint32), [107] * 4 + [7] * 4)
+        with pytest.raises(ValueError, match="do not fit"):
+            buf.write(bytes(33))
+    finally:
+        buf.release()

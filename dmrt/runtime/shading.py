@@ -120,7 +120,7 @@ class FrameShading:
             out["leveling"] = self.leveler.nbytes
         return out
 
-    def begin_frame(self) -> moderngl.Buffer:
+    def begin_frame(self):
         """Start a frame: its status record (:meth:`dmrt.runtime.status.FrameStatus.begin`)."""
         return self.status.begin()
 
@@ -155,7 +155,7 @@ class FrameShading:
                 self.status.record(-1).bind_to_storage_buffer(abi.B_FRAME_STATUS)
                 set_uniforms(self._choice, u_slots=self.images.n_slots)
                 self._choice.run(groups(n_photos, 64))
-                ctx.memory_barrier(_BARRIER | moderngl.BUFFER_UPDATE_BARRIER_BIT)
+                self.status.record(-1).written()
         t0 = time.perf_counter()
         if not self.images.n_slots:
             wanted = np.zeros(0, np.int64)

@@ -7,19 +7,21 @@ record of ``4 + wanted_max`` uint32 words: ``tile_total``, ``n_wanted``, two spa
 ``wanted`` - the photos the label histogram ranks first, most frequent first
 (``shaders/dmrt_photo_choice.glsl``).
 
-Three records turn in a ring. Frame N's visibility stage writes ``tile_total`` into record N; frame
-N's photo choice writes the ``wanted`` list into record N + 1, so one read of record N after frame
-N's visibility stage returns both its list length and the previous frame's choice. A frame reads
-one record (the tiles path's first frame of a size reads its list length once more, right after
-its raster; diagnostics such as ``TileVisibility.stats`` read one too):
+Three records turn in a ring, in persistently mapped host memory (:class:`dmrt.gl.mapped.MappedBuffer`):
+a read waits for a fence placed after the pass that wrote the record, never for the rest of the
+work queued (a plain buffer read drained the whole queue: the GPU then idled while the CPU issued
+the next frame). Frame N's visibility stage writes ``tile_total`` into record N; frame N's photo
+choice writes the ``wanted`` list into record N + 1, so one read of record N after frame N's
+visibility stage returns both its list length and the previous frame's choice. A frame reads one
+record (the tiles path's first frame of a size reads its list length once more, right after its
+raster; diagnostics such as ``TileVisibility.stats`` read one too):
 
 * with ``tile_check="frame"`` the renderer reads record N when it updates the photo cache, after
-  issuing everything up to the label histogram: the read waits for frame N's visibility stage,
-  which the GPU has finished by then or soon after, with the passes issued since queued behind it;
-  the tiles path then checks the list length it holds (a frame that outgrew it is rendered again);
-* with ``tile_check="lagged"`` it reads record N - 2, which the GPU has finished: no wait (the
-  photo cache then follows frame N - 3's choice: record N, with N - 1's, would wait for this
-  frame's visibility stage);
+  issuing everything up to the label histogram: the read waits for frame N's tile lists, which the
+  GPU has finished by then or soon after; the tiles path then checks the list length it holds (a
+  frame that outgrew it is rendered again);
+* with ``tile_check="lagged"`` it reads record N - 2 at the start of frame N, whose writes the GPU
+  has finished: no wait (the photo cache then follows frame N - 3's choice);
 * the other visibility paths read record N when the photo cache is updated; the last write to it
   was the previous frame's choice, long done;
 * only with synchronous photos (``async_photos`` off, the tests' deterministic mode) a frame also
@@ -32,6 +34,7 @@ import moderngl
 import numpy as np
 
 from dmrt.gl.abi import STATUS_HEADER_WORDS
+from dmrt.gl.mapped import MappedBuffer
 
 RING = 3
 
@@ -56,25 +59,28 @@ class FrameStatus:
     def __init__(self, ctx: moderngl.Context, wanted_max: int = 0):
         self.wanted_max = max(int(wanted_max), 0)
         zeros = np.zeros(STATUS_HEADER_WORDS + self.wanted_max, np.uint32).tobytes()
-        self.records = [ctx.buffer(zeros) for _ in range(RING)]  # zeros: frame 0 wants no photo yet
+        # in mapped host memory: a read waits for the fence of the pass that wrote the record, not
+        # for all the work queued (dmrt/gl/mapped.py); zeros: frame 0 wants no photo yet
+        self.records = [MappedBuffer(ctx, zeros) for _ in range(RING)]
         self.frame = -1
         self.reads = 0
         self._this: dict[int, tuple[int, np.ndarray]] = {}  # this frame's reads: back -> (total, wanted)
         self._last: np.ndarray | None = None  # the wanted list of this frame's last read
 
-    def begin(self) -> moderngl.Buffer:
+    def begin(self) -> MappedBuffer:
         """Start the next frame; its record (the visibility stage binds it as ``B_FRAME_STATUS``)."""
         self.frame += 1
         self._this, self._last = {}, None
         return self.record(0)
 
-    def record(self, back: int = 0) -> moderngl.Buffer:
+    def record(self, back: int = 0) -> MappedBuffer:
         """The record of frame ``frame - back``; ``back=-1``: the next frame's, which this frame's
-        photo choice writes."""
+        photo choice writes. A pass that writes it binds it (``bind_to_storage_buffer``) and then
+        calls its ``written()``: a read waits for that pass and what was issued before it only."""
         return self.records[(self.frame - back) % RING]
 
     def read(self, back: int = 0) -> tuple[int, np.ndarray]:
-        """Read the record of frame ``frame - back`` (waits for the GPU's writes to it).
+        """Read the record of frame ``frame - back`` (waits for the pass that wrote it last).
 
         Returns
         -------

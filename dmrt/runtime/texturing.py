@@ -120,8 +120,10 @@ class ImageCache:
         return self._upload(0, block=True) if self.n_slots else 0
 
     def _upload(self, limit: int, block: bool) -> int:
-        wanted_set = set(self._wanted)
         missing = [j for j in self._wanted if self.slot_of[j] < 0]
+        if not missing:  # the steady state: nothing to sort
+            return 0
+        wanted_set = set(self._wanted)
         # empty slots first, then the least recently wanted photos that this frame does not want
         free = sorted((s for s in range(self.n_slots) if int(self._photo_in[s]) not in wanted_set),
                       key=lambda s: (self._photo_in[s] >= 0, self._last_used[s]))

@@ -14,7 +14,7 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
 4. ``dmrt_tiles_raster``: one workgroup per tile, one invocation per pixel: each layer is the
    smallest (depth bits, label) among the pixel's hits behind the layer before with another label.
    The workgroup walks its tile's discs (held in shared memory) once, each invocation keeping its
-   8 nearest hits sorted in registers, and the peeling rule applied to them in order gives the
+   16 nearest hits sorted in registers, and the peeling rule applied to them in order gives the
    pixel's first layers exactly (all k for most pixels); a pixel still lacking layers walks again
    per layer, keeping the minimum that passes the filter and testing only the discs that hit it
    (a bit mask). The ray-disc test is the other paths' (``splat_depth_at``), so every
@@ -237,6 +237,7 @@ class TileVisibility:
         set_uniforms(self._scan, u_tile_count=n_tiles)
         self._scan.run(1)
         ctx.memory_barrier(_BARRIER)
+        status.written()  # reading the list length waits for the scan, not the whole frame
         self._bin_pass(1, tile_uniforms)
 
     def _bin_pass(self, scatter: int, tile_uniforms: dict) -> None:
