@@ -155,7 +155,7 @@ float signed_distance(int l, Photo ph, vec3 q, out bool ok) {
 }
 
 // The hit at s_hit on D_l passes the discontinuity test on the four texels around it: true, with
-// the unit world normal n facing the render camera.
+// the unit world normal n facing the render camera when u_normals is set (else n = 0).
 bool valid_hit(int l, Photo ph, vec3 C, vec3 dir, float dlen, float s_hit, out vec3 n) {
     n = vec3(0.0);
     vec3 pc = to_photo(ph, C + s_hit * dir);
@@ -175,6 +175,7 @@ bool valid_hit(int l, Photo ph, vec3 C, vec3 dir, float dlen, float s_hit, out v
 #else
     if (!(f2.x + f2.y <= 1.0 ? ok0 : ok1)) return false;
 #endif
+    if (u_normals == 0) return true;  // a frame not read back keeps no normal (write_normal)
     vec3 p00 = unproject_texel(ph, i0, d.x);
     vec3 p10 = unproject_texel(ph, i0 + ivec2(1, 0), d.y);
     vec3 p01 = unproject_texel(ph, i0 + ivec2(0, 1), d.z);

@@ -292,8 +292,9 @@ class Renderer:
         self._allocate(w, h)
         b = self._buffers
         local = cam.relative_to(self.origin)
-        cam_uniforms = {"u_R": local.R.T.ravel(), "u_t": local.t, "u_K": (local.fx, local.fy, local.cx, local.cy),
-                        "u_size": (w, h)}
+        # the matrix and vector as float32 bytes once: set_uniforms compares and writes them as they are
+        cam_uniforms = {"u_R": local.R.T.astype(np.float32).tobytes(), "u_t": np.float32(local.t).tobytes(),
+                        "u_K": (local.fx, local.fy, local.cx, local.cy), "u_size": (w, h)}
         npix = w * h
         grid = (groups(w, 8), groups(h, 8))
         ctx, timer = self.ctx, self.timer

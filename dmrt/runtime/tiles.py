@@ -153,7 +153,7 @@ class TileVisibility:
         Parameters
         ----------
         uniforms : dict
-            ``u_R`` (9,) float32 world->camera rotation, column-major; ``u_t`` (3,) metres,
+            ``u_R`` (9,) float32 world->camera rotation, column-major (or its bytes); ``u_t`` (3,) metres,
             scene-origin-relative; ``u_K`` (fx, fy, cx, cy) pixels; ``u_size`` (w, h).
         size : (w, h) int, pixels
         layers : int
