@@ -31,8 +31,8 @@
 // An invalid hit sends the search to the next layer. The pixel's normal is the average of the
 // unit normals of the triangles that pass the test (the paper: of both triangles).
 //
-// Hole filling walks a list of the holes the pixel pass leaves (HoleList), HOLE_ITEMS (8) holes a
-// workgroup and a thread per neighbour (see FILL below).
+// Hole filling walks a list of the holes the pixel pass leaves (HoleList), a workgroup per hole and
+// a thread per neighbour (see FILL below).
 //
 // RAYTRACE 0 (ablation, the paper's Fig. 8a "coarse splats"): no search; the first layer's splat is
 // the surface (its depth and label; the normal faces the camera).
@@ -49,13 +49,11 @@
 #define FILL 0
 #endif
 
-// The pixel pass: 8 x 8 pixels a workgroup; the fill pass: HOLE_ITEMS holes a workgroup, each hole's
-// LIST_THREADS neighbours searched side by side (a workgroup of 8 threads, one hole, left most of
-// an SM idle: it holds a bounded number of workgroups)
-#define HOLE_ITEMS 8
+// The pixel pass: 8 x 8 pixels a workgroup; the fill pass: one hole a workgroup, its LIST_THREADS
+// neighbours searched side by side
 #if FILL
 #define LIST_THREADS 8
-layout(local_size_x = LIST_THREADS, local_size_y = HOLE_ITEMS) in;
+layout(local_size_x = LIST_THREADS) in;
 #else
 #define LIST_THREADS 1
 layout(local_size_x = 8, local_size_y = 8) in;
@@ -304,9 +302,8 @@ bool trace(int layer, int l, vec3 C, vec3 dir, float dlen, float s0, inout int i
 }
 
 // Work lists (dmrt/runtime/renderer.py): cmd is the dispatch-indirect command of the pass that
-// walks the list, one workgroup per HOLE_ITEMS items: cmd.x = min(ceil(items / HOLE_ITEMS),
-// u_max_groups), cmd.w = items; workgroup g takes items g * HOLE_ITEMS + (0 .. HOLE_ITEMS - 1), then
-// those gl_NumWorkGroups.x * HOLE_ITEMS further on, ...
+// walks the list, one workgroup per item: cmd.x = min(items, u_max_groups), cmd.w = items; a
+// workgroup takes items gl_WorkGroupID.x, + gl_NumWorkGroups.x, ...
 struct ListHeader { uint x, y, z, n; };
 // Pixels that a splat covers but no layer gave a surface (FILL pass u_pass walks HoleList, appends
 // the pixels it leaves to NextHoles)
@@ -318,18 +315,17 @@ uniform int u_fill;         // 1: list the holes left for a fill pass (fill_pass
 void push_hole(uint pix) {
     uint i = atomicAdd(next_cmd.n, 1u);
     next_items[i] = pix;
-    atomicMax(next_cmd.x, min(i / uint(HOLE_ITEMS) + 1u, u_max_groups));
+    if (i < u_max_groups) atomicMax(next_cmd.x, i + 1u);
 }
 
-// Per hole (slot of the workgroup): the thread that finds the first success (smallest index j)
-// writes the pixel; iters counts the steps of the neighbours up to that one, as a loop over them
-// in order would.
+// One hole per workgroup: the thread that finds the first success (smallest index j) writes the
+// pixel; iters counts the steps of the neighbours up to that one, as a loop over them in order would.
 const uint NONE = uint(LIST_THREADS);  // s_best when no candidate succeeded
-shared uint s_best[HOLE_ITEMS];
-shared int s_iters[HOLE_ITEMS][LIST_THREADS];
+shared uint s_best;
+shared int s_iters[LIST_THREADS];
 
-int iters_through(uint slot, uint best, int iters) {
-    for (uint j = 0u; j < uint(LIST_THREADS) && j <= best; ++j) iters += s_iters[slot][j];
+int iters_through(uint best, int iters) {
+    for (uint j = 0u; j < uint(LIST_THREADS) && j <= best; ++j) iters += s_iters[j];
     return iters;
 }
 
@@ -340,24 +336,20 @@ int iters_through(uint slot, uint best, int iters) {
 // surface: a hit further away is another surface the neighbour's photo sees, often wrongly): the
 // first neighbour in row order that gives one. Pass u_pass reads only hits found before it (layer
 // < u_layers + u_pass), so the result does not depend on the order in which threads run; a pixel
-// filled here gets the layer index u_layers + u_pass. One thread per neighbour: the pass takes as
-// long as one neighbour's search, not eight in a row.
+// filled here gets the layer index u_layers + u_pass. One workgroup per hole, one thread per
+// neighbour: the pass takes as long as one neighbour's search, not eight in a row.
 uniform int u_pass;
 
 void main() {
-    uint lid = gl_LocalInvocationID.x, slot = gl_LocalInvocationID.y;
+    uint lid = gl_LocalInvocationIndex;
     mat3 Rt = transpose(u_R);
     vec3 C = -(Rt * u_t);
-    uint n_holes = hole_cmd.n;  // read once: the loop is the same in every thread of the workgroup
-    for (uint base = gl_WorkGroupID.x * uint(HOLE_ITEMS); base < n_holes;
-         base += gl_NumWorkGroups.x * uint(HOLE_ITEMS)) {
-        uint e = base + slot;
-        bool item = e < n_holes;
-        uint pix = item ? hole_items[e] : 0u;
+    for (uint e = gl_WorkGroupID.x; e < hole_cmd.n; e += gl_NumWorkGroups.x) {
+        uint pix = hole_items[e];
         ivec2 p = ivec2(int(pix % uint(u_size.x)), int(pix / uint(u_size.x)));
         vec3 dir = Rt * camera_ray(vec2(p) + 0.5);
         float dlen = length(dir);
-        if (lid == 0u) s_best[slot] = NONE;
+        if (lid == 0u) s_best = NONE;
         memoryBarrierShared();
         barrier();
         int k = int(lid < 4u ? lid : lid + 1u);  // the 3 x 3 neighbourhood in row order, centre skipped
@@ -367,7 +359,7 @@ void main() {
         vec3 n = vec3(0.0);
         Hit nb = Hit(0.0, -1, -1, 0u);
         bool found = false;
-        if (item && all(greaterThanEqual(q, ivec2(0))) && all(lessThan(q, u_size))) {
+        if (all(greaterThanEqual(q, ivec2(0))) && all(lessThan(q, u_size))) {
             nb = hits[uint(q.y * u_size.x + q.x)];
             if (hit_layer(nb) >= 0 && hit_layer(nb) < u_layers + u_pass && nb.depth > 0.0) {
                 // only the neighbour's own surface: within the discontinuity threshold of its depth
@@ -375,17 +367,16 @@ void main() {
                         abs(s_hit - nb.depth) <= u_threshold;
             }
         }
-        s_iters[slot][lid] = iters;
-        if (found) atomicMin(s_best[slot], lid);
+        s_iters[lid] = iters;
+        if (found) atomicMin(s_best, lid);
         memoryBarrierShared();
         barrier();
-        uint best = s_best[slot];
-        if (item && best == lid) {
-            hits[pix] = Hit(s_hit, nb.label, -1,
-                            layer_iters(u_layers + u_pass, iters_through(slot, best, hit_iters(hits[pix]))));
+        uint best = s_best;
+        if (best == lid) {
+            hits[pix] = Hit(s_hit, nb.label, -1, layer_iters(u_layers + u_pass, iters_through(best, hit_iters(hits[pix]))));
             write_normal(pix, n);
-        } else if (item && best == NONE && lid == 0u) {
-            hits[pix].layer_iters = layer_iters(-1, iters_through(slot, best, hit_iters(hits[pix])));
+        } else if (best == NONE && lid == 0u) {
+            hits[pix].layer_iters = layer_iters(-1, iters_through(best, hit_iters(hits[pix])));
             if (u_fill != 0) push_hole(pix);
         }
         memoryBarrierShared();
