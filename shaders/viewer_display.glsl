@@ -25,7 +25,7 @@ in vec2 v_uv;
 out vec4 f_color;
 
 uniform int u_mode;
-uniform sampler2D u_color;    // RGB8 frame colour
+uniform sampler2D u_color;    // RGBA8 frame colour (alpha unused)
 uniform sampler2D u_scalar;   // R32F: depth (MODE_DEPTH) or iterations (MODE_ITERATIONS)
 uniform isampler2D u_index;   // R32I: labels (MODE_LABEL, MODE_SPLAT_LABEL) or layer_used (MODE_HOLES)
 uniform vec2 u_range;         // depth: (near, far) of the frame's surface; iterations: (0, max)

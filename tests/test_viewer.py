@@ -207,7 +207,10 @@ def test_window_app_headless(tiny_bundle, ctx, tmp_path):
     assert not np.allclose(v.R, R) and v.fov < fov
     wnd.render(0.0, 0.1)  # one frame through on_render into the window's framebuffer
     shown = np.flipud(np.frombuffer(wnd.fbo.read(components=3), np.uint8).reshape(H, W, 3))
-    assert np.array_equal(shown, v.image()) and np.array_equal(shown, v.frame["color"])
+    assert "color" not in v.frame  # the window's frames stay on the GPU
+    assert np.array_equal(shown, v.image())
+    v.update(record=False)  # the same view read back: the same colours
+    assert np.array_equal(shown, v.frame["color"])
     v.key("r")
     run_app(app, frames=2, screenshot=tmp_path / "still.png")
     assert wnd.frames >= 2
@@ -322,3 +325,24 @@ def test_proxy_set_switch(tiny_scene, ctx, tmp_path):
     v.key("p")
     assert v.proxy_levels == 2 and v.renderer().splats.n == int((full["labels"] >= 0).sum())
     v.close()
+
+
+@pytest.mark.parametrize("method", ["dmrt", "dmt"])
+def test_live_frames_show_what_read_back_frames_show(tiny_bundle, ctx, tmp_path, method):
+    """``update(readback=False)``: the colour view copies the renderer's colours into the display
+    on the GPU and reads nothing back; the image equals the one of the same frame read back. Other
+    views, and the orbit's pivot (the centre depth), still read the frame back."""
+    v = make_viewer(tiny_bundle, tmp_path, method=method)
+    try:
+        live = v.update(readback=False)
+        assert "color" not in live and "depth" not in live and live["timings"]
+        shown = v.image()
+        v.update()
+        assert np.array_equal(shown, v.image()) and np.array_equal(shown, v.frame["color"])
+        v.update(readback=False)
+        v.toggle_orbit()  # reads a frame back for the centre depth
+        assert np.allclose(v.pivot, v.position + centre_depth(v.frame) * v.R[2], atol=0.05)
+        v.set_buffer("depth")
+        assert "depth" in v.update(readback=False)  # a view other than the colour: read back
+    finally:
+        v.close()

@@ -291,6 +291,10 @@ class DMTRenderer:
                           "triangles_drawn": int(stats[1])}
         return frame
 
+    def gpu_colors(self) -> moderngl.Buffer:
+        """The last frame's colours on the GPU (:class:`dmrt.runtime.protocol.GpuColorRenderer`)."""
+        return self._fb["colors"]
+
     def flush_photos(self) -> int:
         """Wait for streamed photos and upload all the last frame wanted (as DMRT's Renderer)."""
         return self.shading.flush_photos()

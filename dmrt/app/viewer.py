@@ -42,7 +42,7 @@ from dmrt.camera import Camera
 from dmrt.gl.context import get_context
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.options import option, validate
-from dmrt.runtime.protocol import LayeredRenderer
+from dmrt.runtime.protocol import GpuColorRenderer, LayeredRenderer
 from dmrt.runtime.renderer import RenderConfig, Renderer
 from dmrt.runtime.walkthrough import save_path
 
@@ -253,6 +253,7 @@ class Viewer:
         self.last_path: Path | None = None
         self.last_screenshot: Path | None = None
         self.frame: dict | None = None
+        self.frame_size: tuple[int, int] | None = None  # (w, h) of the last frame
         self.fps = 0.0
         self.frame_ms = 0.0
         self._last_update: float | None = None
@@ -313,6 +314,8 @@ class Viewer:
             self.message = "fly"
             return
         distance = self.speed
+        if self.frame is not None and "depth" not in self.frame:  # a frame left on the GPU: read one
+            self.update(record=False)
         if self.frame is not None:
             h, w = self.frame["depth"].shape
             z = float(self.frame["depth"][h // 2, w // 2])
@@ -449,8 +452,11 @@ class Viewer:
         """The buffers the current method can show (all but ``splat_label`` come from the frame;
         a renderer without ``layers()`` has no splat labels)."""
         has_layers = isinstance(self.renderer(), LayeredRenderer)
-        keys = self.frame.keys() if self.frame is not None else {"iterations"}
-        return [b for b in BUFFERS if (b != "splat_label" or has_layers) and (b != "iterations" or "iterations" in keys)]
+        if self.frame is not None and "depth" in self.frame:
+            has_iterations = "iterations" in self.frame
+        else:  # before a frame, or a frame left on the GPU: DMRT's frames have them, DMT's not
+            has_iterations = has_layers
+        return [b for b in BUFFERS if (b != "splat_label" or has_layers) and (b != "iterations" or has_iterations)]
 
     def renderer(self):
         """The renderer for the current method / layers / leveling, built on first use; the
@@ -504,19 +510,26 @@ class Viewer:
         return path
 
     # -- frames ---------------------------------------------------------------------------------
-    def update(self, record: bool = True) -> dict:
+    def update(self, record: bool = True, readback: bool = True) -> dict:
         """Render a frame of the current view with the current method and upload the buffer
         shown. While recording (and ``record``), the frame's camera is appended to the path.
+
+        ``readback=False`` (the window's loop): when the colour is shown and the renderer keeps
+        its colours on the GPU (:class:`GpuColorRenderer`), the frame stays there and its colours
+        are copied into the display's texture on the GPU: no per-frame read-back of the frame's
+        buffers (32 bytes a pixel: ~30 MB a 720p frame). Other buffers are read back as before.
 
         Returns
         -------
         dict
-            The renderer's frame dict (plus ``splat_label`` (h, w) int32 when that buffer is shown).
+            The renderer's frame dict (plus ``splat_label`` (h, w) int32 when that buffer is shown);
+            a frame left on the GPU has only ``timings`` and ``cpu_ms``.
         """
         renderer = self.renderer()
         cam = self.camera
+        live = not readback and self.buffer == "color" and isinstance(renderer, GpuColorRenderer)
         t0 = time.perf_counter()
-        frame = renderer.render(cam, cam.width, cam.height)
+        frame = renderer.render(cam, cam.width, cam.height, readback=not live)
         if self.buffer == "splat_label" and isinstance(renderer, LayeredRenderer):
             frame["splat_label"] = renderer.layers()["label"][0]
         now = time.perf_counter()
@@ -527,8 +540,8 @@ class Viewer:
         self._last_update = now
         if self.recording and record:
             self.recorded.append(dataclasses.replace(cam, name=f"frame_{len(self.recorded):05d}"))
-        self.frame = frame
-        self._upload(frame)
+        self.frame, self.frame_size = frame, (cam.width, cam.height)
+        self._upload(frame, renderer.gpu_colors() if live else None)
         return frame
 
     def render(self) -> np.ndarray:
@@ -544,7 +557,7 @@ class Viewer:
 
     def image(self) -> np.ndarray:
         """(height, width, 3) uint8: the last frame as displayed, drawn off screen at its size."""
-        h, w = self.frame["depth"].shape
+        w, h = self.frame_size
         if self._fbo is None or self._fbo.size != (w, h):
             if self._fbo is not None:
                 self._fbo.release()
@@ -605,21 +618,30 @@ class Viewer:
         """The buffer actually shown: the chosen one when the method has it, else the colour."""
         return self.buffer if self.frame is None or self.buffer in self.buffers() else "color"
 
-    def _upload(self, frame: dict) -> None:
-        """Write the textures the shown buffer needs (the colour always: the holes view greys it)."""
-        h, w = frame["depth"].shape
+    def _upload(self, frame: dict, gpu_colors=None) -> None:
+        """Write the textures the shown buffer needs (the colour always: the holes view greys it);
+        ``gpu_colors``: the colour from the renderer's buffer on the GPU (a frame not read back)."""
+        w, h = self.frame_size
         t = self._textures
         if not t or t["color"].size != (w, h):
             for tex in t.values():
                 tex.release()
-            t["color"] = self.ctx.texture((w, h), 3)
+            t["color"] = self.ctx.texture((w, h), 4)  # RGBA8: the renderers' packed colours as they are
             t["scalar"] = self.ctx.texture((w, h), 1, dtype="f4")
             t["index"] = self.ctx.texture((w, h), 1, dtype="i4")
             t["overlay"] = self.ctx.texture((w, h), 4)
             for tex in t.values():
                 tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
             self._overlay_text = None
-        t["color"].write(np.ascontiguousarray(frame["color"], np.uint8).tobytes())
+        if gpu_colors is not None:
+            self.ctx.memory_barrier(moderngl.PIXEL_BUFFER_BARRIER_BIT)  # written by a shader
+            t["color"].write(gpu_colors)
+            if self.overlay:
+                self._draw_overlay(w, h)
+            return
+        rgba = np.empty((h, w, 4), np.uint8)
+        rgba[..., :3], rgba[..., 3] = frame["color"], 255
+        t["color"].write(rgba.tobytes())
         shown = self._shown
         if shown == "depth":
             z = frame["depth"]

@@ -87,7 +87,7 @@ class ViewerApp(mglw.WindowConfig):
 
     def on_render(self, time: float, frame_time: float) -> None:
         self.viewer.step(frame_time)
-        self.viewer.update()
+        self.viewer.update(readback=False)  # the colour view stays on the GPU
         self.viewer.draw(self.wnd.fbo, self.wnd.viewport)
         if time - self._title_time > 0.5:  # the title is the overlay's first line, twice a second
             self.wnd.title = f"dmrt view - {self.viewer.status()[0]}"

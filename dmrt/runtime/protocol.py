@@ -6,6 +6,8 @@ are used the same way by the command line, the viewer and the benchmarks.
     frame = renderer.render(camera, 1280, 720)   # the frame contract of dmrt.io.frames
     if isinstance(renderer, LayeredRenderer):    # only DMRT has label layers
         splat_labels = renderer.layers()["label"][0]
+    if isinstance(renderer, GpuColorRenderer):   # DMRT and DMT: a frame left on the GPU can be shown
+        colors = renderer.gpu_colors()
 """
 
 from __future__ import annotations
@@ -51,4 +53,15 @@ class LayeredRenderer(FrameRenderer, Protocol):
     def layers(self) -> dict:
         """The last frame's layers: ``depth`` (k, h, w) float32 camera z (0 = empty) and ``label``
         (k, h, w) int32 (-1 = empty)."""
+        ...
+
+
+@runtime_checkable
+class GpuColorRenderer(FrameRenderer, Protocol):
+    """A renderer whose last frame's colours stay readable on the GPU, so that a display can show a
+    frame rendered with ``readback=False`` without reading it back (the viewer)."""
+
+    def gpu_colors(self):
+        """The last frame's colours: a ``moderngl.Buffer`` of h x w packed RGBA8 (uint32, R in the
+        low byte; row 0 at the top; background 0), valid until the next frame."""
         ...

@@ -394,6 +394,10 @@ class Renderer:
         frame of the same view is then textured as with synchronous, unbounded streaming."""
         return self.shading.flush_photos()
 
+    def gpu_colors(self) -> moderngl.Buffer:
+        """The last frame's colours on the GPU (:class:`dmrt.runtime.protocol.GpuColorRenderer`)."""
+        return self._buffers["colors"]
+
     def layers(self) -> dict:
         """The last frame's label layers.
 
