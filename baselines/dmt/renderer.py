@@ -52,7 +52,8 @@ from dmrt.options import option, validate
 from dmrt.gl import abi
 from dmrt.gl.abi import HIT_DTYPE
 from dmrt.gl.kernels import fill_u32, groups
-from dmrt.runtime.shading import FrameShading
+from dmrt.gl.mapped import MappedBuffer
+from dmrt.runtime.shading import FrameShading, camera_uniforms
 
 STAGES = ("culling", "rasterization", "stitching", "image_management", "texturing", "leveling")
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
@@ -172,7 +173,9 @@ class DMTRenderer:
         gpu_boxes[ok, 0, 3] = 1.0
         self._boxes_buf = ctx.buffer(gpu_boxes.tobytes())
         self._commands = ctx.buffer(reserve=20 * n)
-        self._stats = ctx.buffer(reserve=8)
+        # (maps culled, triangles drawn), read at each frame's end: in mapped host memory, so that the
+        # read waits for the culling pass only, not for the whole frame (dmrt/gl/mapped.py)
+        self._stats = MappedBuffer(ctx, bytes(8))
         # gl_VertexID is an int: maps are drawn in groups whose vertex ranges stay below 2^31
         self.verts_per_map = 6 * (dims[0] - 1) * (dims[1] - 1)
         self.maps_per_draw = max(1, _MAX_VERTEX_ID // max(self.verts_per_map, 1))
@@ -230,8 +233,7 @@ class DMTRenderer:
         n = len(self.cameras)
         vp = cam.gl_view_projection(cfg.near, self.far_plane(cam), self.origin)
         local = cam.relative_to(self.origin)
-        cam_uniforms = {"u_R": local.R.T.ravel(), "u_t": local.t, "u_K": (local.fx, local.fy, local.cx, local.cy),
-                        "u_size": (w, h)}
+        cam_uniforms = camera_uniforms(local)
         vp_bytes = np.ascontiguousarray(vp.T, np.float32)  # GLSL reads column-major
         timer.reset()
         self.shading.begin_frame()
@@ -246,6 +248,7 @@ class DMTRenderer:
                          u_verts_per_map=self.verts_per_map)
             self._cull.run(groups(n, 64))
             ctx.memory_barrier(_BARRIER)
+            self._stats.written()
             if maps is not None:  # restrict on the CPU: zero the other maps' vertex counts
                 keep = np.zeros(n, bool)
                 keep[np.asarray(list(maps), np.int64)] = True

@@ -55,7 +55,7 @@ from dmrt.gl.context import get_context
 from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups, max_groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
-from dmrt.runtime.shading import FrameShading
+from dmrt.runtime.shading import FrameShading, camera_uniforms
 from dmrt.runtime.visibility import ProxySplats, VisibilityStage
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
@@ -292,9 +292,7 @@ class Renderer:
         self._allocate(w, h)
         b = self._buffers
         local = cam.relative_to(self.origin)
-        # the matrix and vector as float32 bytes once: set_uniforms compares and writes them as they are
-        cam_uniforms = {"u_R": local.R.T.astype(np.float32).tobytes(), "u_t": np.float32(local.t).tobytes(),
-                        "u_K": (local.fx, local.fy, local.cx, local.cy), "u_size": (w, h)}
+        cam_uniforms = camera_uniforms(local)
         npix = w * h
         grid = (groups(w, 8), groups(h, 8))
         ctx, timer = self.ctx, self.timer

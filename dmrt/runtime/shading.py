@@ -29,6 +29,7 @@ from dmrt.gl.context import check_gl
 from dmrt.gl.kernels import Staging, fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.io.frames import empty_frame
+from dmrt.camera import Camera
 from dmrt.runtime.leveling import ScreenLeveler
 from dmrt.runtime.status import FrameStatus
 from dmrt.runtime.texturing import ImageCache, gains_buffer_data, texture_frame
@@ -49,6 +50,15 @@ def photo_params(cameras, origin, depth_sizes, low_sizes) -> np.ndarray:
         out[j, 16:20] = (dw, dh, lw, lh)
         out[j, 20:22] = (cam.width, cam.height)
     return out
+
+
+def camera_uniforms(local: Camera) -> dict:
+    """The render camera's uniforms, every frame pass's: ``u_R`` the world->camera rotation
+    (column-major, float32 bytes), ``u_t`` (3,) metres (float32 bytes), ``u_K`` (fx, fy, cx, cy)
+    pixels, ``u_size`` (w, h). ``local``: the camera relative to the scene origin. Bytes, converted
+    once a frame: ``set_uniforms`` compares and writes them as they are."""
+    return {"u_R": local.R.T.astype(np.float32).tobytes(), "u_t": np.float32(local.t).tobytes(),
+            "u_K": (local.fx, local.fy, local.cx, local.cy), "u_size": (local.width, local.height)}
 
 
 def read_gpu_frame(staging: Staging, hits_buffer: moderngl.Buffer, colors_buffer: moderngl.Buffer,
