@@ -66,17 +66,19 @@ WARM_UP_S = 0.5
 SUSTAINED_S = 1.0
 
 
-def _back_to_back(renderer, cameras, seconds: float) -> int:
+def _back_to_back(renderer, cameras, seconds: float) -> list[float]:
     """Render ``cameras`` back to back, frames left on the GPU, whole walkthroughs until ``seconds``
-    of wall clock have passed (at least one); waits for the GPU at the end. Returns the frames."""
+    of wall clock have passed (at least one); waits for the GPU at the end. Returns each
+    ``render()`` call's wall ms: the CPU's time to issue the frame plus whatever it waited for."""
     renderer.ctx.finish()
-    t0, n = time.perf_counter(), 0
-    while n == 0 or time.perf_counter() - t0 < seconds:
+    t0, calls = time.perf_counter(), []
+    while not calls or time.perf_counter() - t0 < seconds:
         for cam in cameras:
+            t1 = time.perf_counter()
             renderer.render(cam, readback=False)
-        n += len(cameras)
+            calls.append((time.perf_counter() - t1) * 1e3)
     renderer.ctx.finish()
-    return n
+    return calls
 
 
 def _stage_summary(frames: list[dict]) -> dict:
@@ -126,6 +128,9 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         ``sustained_timed`` {``wall_ms`` per frame, ``median_ms`` {stage}, ``median_part_ms``
         {part}, ``median_total_ms``, ``p95_total_ms``, ``total_ms_per_frame``} of the sustained
         timed pass, ``status_reads_per_frame`` (status records read back a frame, sustained pass),
+        ``sustained_call_ms`` {``median``, ``p95``} (wall ms of each ``render()`` call of the
+        sustained pass: what the CPU takes to issue a frame, plus its waits; with
+        ``tile_check="lagged"`` there are none, so this is the CPU's share of a frame),
         ``gpu_clocks`` {``before``, ``after``, ``sustained``: :func:`gpu_clocks` around the timed
         pass and after the sustained one, None without nvidia-smi}, ``fps_min_avg_max``, ``fps_median``,
         per frame ``total_ms_per_frame``, ``stage_ms_per_frame`` {stage: list}, ``wall_ms_per_frame``
@@ -164,7 +169,8 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         _back_to_back(renderer, cameras, WARM_UP_S)  # clocks up again after the timed pass's waits
         reads0 = renderer.shading.status.reads
         t0 = time.perf_counter()
-        n = _back_to_back(renderer, cameras, SUSTAINED_S)
+        calls = _back_to_back(renderer, cameras, SUSTAINED_S)
+        n = len(calls)
         sustained = (time.perf_counter() - t0) * 1e3 / n
         reads = (renderer.shading.status.reads - reads0) / n
         renderer.timer.enabled = True
@@ -191,6 +197,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
                 "p95_total_ms": float(np.percentile(totals, 95)), "p95_wall_ms": float(np.percentile(wall, 95)),
                 "frame_size": [cameras[0].width, cameras[0].height], "sustained_ms": sustained,
                 "gpu_clocks": clocks, "sustained_timed": sustained_timed, "status_reads_per_frame": reads,
+                "sustained_call_ms": {"median": float(np.median(calls)), "p95": float(np.percentile(calls, 95))},
                 **fps_summary(totals),
                 "total_ms_per_frame": totals, "stage_ms_per_frame": {s: [t[s] for t in timings] for s in stages},
                 "wall_ms_per_frame": wall, "median_wall_ms": float(np.median(wall)),

@@ -49,6 +49,9 @@
 #ifndef TOP
 #define TOP 16  // nearest hits a pixel keeps sorted during the first walk: 4, 8, 12 or 16
 #endif
+#if TOP != 4 && TOP != 8 && TOP != 12 && TOP != 16
+#error "TOP must be 4, 8, 12 or 16 (the registers keep the nearest hits in vectors of 4)"
+#endif
 
 layout(local_size_x = TILE, local_size_y = TILE) in;
 

@@ -251,3 +251,5 @@ def test_mapped_buffer_reads_what_the_gpu_wrote(ctx):
             buf.write(bytes(33))
     finally:
         buf.release()
+    with pytest.raises(RuntimeError, match="released"):
+        buf.read()

@@ -75,7 +75,7 @@ def _proc_address():
     return glx.glXGetProcAddressARB
 
 
-@lru_cache(maxsize=None)
+@lru_cache(maxsize=None)  # once a process: glvnd's entry points dispatch to the current context
 def _gl():
     """The GL entry points above (a namespace of ctypes functions)."""
     get = _proc_address()
@@ -104,6 +104,11 @@ class MappedBuffer:
     """
 
     def __init__(self, ctx: moderngl.Context, data: bytes):
+        # GL 4.4 buffer storage and 4.5 direct state access (drivers expose both to 4.3 contexts as
+        # extensions: NVIDIA's; Mesa's contexts are 4.5)
+        if ctx.version_code < 450 and not {"GL_ARB_buffer_storage", "GL_ARB_direct_state_access"} <= set(ctx.extensions):
+            raise RuntimeError("the GL driver lacks GL 4.5 or GL_ARB_buffer_storage + GL_ARB_direct_state_access, "
+                               "which the frame's status records need (persistently mapped buffers)")
         self.ctx, self.size = ctx, len(data)
         gl = self._gl = _gl()
         glo = _u(0)
@@ -130,6 +135,8 @@ class MappedBuffer:
         if self._fence:
             self._gl.glDeleteSync(self._fence)
         self._fence = self._gl.glFenceSync(_SYNC_GPU_COMMANDS_COMPLETE, 0)
+        if not self._fence:
+            raise RuntimeError("glFenceSync failed: the GL context is lost")
         self._unfenced = False
 
     def read(self) -> bytes:
@@ -146,6 +153,8 @@ class MappedBuffer:
         ctypes.memmove(self._ptr, data, len(data))
 
     def _wait(self) -> None:
+        if not self._ptr:
+            raise RuntimeError("the mapped buffer was released")
         if self._unfenced:
             self.written()
         if self._fence:
