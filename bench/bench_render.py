@@ -67,6 +67,11 @@ def main(argv=None) -> None:
     p.add_argument("--methods", nargs="+", default=["compute", "raster"])
     p.add_argument("--refine", nargs="+", default=["illinois"], help="hit refinements (RenderConfig.refine)")
     p.add_argument("--tile-check", nargs="+", default=["frame"], help="tiles list checks (RenderConfig.tile_check)")
+    p.add_argument("--max-steps", type=int, nargs="+", default=[100],
+                   help="iterative-search steps per layer (RenderConfig.max_steps; the paper: 100). A lower cap "
+                        "shortens the few searches that do not converge, which set their warps' time; it also "
+                        "changes some pixels (on the `small` scene a cap of 32 changed 0.08 %% of them): Figs. 8 and 13 "
+                        "must be measured with a cap before it becomes a default")
     p.add_argument("--fenced", action="store_true", help="glFinish around every timed section: each stage's "
                    "and part's own GPU time (slower frames; see dmrt.gl.timer.GpuTimer.fenced)")
     p.add_argument("--leveling", action=argparse.BooleanOptionalAction, default=True,
@@ -85,15 +90,17 @@ def main(argv=None) -> None:
     for size in args.sizes:
         w, h = (int(v) for v in size.lower().split("x"))
         path = camera_path(keys, args.frames, w, h)
-        for method, refine, check, k in itertools.product(args.methods, args.refine, args.tile_check, args.layers):
+        for method, refine, check, steps, k in itertools.product(args.methods, args.refine, args.tile_check,
+                                                                  args.max_steps, args.layers):
             if check != "frame" and method != "tiles":
                 continue
-            config = RenderConfig(layers=k, method=method, leveling=args.leveling, refine=refine, tile_check=check)
+            config = RenderConfig(layers=k, method=method, leveling=args.leveling, refine=refine, tile_check=check,
+                                  max_steps=steps)
             r = measure_walkthrough(bundle, config, path, f"{method} k={k} {w}x{h}", fenced=args.fenced)
             r.pop("stage_ms_per_frame")
-            runs.append({"method": method, "refine": refine, "tile_check": check, "layers": k, **r})
+            runs.append({"method": method, "refine": refine, "tile_check": check, "max_steps": steps, "layers": k, **r})
             stages = "  ".join(f"{s} {v:.3f}" for s, v in {**r["median_ms"], **r["median_part_ms"]}.items())
-            print(f"{w}x{h} {method:8s} {refine:9s} {check:6s} k={k:2d}  {stages}"
+            print(f"{w}x{h} {method:8s} {refine:9s} {check:6s} steps={steps:3d} k={k:2d}  {stages}"
                   + f"  | GPU median {r['median_total_ms']:.3f} p95 {r['p95_total_ms']:.3f} ms, wall median "
                     f"{r['median_wall_ms']:.3f} p95 {r['p95_wall_ms']:.3f} ms, sustained {r['sustained_ms']:.3f} "
                     f"ms/frame, {r['mean_iterations']:.2f} steps, status reads {r['status_reads_per_frame']:.2f}/frame, "
