@@ -88,9 +88,10 @@ class RenderConfig:
     fill_passes: int = option(2, "addition to the paper: passes in which a covered pixel that no layer gave a "
                                  "surface searches its neighbours' depth maps near their depths; 0 = the paper",
                               minimum=0)
-    # tiles is the fastest path, with every layer equal to compute peeling's (H200, paper preset, 5
-    # layers, visibility stage in Table 2: 1.3 ms at 720p and 4.0 ms at 4K against 8.8 / 41.6 ms for
-    # compute peeling and 9.8 / 76.6 ms for the k-buffer; reports/latest, commit f8e28ef)
+    # tiles is the fastest path, with every layer equal to compute peeling's (paper preset, 5 layers,
+    # the visibility stage of frames back to back: 0.82 ms at 720p and 3.59 ms at 4K against 5.29 /
+    # 41.9 ms for compute peeling and 10.3 / 83.4 ms for the k-buffer on an H100, session 11 in
+    # reports/frame-h200; Table 2 of reports/latest on an H200 agrees)
     method: Visibility = option(
         "tiles", "visibility stage: tiles (the discs binned into screen tiles, each pixel's layers found in "
                  "registers: dmrt/runtime/tiles.py), compute (depth peeling by atomicMin splatting, a "
