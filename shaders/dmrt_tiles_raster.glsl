@@ -207,6 +207,21 @@ void layers_from_nearest() {
 #endif
 }
 
+// A list longer than BATCH: walked BATCH discs at a time, each batch loaded into shared memory by
+// the whole workgroup (call it from uniform control flow: it holds barriers); `walking`: this
+// invocation tests the discs.
+void walk_batches(uint off, uint count, bool walking) {
+    for (uint sb = 0u; sb < count; sb += uint(BATCH)) {
+        uint nb = min(uint(BATCH), count - sb);
+        memoryBarrierShared();
+        barrier();  // the batch before is no longer read
+        load_batch(off + sb, nb);
+        memoryBarrierShared();
+        barrier();
+        if (walking) walk(0u, nb);
+    }
+}
+
 void main() {
     uint lid = gl_LocalInvocationIndex;
     uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
@@ -246,15 +261,7 @@ void main() {
             walk(min(count, uint(MASK_DISCS)), count);
         }
     } else {
-        for (uint sb = 0u; sb < count; sb += uint(BATCH)) {
-            uint nb = min(uint(BATCH), count - sb);
-            memoryBarrierShared();
-            barrier();  // the batch before is no longer read
-            load_batch(off + sb, nb);
-            memoryBarrierShared();
-            barrier();
-            if (inside) walk(0u, nb);
-        }
+        walk_batches(off, count, inside);
     }
     g_first = false;
     if (inside) layers_from_nearest();
@@ -279,15 +286,7 @@ void main() {
                 walk(min(count, uint(MASK_DISCS)), count);
             }
         } else {
-            for (uint sb = 0u; sb < count; sb += uint(BATCH)) {
-                uint nb = min(uint(BATCH), count - sb);
-                memoryBarrierShared();
-                barrier();  // the batch before is no longer read
-                load_batch(off + sb, nb);
-                memoryBarrierShared();
-                barrier();
-                if (searching) walk(0u, nb);
-            }
+            walk_batches(off, count, searching);
         }
         if (searching && g_best_d != EMPTY_BITS) write_layer(g_best_d, g_best_l);
         searching = searching && g_best_d != EMPTY_BITS && g_found < uint(u_layers);
