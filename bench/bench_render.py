@@ -24,6 +24,8 @@ import shutil
 import time
 from pathlib import Path
 
+import numpy as np
+
 
 def bundle_path(args, setup: dict) -> Path:
     """``args.bundle``, or with ``args.preset`` the preset's scene generated and preprocessed in
@@ -53,6 +55,15 @@ def add_source_args(p: argparse.ArgumentParser, work: str) -> None:
     p.add_argument("--out", type=Path, required=True)
 
 
+def _depth_change(first_steps: int, first: list, depths: list) -> dict:
+    """What a step cap changes against the first one, over the same walkthrough's frames ((h, w)
+    float32 camera z, 0 = background): ``pixels_differing`` (fraction whose depth differs),
+    ``background_change`` (fraction of background pixels, this cap minus the first)."""
+    return {"max_steps": first_steps,
+            "pixels_differing": float(np.mean([np.mean(a != b) for a, b in zip(first, depths)])),
+            "background_change": float(np.mean([np.mean(b == 0) - np.mean(a == 0) for a, b in zip(first, depths)]))}
+
+
 def main(argv=None) -> None:
     from bench.experiments import measure_walkthrough
     from dmrt.gl import get_context, renderer_info
@@ -70,8 +81,9 @@ def main(argv=None) -> None:
     p.add_argument("--max-steps", type=int, nargs="+", default=[100],
                    help="iterative-search steps per layer (RenderConfig.max_steps; the paper: 100). A lower cap "
                         "shortens the few searches that do not converge, which set their warps' time; it also "
-                        "changes some pixels (on the `small` scene a cap of 32 changed 0.08 %% of them): Figs. 8 and 13 "
-                        "must be measured with a cap before it becomes a default")
+                        "changes some pixels: each cap after the first records what it changes against the first "
+                        "(depth_vs_first_cap: pixels whose depth differs, background change); Figs. 8 and 13 must "
+                        "be measured with a cap before it becomes a default")
     p.add_argument("--fenced", action="store_true", help="glFinish around every timed section: each stage's "
                    "and part's own GPU time (slower frames; see dmrt.gl.timer.GpuTimer.fenced)")
     p.add_argument("--leveling", action=argparse.BooleanOptionalAction, default=True,
@@ -87,6 +99,8 @@ def main(argv=None) -> None:
     name = args.preset or bundle.root.name
     keys = bundle.cameras[:: max(1, len(bundle.cameras) // 12)]
     runs = []
+    # with several step caps, the first one's depths (statistics pass) and what the others change
+    reference: dict[tuple, tuple[int, list]] = {}
     for size in args.sizes:
         w, h = (int(v) for v in size.lower().split("x"))
         path = camera_path(keys, args.frames, w, h)
@@ -96,8 +110,15 @@ def main(argv=None) -> None:
                 continue
             config = RenderConfig(layers=k, method=method, leveling=args.leveling, refine=refine, tile_check=check,
                                   max_steps=steps)
-            r = measure_walkthrough(bundle, config, path, f"{method} k={k} {w}x{h}", fenced=args.fenced)
+            depths: list[np.ndarray] = []
+            keep = (lambda f: depths.append(f["depth"].copy())) if len(args.max_steps) > 1 else None
+            r = measure_walkthrough(bundle, config, path, f"{method} k={k} {w}x{h}", fenced=args.fenced,
+                                    on_frame=keep)
             r.pop("stage_ms_per_frame")
+            if keep is not None:
+                first_steps, first = reference.setdefault((w, h, method, refine, check, k), (steps, depths))
+                if first is not depths:
+                    r["depth_vs_first_cap"] = _depth_change(first_steps, first, depths)
             runs.append({"method": method, "refine": refine, "tile_check": check, "max_steps": steps, "layers": k, **r})
             stages = "  ".join(f"{s} {v:.3f}" for s, v in {**r["median_ms"], **r["median_part_ms"]}.items())
             print(f"{w}x{h} {method:8s} {refine:9s} {check:6s} steps={steps:3d} k={k:2d}  {stages}"
