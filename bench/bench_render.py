@@ -65,7 +65,7 @@ def _depth_change(first_steps: int, first: list, depths: list) -> dict:
 
 
 def main(argv=None) -> None:
-    from bench.experiments import measure_walkthrough
+    from bench.experiments import measure_walkthrough, profile_walkthrough
     from dmrt.gl import get_context, renderer_info
     from dmrt.io.bundle import read_bundle
     from dmrt.runtime.renderer import RenderConfig
@@ -89,6 +89,8 @@ def main(argv=None) -> None:
     p.add_argument("--leveling", action=argparse.BooleanOptionalAction, default=True,
                    help="screen-space leveling, as the paper's texturing pass (default: on)")
     p.add_argument("--frames", type=int, default=30, help="walkthrough frames per configuration")
+    p.add_argument("--cpu-profile", action="store_true", help="also profile the CPU while it issues the frames "
+                   "back to back (cProfile: Python and each GL call's own time; cpu_profile in the JSON)")
     p.add_argument("--write-normals", action="store_true", help="synthetic scan carries normals (skips estimation)")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -115,6 +117,8 @@ def main(argv=None) -> None:
             r = measure_walkthrough(bundle, config, path, f"{method} k={k} {w}x{h}", fenced=args.fenced,
                                     on_frame=keep)
             r.pop("stage_ms_per_frame")
+            if args.cpu_profile:
+                r["cpu_profile"] = profile_walkthrough(bundle, config, path)
             if keep is not None:
                 first_steps, first = reference.setdefault((w, h, method, refine, check, k), (steps, depths))
                 if first is not depths:

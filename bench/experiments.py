@@ -209,6 +209,44 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         renderer.release()
 
 
+def profile_walkthrough(bundle, config, cameras, seconds: float = SUSTAINED_S, top: int = 25) -> dict:
+    """Where the CPU's time goes while it issues frames: ``cameras`` rendered back to back (frames
+    left on the GPU, as the sustained pass) under :mod:`cProfile`, after :data:`WARM_UP_S` of
+    warm-up, with a fresh renderer.
+
+    Returns
+    -------
+    dict
+        ``frames``; ``ms_per_frame`` (wall, profiled: the profiler slows Python, not the driver);
+        ``top`` - the ``top`` functions by own time: ``function`` (file:line(name), or the C
+        method, e.g. ``{method 'run' of 'mgl.ComputeShader' objects}``: a GL call), ``calls_per_frame``,
+        ``own_ms_per_frame``, ``total_ms_per_frame`` (with what it calls).
+    """
+    import cProfile
+    import pstats
+
+    from dmrt.runtime.renderer import Renderer
+
+    renderer = Renderer(bundle, config)
+    try:
+        renderer.timer.enabled = False
+        _back_to_back(renderer, cameras, WARM_UP_S)
+        profiler = cProfile.Profile()
+        t0 = time.perf_counter()
+        profiler.enable()
+        n = len(_back_to_back(renderer, cameras, seconds))
+        profiler.disable()
+        wall = (time.perf_counter() - t0) * 1e3 / n
+        stats = pstats.Stats(profiler).stats  # (file, line, name) -> (calls, primitive, own s, total s, callers)
+        rows = sorted(stats.items(), key=lambda kv: -kv[1][2])[:top]
+        return {"frames": n, "ms_per_frame": wall,
+                "top": [{"function": f"{f}:{line}({name})" if line else name, "calls_per_frame": c / n,
+                         "own_ms_per_frame": own * 1e3 / n, "total_ms_per_frame": total * 1e3 / n}
+                        for (f, line, name), (_, c, own, total, _) in rows]}
+    finally:
+        renderer.release()
+
+
 def quality_config(**kw):
     """RenderConfig for quality measurements: every frame's photo cache exactly its most frequent
     labels (no streaming delay), no leveling and no photometric gains, so colours are the photos'
