@@ -9,7 +9,8 @@
 # preprocessing in-process; the per-stage frame times of every visibility path at 1280x720 and
 # 3840x2160 with 5 layers and the default configuration (bench.bench_render: GPU-resident
 # walkthroughs, median / p95, sustained, clocks), and the paper's bisection beside the default
-# Illinois refinement; the visibility paths'
+# Illinois refinement; the default path with the search's step capped at 32 and 16 (time and what
+# the cap changes in the frames), with both list checks and a CPU profile of the issuing; the visibility paths'
 # agreement with compute peeling (bench.bench_visibility); with 2+ GPUs, the preprocessing again
 # on a 2-worker Dask LocalCluster (one GPU each) for the depth maps' speed-up.
 # The environment (EGL vendor file, PYTHONPATH with the wheels, DMRT_COMMIT) is the caller's:
@@ -33,6 +34,9 @@ step render python3 -m bench.bench_render --bundle "$work/bundle" --out "$out/re
     --methods tiles compute kbuffer --sizes 1280x720 3840x2160 --frames 30 --no-leveling
 step render_bisection python3 -m bench.bench_render --bundle "$work/bundle" --out "$out/results/bisection" \
     --layers 5 --methods tiles --refine bisection --sizes 1280x720 3840x2160 --frames 30 --no-leveling
+step render_caps python3 -m bench.bench_render --bundle "$work/bundle" --out "$out/results/caps" --layers 5 \
+    --methods tiles --tile-check frame lagged --max-steps 100 32 16 --sizes 1280x720 3840x2160 --frames 30 \
+    --no-leveling --cpu-profile
 step visibility python3 -m bench.bench_visibility --bundle "$work/bundle" --out "$out/results" --layers 5 \
     --slots 32 --max-thread-pixels 256
 if [ "$(nvidia-smi -L 2>/dev/null | wc -l)" -ge 2 ]; then
