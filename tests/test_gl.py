@@ -223,8 +223,8 @@ def test_gl_errors_raise(ctx):
 
 def test_mapped_buffer_reads_what_the_gpu_wrote(ctx):
     """A persistently mapped buffer (the status records' storage): its initial bytes, then what
-    passes wrote - read after their fence, after an unfenced bind (the read fences it), and after
-    a CPU write the next pass overwrites in part."""
+    passes wrote - read after their fence, after an unfenced bind (the read fences it), after a CPU
+    write the next pass overwrites in part, and a GPU buffer's copy (``copy_from``)."""
     from dmrt.gl.mapped import MappedBuffer
 
     program = ctx.compute_shader("""#version 430
@@ -249,6 +249,12 @@ def test_mapped_buffer_reads_what_the_gpu_wrote(ctx):
         np.testing.assert_array_equal(np.frombuffer(buf.read(), np.uint32), [107] * 4 + [7] * 4)
         with pytest.raises(ValueError, match="do not fit"):
             buf.write(bytes(33))
+        src = ctx.buffer(np.arange(20, 28, dtype=np.uint32).tobytes())  # a GPU buffer, copied on the GPU
+        src.bind_to_storage_buffer(3)
+        program.run(1)  # the copy follows this pass's writes
+        buf.copy_from(src, 16)
+        np.testing.assert_array_equal(np.frombuffer(buf.read(), np.uint32), [120, 121, 122, 123] + [7] * 4)
+        src.release()
     finally:
         buf.release()
     with pytest.raises(RuntimeError, match="released"):

@@ -173,9 +173,11 @@ class DMTRenderer:
         gpu_boxes[ok, 0, 3] = 1.0
         self._boxes_buf = ctx.buffer(gpu_boxes.tobytes())
         self._commands = ctx.buffer(reserve=20 * n)
-        # (maps culled, triangles drawn), read at each frame's end: in mapped host memory, so that the
-        # read waits for the culling pass only, not for the whole frame (dmrt/gl/mapped.py)
-        self._stats = MappedBuffer(ctx, bytes(8))
+        # (maps culled, triangles drawn), counted by the culling pass's atomics; read at each frame's
+        # end from a copy in mapped host memory, so that the read waits for the culling pass only,
+        # not for the whole frame (dmrt/gl/mapped.py)
+        self._stats = ctx.buffer(reserve=8)
+        self._stats_host = MappedBuffer(ctx, bytes(8))
         # gl_VertexID is an int: maps are drawn in groups whose vertex ranges stay below 2^31
         self.verts_per_map = 6 * (dims[0] - 1) * (dims[1] - 1)
         self.maps_per_draw = max(1, _MAX_VERTEX_ID // max(self.verts_per_map, 1))
@@ -248,17 +250,17 @@ class DMTRenderer:
                          u_verts_per_map=self.verts_per_map)
             self._cull.run(groups(n, 64))
             ctx.memory_barrier(_BARRIER)
-            self._stats.written()
+            self._stats_host.copy_from(self._stats)
             if maps is not None:  # restrict on the CPU: zero the other maps' vertex counts
                 keep = np.zeros(n, bool)
                 keep[np.asarray(list(maps), np.int64)] = True
                 cmds = np.frombuffer(self._commands.read(), np.uint32).reshape(n, 5).copy()
-                stats = np.frombuffer(self._stats.read(), np.uint32).copy()
+                stats = np.frombuffer(self._stats_host.read(), np.uint32).copy()
                 stats[0] += int(((cmds[:, 0] > 0) & ~keep).sum())
                 stats[1] -= int(cmds[~keep, 0].sum() // 3)
                 cmds[~keep, 0] = 0
                 self._commands.write(cmds.tobytes())
-                self._stats.write(stats.tobytes())
+                self._stats_host.write(stats.tobytes())
 
         mesh_uniforms = {"u_vp": vp_bytes, "u_eye": local.center.astype(np.float32),
                          "u_verts_per_map": self.verts_per_map, "u_threshold": float(cfg.discontinuity_threshold),
@@ -287,7 +289,7 @@ class DMTRenderer:
         # the end of the frame: DMRT's (dmrt.runtime.shading) on the DMT hits
         frame, hits = self.shading.finish(fb["hits"], fb["colors"], fb["normals"], self.depthmaps, cam_uniforms,
                                           STAGES, "rendering a DMT frame", readback)
-        stats = np.frombuffer(self._stats.read(), np.uint32)
+        stats = np.frombuffer(self._stats_host.read(), np.uint32)
         if readback:
             frame["depth_map"] = hits["label"].copy()
         frame["stats"] = {"maps": n, "maps_culled": int(stats[0]), "maps_drawn": n - int(stats[0]),
@@ -308,7 +310,7 @@ class DMTRenderer:
         for vao in self._vao.values():
             vao.release()
         self.shading.release()
-        for obj in (self.depthmaps, self.labels, self._boxes_buf, self._commands, self._stats):
+        for obj in (self.depthmaps, self.labels, self._boxes_buf, self._commands, self._stats, self._stats_host):
             if obj is not None:
                 obj.release()
 

@@ -45,6 +45,7 @@ _SIGNATURES = {  # name: (result, arguments)
     "glFenceSync": (_p, [_u, _u]),
     "glClientWaitSync": (_u, [_p, _u, ctypes.c_uint64]),
     "glDeleteSync": (None, [_p]),
+    "glCopyNamedBufferSubData": (None, [_u, _u, _sz, _sz, _sz]),
 }
 
 
@@ -138,6 +139,15 @@ class MappedBuffer:
         if not self._fence:
             raise RuntimeError("glFenceSync failed: the GL context is lost")
         self._unfenced = False
+
+    def copy_from(self, src: moderngl.Buffer, nbytes: int | None = None) -> None:
+        """Copy the first ``nbytes`` (default: all of this buffer) of a GPU buffer into this one on
+        the GPU, after the passes issued so far, and mark the copy as what :meth:`read` waits for.
+        For what shaders build with atomics: GPU atomics belong in GPU memory, not across PCIe."""
+        n = self.size if nbytes is None else int(nbytes)
+        self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)  # the shaders' writes to src first
+        self._gl.glCopyNamedBufferSubData(src.glo, self.glo, 0, 0, n)
+        self.written()
 
     def read(self) -> bytes:
         """The contents once the passes up to the last :meth:`written` have run."""
