@@ -12,7 +12,9 @@
 // each, eight words); with TILE 16 the labeling pass's first batch of TILE^2 discs is exactly those,
 // so it reads the bits (B_TILE_MASKS) instead of testing the discs again.
 #define MASK_DISCS 256
+#ifndef HIT_MASKS  // the stage turns them off for a renderer without the labeling pass
 #define HIT_MASKS (TILE * TILE == MASK_DISCS)
+#endif
 
 // Binding points (B_PROXIES, B_LARGE, B_LAYER_DEPTH, B_LAYER_LABEL, B_TILE_*) and the sentinels
 // EMPTY_BITS, EMPTY_LABEL come from dmrt/gl/abi.py, injected as #defines by the loader.

@@ -82,7 +82,7 @@ void main() {
     uint start = offsets[tile];
     uint end = min(offsets[tile + 1u], u_capacity);
     // the raster's condition for holding the list in shared memory, on the same (cut) length
-    bool masked = HIT_MASKS && min(end, u_capacity) - min(start, u_capacity) <= uint(BATCH);
+    bool masked = bool(HIT_MASKS) && min(end, u_capacity) - min(start, u_capacity) <= uint(BATCH);
     for (uint base = start; base < end; base += uint(THREADS)) {
         if (base + lid < end) {
             int label;

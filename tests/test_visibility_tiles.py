@@ -248,3 +248,22 @@ def test_tile_labeling_packed_layout(ctx, bundle):
         np.testing.assert_array_equal(packed[:, 1], bits)
     finally:
         r.release()
+
+
+def test_no_hit_masks_without_the_labeling_pass(ctx, bundle):
+    """A renderer without the labeling pass has its tiles raster write no hit masks (no buffer, no
+    32-byte writes a pixel): the same layers and the same frame as with them."""
+    from dmrt.runtime.renderer import RenderConfig, Renderer
+
+    cfg = {"layers": 3, "async_photos": False, "max_uploads_per_frame": 0, "labeling": False}
+    without = Renderer(bundle, RenderConfig(method="tiles", **cfg), ctx)
+    peel = Renderer(bundle, RenderConfig(method="compute", **cfg), ctx)
+    try:
+        cam = _novel(bundle.cameras[1], bundle.cameras[2])
+        a, b = peel.render(cam, W), without.render(cam, W)
+        assert without.visibility.tiles.masks is None and not without.visibility.tiles.hit_masks
+        assert np.array_equal(peel.layers()["label"], without.layers()["label"])
+        np.testing.assert_array_equal(a["label"], b["label"])
+    finally:
+        without.release()
+        peel.release()

@@ -213,7 +213,7 @@ class Renderer:
         self.splats = ProxySplats(self.ctx, bundle.proxy, self.config.max_thread_pixels)
         self.visibility = VisibilityStage(self.ctx, self.splats, self.config.method, self.int64,
                                           self.config.kbuffer_slots or 6 * self.config.layers + 2, n,
-                                          self.config.tile_check, self.shading.status)
+                                          self.config.tile_check, self.shading.status, hit_masks=self.config.labeling)
         defines = {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
                    "SECANT": int(self.config.search == "secant"), "RAYTRACE": int(self.config.raytrace),
                    "STATISTICS": int(self.config.statistics), "ILLINOIS": int(self.config.refine == "illinois")}

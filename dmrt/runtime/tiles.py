@@ -72,6 +72,9 @@ class TileVisibility:
     status : dmrt.runtime.status.FrameStatus, optional
         The renderer's status records (the renderer begins each frame's); None: a ring of its own,
         whose frames :meth:`run` begins.
+    hit_masks : bool
+        The raster writes each pixel's hit bits for :meth:`label_pass` (32 bytes a pixel, 16 x 16
+        tiles only); False for a renderer without the labeling pass.
 
     Attributes
     ----------
@@ -82,7 +85,8 @@ class TileVisibility:
     """
 
     def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = 512,
-                 max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None):
+                 max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None,
+                 hit_masks: bool = True):
         if not 1 <= tile <= 32:
             raise ValueError(f"tile must be 1..32 (tile^2 invocations per workgroup), not {tile}")
         if batch < 1:
@@ -91,7 +95,8 @@ class TileVisibility:
             raise ValueError(f"check must be 'frame' or 'lagged', not {check!r}")
         self.ctx, self.splats = ctx, splats
         self.tile, self.check = int(tile), check
-        self._defines = {"TILE": self.tile, "BATCH": int(batch)}
+        self.hit_masks = bool(hit_masks) and self.tile * self.tile == MASK_DISCS
+        self._defines = {"TILE": self.tile, "BATCH": int(batch), "HIT_MASKS": int(self.hit_masks)}
         self._bin = {(scatter, large): load_program(ctx, "dmrt_tiles_bin", {**self._defines, "SCATTER": scatter,
                                                                             "LARGE": large,
                                                                             "MAX_THREAD_TILES": max_thread_tiles})
@@ -140,7 +145,7 @@ class TileVisibility:
                   "counts": abi.B_TILE_COUNTS, "offsets": abi.B_TILE_OFFSETS, "masks": abi.B_TILE_MASKS,
                   "status": abi.B_FRAME_STATUS}
         for name, buf in buffers.items():
-            if buf is not None:  # no hit masks with tiles other than 16 x 16
+            if buf is not None:  # no hit masks without the labeling pass or with tiles other than 16 x 16
                 buf.bind_to_storage_buffer(points[name])
 
     # -- the frame --------------------------------------------------------------------------
@@ -172,7 +177,7 @@ class TileVisibility:
         first = grid != self._grid
         if first:
             self._allocate_tiles(grid)
-        if self.tile * self.tile == MASK_DISCS and (self.masks is None or self.masks.size != 32 * w * h):
+        if self.hit_masks and (self.masks is None or self.masks.size != 32 * w * h):
             if self.masks is not None:
                 self.masks.release()
             self.masks = self.ctx.buffer(reserve=32 * w * h)

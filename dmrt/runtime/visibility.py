@@ -148,14 +148,16 @@ class VisibilityStage:
     """
 
     def __init__(self, ctx: moderngl.Context, splats: ProxySplats, method: str = "compute", int64: bool = False,
-                 slots: int = 16, n_labels: int = 256, tile_check: str = "frame", status=None):
+                 slots: int = 16, n_labels: int = 256, tile_check: str = "frame", status=None,
+                 hit_masks: bool = True):
         if method not in ("compute", "raster", "kbuffer", "tiles"):
             raise ValueError(f"RenderConfig.method must be 'compute', 'kbuffer', 'tiles' or 'raster', not {method!r}")
         self.ctx, self.splats, self.method = ctx, splats, method
         self.int64 = bool(int64) and method == "compute"
         self._size = None
         self._packed = None
-        self.tiles = TileVisibility(ctx, splats, check=tile_check, status=status) if method == "tiles" else None
+        self.tiles = (TileVisibility(ctx, splats, check=tile_check, status=status, hit_masks=hit_masks)
+                      if method == "tiles" else None)
         if method == "kbuffer":
             label_bits = max(1, int(n_labels - 1).bit_length())
             if label_bits > 16:
