@@ -330,8 +330,8 @@ def test_proxy_set_switch(tiny_scene, ctx, tmp_path):
 @pytest.mark.parametrize("method", ["dmrt", "dmt"])
 def test_live_frames_show_what_read_back_frames_show(tiny_bundle, ctx, tmp_path, method):
     """``update(readback=False)``: the colour view copies the renderer's colours into the display
-    on the GPU and reads nothing back; the image equals the one of the same frame read back. Other
-    views, and the orbit's pivot (the centre depth), still read the frame back."""
+    on the GPU and reads nothing back; the image equals the one of the same frame read back. The
+    orbit's pivot reads the centre pixel's depth alone; other views still read the frame back."""
     v = make_viewer(tiny_bundle, tmp_path, method=method)
     try:
         live = v.update(readback=False)
@@ -340,8 +340,11 @@ def test_live_frames_show_what_read_back_frames_show(tiny_bundle, ctx, tmp_path,
         v.update()
         assert np.array_equal(shown, v.image()) and np.array_equal(shown, v.frame["color"])
         v.update(readback=False)
-        v.toggle_orbit()  # reads a frame back for the centre depth
-        assert np.allclose(v.pivot, v.position + centre_depth(v.frame) * v.R[2], atol=0.05)
+        v.toggle_orbit()  # the centre pixel's depth, read from the frame on the GPU
+        assert "depth" not in v.frame
+        v.update()  # the same view, read back
+        z = float(v.frame["depth"][H // 2, W // 2])
+        assert z > 0 and np.allclose(v.pivot, v.position + z * v.R[2])
         v.set_buffer("depth")
         assert "depth" in v.update(readback=False)  # a view other than the colour: read back
     finally:

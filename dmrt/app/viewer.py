@@ -314,11 +314,12 @@ class Viewer:
             self.message = "fly"
             return
         distance = self.speed
-        if self.frame is not None and "depth" not in self.frame:  # a frame left on the GPU: read one
-            self.update(record=False)
         if self.frame is not None:
-            h, w = self.frame["depth"].shape
-            z = float(self.frame["depth"][h // 2, w // 2])
+            w, h = self.frame_size
+            if "depth" in self.frame:
+                z = float(self.frame["depth"][h // 2, w // 2])
+            else:  # a frame left on the GPU: its centre pixel alone
+                z = self.renderer().depth_at(w // 2, h // 2)
             if z > 0:  # camera z of the centre pixel, on the optical axis
                 distance = z
         self.pivot = self.position + distance * self.R[2]

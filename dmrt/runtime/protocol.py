@@ -58,10 +58,15 @@ class LayeredRenderer(FrameRenderer, Protocol):
 
 @runtime_checkable
 class GpuColorRenderer(FrameRenderer, Protocol):
-    """A renderer whose last frame's colours stay readable on the GPU, so that a display can show a
-    frame rendered with ``readback=False`` without reading it back (the viewer)."""
+    """A renderer whose last frame stays on the GPU, so that a display can show a frame rendered
+    with ``readback=False`` without reading it back, and probe a pixel of it (the viewer)."""
 
     def gpu_colors(self):
         """The last frame's colours: a ``moderngl.Buffer`` of h x w packed RGBA8 (uint32, R in the
         low byte; row 0 at the top; background 0), valid until the next frame."""
+        ...
+
+    def depth_at(self, x: int, y: int) -> float:
+        """Camera z (metres, 0 = background) of the last frame's pixel (x, y), row 0 at the top:
+        one 4-byte read (it waits for the frame)."""
         ...

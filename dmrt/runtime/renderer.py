@@ -393,6 +393,11 @@ class Renderer:
         frame of the same view is then textured as with synchronous, unbounded streaming."""
         return self.shading.flush_photos()
 
+    def depth_at(self, x: int, y: int) -> float:
+        """The last frame's camera z at pixel (x, y) (:class:`dmrt.runtime.protocol.GpuColorRenderer`)."""
+        offset = HIT_DTYPE.itemsize * (y * self._size[0] + x)  # Hit.depth is the record's first word
+        return float(np.frombuffer(self._buffers["hits"].read(4, offset=offset), np.float32)[0])
+
     def gpu_colors(self) -> moderngl.Buffer:
         """The last frame's colours on the GPU (:class:`dmrt.runtime.protocol.GpuColorRenderer`)."""
         return self._buffers["colors"]
