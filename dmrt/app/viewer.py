@@ -254,6 +254,7 @@ class Viewer:
         self.last_screenshot: Path | None = None
         self.frame: dict | None = None
         self.frame_size: tuple[int, int] | None = None  # (w, h) of the last frame
+        self._frame_renderer = None  # the renderer that made it (a frame left on the GPU stays there)
         self.fps = 0.0
         self.frame_ms = 0.0
         self._last_update: float | None = None
@@ -318,8 +319,10 @@ class Viewer:
             w, h = self.frame_size
             if "depth" in self.frame:
                 z = float(self.frame["depth"][h // 2, w // 2])
-            else:  # a frame left on the GPU: its centre pixel alone
-                z = self.renderer().depth_at(w // 2, h // 2)
+            elif any(r is self._frame_renderer for r in self._renderers.values()):
+                z = self._frame_renderer.depth_at(w // 2, h // 2)  # a frame left on the GPU: one pixel
+            else:  # its renderer was released since (a switch of method): no depth to read
+                z = 0.0
             if z > 0:  # camera z of the centre pixel, on the optical axis
                 distance = z
         self.pivot = self.position + distance * self.R[2]
@@ -541,7 +544,7 @@ class Viewer:
         self._last_update = now
         if self.recording and record:
             self.recorded.append(dataclasses.replace(cam, name=f"frame_{len(self.recorded):05d}"))
-        self.frame, self.frame_size = frame, (cam.width, cam.height)
+        self.frame, self.frame_size, self._frame_renderer = frame, (cam.width, cam.height), renderer
         self._upload(frame, renderer.gpu_colors() if live else None)
         return frame
 
