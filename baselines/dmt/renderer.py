@@ -249,8 +249,7 @@ class DMTRenderer:
             set_uniforms(self._cull, u_vp=vp_bytes, u_count=n, u_maps_per_draw=self.maps_per_draw,
                          u_verts_per_map=self.verts_per_map)
             self._cull.run(groups(n, 64))
-            ctx.memory_barrier(_BARRIER)
-            self._stats_host.copy_from(self._stats)
+            self._stats_host.copy_from(self._stats, barriers=_BARRIER)
             if maps is not None:  # restrict on the CPU: zero the other maps' vertex counts
                 keep = np.zeros(n, bool)
                 keep[np.asarray(list(maps), np.int64)] = True

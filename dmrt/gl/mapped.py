@@ -3,7 +3,7 @@
 Reading a GPU buffer through moderngl (``Buffer.read``: a synchronous map) waits for all the work
 queued so far, not just for the writes to that buffer: on an H100 a 720p frame's read of a status
 record written two frames earlier took ~1 ms, the GPU idling while the CPU then issued the next
-frame, and a frame of 64x36 pixels took 4.4 ms. A :class:`MappedBuffer` instead lives in host
+frame. A :class:`MappedBuffer` instead lives in host
 memory, mapped once for the buffer's lifetime (``GL_MAP_PERSISTENT_BIT | GL_MAP_COHERENT_BIT``,
 GL 4.4); after the passes that write it, :meth:`MappedBuffer.written` places a fence, and
 :meth:`MappedBuffer.read` waits for that fence only - the work queued after it runs on - and
@@ -129,10 +129,14 @@ class MappedBuffer:
         self._gl.glBindBufferBase(_SHADER_STORAGE_BUFFER, binding, self.glo)
         self._unfenced = True
 
-    def written(self) -> None:
-        """Mark the passes issued so far as the ones :meth:`read` waits for."""
+    def written(self, barriers: int = 0) -> None:
+        """Mark the passes issued so far as the ones :meth:`read` waits for. ``barriers``: memory
+        barrier bits the caller needs after those passes anyway, issued in the same barrier."""
         # the barrier makes shader writes to a persistently mapped buffer visible once the fence signals
-        self.ctx.memory_barrier(_CLIENT_MAPPED_BUFFER_BARRIER)
+        self.ctx.memory_barrier(barriers | _CLIENT_MAPPED_BUFFER_BARRIER)
+        self._place_fence()
+
+    def _place_fence(self) -> None:
         if self._fence:
             self._gl.glDeleteSync(self._fence)
         self._fence = self._gl.glFenceSync(_SYNC_GPU_COMMANDS_COMPLETE, 0)
@@ -140,14 +144,16 @@ class MappedBuffer:
             raise RuntimeError("glFenceSync failed: the GL context is lost")
         self._unfenced = False
 
-    def copy_from(self, src: moderngl.Buffer, nbytes: int | None = None) -> None:
+    def copy_from(self, src: moderngl.Buffer, nbytes: int | None = None, barriers: int = 0) -> None:
         """Copy the first ``nbytes`` (default: all of this buffer) of a GPU buffer into this one on
         the GPU, after the passes issued so far, and mark the copy as what :meth:`read` waits for.
-        For what shaders build with atomics: GPU atomics belong in GPU memory, not across PCIe."""
+        For what shaders build with atomics: GPU atomics belong in GPU memory, not across PCIe.
+        ``barriers``: as :meth:`written`'s."""
         n = self.size if nbytes is None else int(nbytes)
-        self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)  # the shaders' writes to src first
+        # the shaders' writes to src first
+        self.ctx.memory_barrier(barriers | moderngl.BUFFER_UPDATE_BARRIER_BIT)
         self._gl.glCopyNamedBufferSubData(src.glo, self.glo, 0, 0, n)
-        self.written()
+        self._place_fence()  # a copy, not a shader write: the fence alone makes it visible
 
     def read(self) -> bytes:
         """The contents once the passes up to the last :meth:`written` have run."""

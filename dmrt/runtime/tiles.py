@@ -241,8 +241,7 @@ class TileVisibility:
         self._bind(status=status, counts=self.counts, offsets=self.offsets)
         set_uniforms(self._scan, u_tile_count=n_tiles)
         self._scan.run(1)
-        ctx.memory_barrier(_BARRIER)
-        status.written()  # reading the list length waits for the scan, not the whole frame
+        status.written(_BARRIER)  # reading the list length waits for the scan, not the whole frame
         self._bin_pass(1, tile_uniforms)
 
     def _bin_pass(self, scatter: int, tile_uniforms: dict) -> None:
