@@ -81,6 +81,8 @@ void main() {
     bool inside = px.x < u_size.x && px.y < u_size.y;
     uint pix = uint(px.y * u_size.x + px.x);
     vec2 uv = vec2(px) + 0.5;
+    vec3 ray = splat_ray(uv);  // splat_depth_at's, once for every disc
+    float ray_len = length(ray);
     float z = inside ? hits[pix].depth : 0.0;
     g_q = z * camera_ray(uv);
     g_best = EMPTY_BITS;
@@ -123,7 +125,7 @@ void main() {
 #endif
                 ivec4 b = s_box[j];
                 if (px.x < b.x || px.x > b.z || px.y < b.y || px.y > b.w) continue;
-                if (splat_depth_at(s_disc[j], uv) <= 0.0) continue;
+                if (splat_depth_ray(s_disc[j], ray, ray_len) <= 0.0) continue;
                 consider(j);
             }
         }

@@ -84,7 +84,8 @@ shared uint s_idx[BATCH];    // its proxy index
 
 // per-invocation state
 uvec2 g_px;               // the pixel
-vec2 g_uv;                // its centre
+vec3 g_ray;               // its ray through the pixel centre (splat_ray)
+float g_ray_len;          // length(g_ray)
 uint g_prev_d, g_prev_l;  // the last layer's depth bits and label (label ~0u before the first)
 uint g_best_d, g_best_l;  // the nearest hit that passes the filter so far
 uint g_count;             // discs in the tile's list
@@ -125,7 +126,7 @@ uint hit_bits(uint j) {
     s.pc = s_pr[j].xyz;
     s.r = s_pr[j].w;
     s.nc = s_nl[j].xyz;
-    float z = splat_depth_at(s, g_uv);
+    float z = splat_depth_ray(s, g_ray, g_ray_len);
     return z > 0.0 ? floatBitsToUint(z) : 0u;
 }
 
@@ -212,7 +213,8 @@ bool settled(uint key) {
 uint first_word(uint base) {
     if (base >= g_count) return 0u;
 #if SORTED
-    if (g_settled || (g_settled = settled(s_key[base]))) return 0u;
+    // (base < g_count <= BATCH here; the min keeps a constant index within a small BATCH's array)
+    if (g_settled || (g_settled = settled(s_key[min(base, uint(BATCH) - 1u)]))) return 0u;
 #endif
     return walk(base, min(g_count, base + 32u));
 }
@@ -298,7 +300,7 @@ void sort_list(uint off, uint n) {
             memoryBarrierShared();
             barrier();
             for (uint t = lid; t < n2 / 2u; t += uint(THREADS)) {
-                uint i = 2u * stride * (t / stride) + t % stride, j = i + stride;
+                uint i = ((t & ~(stride - 1u)) << 1u) | (t & (stride - 1u)), j = i + stride;  // stride: a power of 2
                 uint ki = s_key[i], kj = s_key[j];
                 if ((ki > kj) == ((i & size) == 0u)) {  // ascending where bit `size` of i is clear
                     s_key[i] = kj;
@@ -324,7 +326,8 @@ void main() {
     g_npix = uint(u_size.x * u_size.y);
     g_pix = inside ? uint(p.y * u_size.x + p.x) : 0u;
     g_px = uvec2(p);
-    g_uv = vec2(p) + 0.5;  // the pixel centre, as in every splat path
+    g_ray = splat_ray(vec2(p) + 0.5);  // the pixel centre, as in every splat path
+    g_ray_len = length(g_ray);
     g_prev_d = 0u;
     g_prev_l = ~0u;
     g_found = 0u;

@@ -115,11 +115,16 @@ ivec4 splat_pixel_box(Splat s) {
     return ivec4(max(box.xy, ivec2(0)), min(box.zw, u_size - 1));
 }
 
-// Camera z where the ray of the pixel centred at uv meets the disc; 0.0 if it misses.
-float splat_depth_at(Splat s, vec2 uv) {
-    vec3 d = vec3((uv.x - u_K.z) / u_K.x, (uv.y - u_K.w) / u_K.y, 1.0);
+// The ray of the pixel centred at uv (camera space, z = 1).
+vec3 splat_ray(vec2 uv) {
+    return vec3((uv.x - u_K.z) / u_K.x, (uv.y - u_K.w) / u_K.y, 1.0);
+}
+
+// Camera z where the pixel ray d = splat_ray(uv), of length dlen = length(d), meets the disc; 0.0
+// if it misses. A pass that tests many discs at one pixel computes d and dlen once.
+float splat_depth_ray(Splat s, vec3 d, float dlen) {
     float nd = dot(s.nc, d);
-    if (abs(nd) > GRAZING_COS * length(d)) {
+    if (abs(nd) > GRAZING_COS * dlen) {
         float z = dot(s.nc, s.pc) / nd;
         vec3 q = z * d - s.pc;
         return (z > 0.0 && dot(q, q) <= s.r * s.r) ? z : 0.0;
@@ -127,4 +132,10 @@ float splat_depth_at(Splat s, vec2 uv) {
     vec3 dh = normalize(d);
     vec3 q = dot(s.pc, dh) * dh - s.pc;
     return (s.pc.z > 0.0 && dot(q, q) <= s.r * s.r) ? s.pc.z : 0.0;
+}
+
+// Camera z where the ray of the pixel centred at uv meets the disc; 0.0 if it misses.
+float splat_depth_at(Splat s, vec2 uv) {
+    vec3 d = splat_ray(uv);
+    return splat_depth_ray(s, d, length(d));
 }

@@ -71,3 +71,24 @@ def test_image_cache_and_texturing(ctx, bundle):
     finally:
         for r in (low, two, full, streamed):
             r.release()
+
+
+def test_image_cache_replaces_the_least_recently_wanted(ctx, bundle):
+    """A full cache puts a newly wanted photo into the slot of the photo wanted longest ago that
+    the frame does not want (equal frames: the smaller slot), never into a wanted photo's slot."""
+    from dmrt.runtime.texturing import ImageCache
+
+    slot_mb = max(c.width * c.height for c in bundle.cameras) * 3 / 2 ** 20
+    cache = ImageCache(ctx, bundle, cache_mb=3.5 * slot_mb)
+    try:
+        assert cache.n_slots == 3 and len(bundle.cameras) >= 5
+        assert cache.update([0, 1, 2]) == 3
+        assert list(cache.slot_of[:3]) == [0, 1, 2]  # empty slots in order
+        assert cache.update([0, 3]) == 1  # photos 1 and 2 were last wanted together: the smaller slot
+        assert cache.slot_of[3] == 1 and cache.slot_of[1] == -1
+        assert cache.update([4, 0]) == 1  # photo 2 (frame 1) is older than photo 3 (frame 2)
+        assert cache.slot_of[4] == 2 and cache.slot_of[2] == -1 and cache.slot_of[0] == 0
+        assert cache.update([4, 0]) == 0  # nothing missing: nothing uploaded
+        assert cache.uploads == 5
+    finally:
+        cache.release()

@@ -102,6 +102,25 @@ def test_tiles_match_peeling(ctx, bundle, splats):
         tiles.release()
 
 
+@pytest.mark.parametrize("tile, batch, sort", [(8, 256, True), (16, 512, False)])
+def test_other_tiles_match_peeling(ctx, bundle, splats, tile, batch, sort):
+    """8 x 8 tiles (no hit masks: they need 256 pixels a tile) and unsorted lists: 5 layers equal
+    peeling's at the photo and novel cameras."""
+    from dmrt.runtime.tiles import TileVisibility
+    from dmrt.runtime.visibility import VisibilityStage
+
+    peel = VisibilityStage(ctx, splats, "compute")
+    tiles = TileVisibility(ctx, splats, tile=tile, batch=batch, sort=sort)
+    try:
+        assert tiles.hit_masks == (tile == 16 and not sort)
+        for cam in _views(bundle):
+            splats.begin_frame()
+            _assert_equal(_layers(ctx, peel, cam, 5), _layers(ctx, tiles, cam, 5), 5, f"{cam.name}, tile {tile}")
+    finally:
+        peel.release()
+        tiles.release()
+
+
 def _crowded_tile(n: int, seed: int = 1):
     """``n`` small discs (1-2 px) at depths 2-10 m, all inside pixel tile (1, 1) of a 64 x 48 frame
     (pixels 16-31), tilted up to ~30 degrees from facing the camera, 4 labels: one tile's list

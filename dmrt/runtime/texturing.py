@@ -123,17 +123,18 @@ class ImageCache:
         missing = [j for j in self._wanted if self.slot_of[j] < 0]
         if not missing:  # the steady state: nothing to sort
             return 0
-        wanted_set = set(self._wanted)
-        # empty slots first, then the least recently wanted photos that this frame does not want
-        free = sorted((s for s in range(self.n_slots) if int(self._photo_in[s]) not in wanted_set),
-                      key=lambda s: (self._photo_in[s] >= 0, self._last_used[s]))
+        free = None  # the slots to fill, in order: found once a decoded photo is ready
         done = 0
         for j in missing:
-            if not free or (limit and done >= limit):
+            if limit and done >= limit:
                 break
             image = self._image(j, block)
             if image is None:  # still decoding: a later frame uploads it
                 continue
+            if free is None:
+                free = self._free_slots()
+            if not free:
+                break
             s = free.pop(0)
             old = int(self._photo_in[s])
             if old >= 0:
@@ -150,6 +151,13 @@ class ImageCache:
                 if self.slot_of[j] < 0:
                     self._image(j, False)
         return done
+
+    def _free_slots(self) -> list[int]:
+        """The slots that hold no photo the frame wants: empty ones first, then the least recently
+        wanted (equal: the smaller slot first)."""
+        photo = self._photo_in[:self.n_slots]
+        slots = np.flatnonzero(~np.isin(photo, self._wanted))
+        return slots[np.lexsort((self._last_used[slots], photo[slots] >= 0))].tolist()
 
     def _image(self, j: int, block: bool) -> np.ndarray | None:
         """Photo ``j`` decoded (h, w, 3) uint8, or None while its background decode runs."""

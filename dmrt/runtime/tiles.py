@@ -90,7 +90,7 @@ class TileVisibility:
 
     def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = 512,
                  max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None,
-                 hit_masks: bool = True, sort: bool = True):
+                 hit_masks: bool = True, sort: bool = False):
         if not 1 <= tile <= 32:
             raise ValueError(f"tile must be 1..32 (tile^2 invocations per workgroup), not {tile}")
         if batch < 1:
