@@ -19,16 +19,3 @@
 // Binding points (B_PROXIES, B_LARGE, B_LAYER_DEPTH, B_LAYER_LABEL, B_TILE_*) and the sentinels
 // EMPTY_BITS, EMPTY_LABEL come from dmrt/gl/abi.py, injected as #defines by the loader.
 uniform ivec2 u_tiles;  // tiles per row, tile rows
-
-// SORTED 1: the raster orders each tile's list (of at most BATCH discs) by this bound and writes it
-// back, and both the raster and the labeling pass stop a pixel's walk where no later disc can
-// matter (dmrt_tiles_raster.glsl, dmrt_tiles_labeling.glsl).
-#ifndef SORTED
-#define SORTED 0
-#endif
-
-// A bound on the camera z of every point of disc s and of every hit splat_depth_at reports for it
-// (|z - pc.z| <= r; the margins cover float rounding), as float bits (>= 0.0, so ordered as uints).
-uint near_bits(Splat s) {
-    return floatBitsToUint(max(s.pc.z - 1.001 * s.r - 1e-6 * abs(s.pc.z), 0.0));
-}

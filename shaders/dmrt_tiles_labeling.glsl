@@ -10,9 +10,6 @@
 // the raster's first walk left each pixel the bits of which of the first 256 discs hit it, the very
 // test made here; the first batch then visits only those discs (a few of the tile's tens to
 // hundreds), and only discs past the 256th are tested.
-// SORTED (no hit masks): the raster left each list of at most BATCH discs ordered by near_bits, and
-// a pixel stops at the first disc whose bound lies further behind its point q than the nearest
-// centre so far (every later centre is then further away too: |q - c| >= c.z - q.z).
 //
 // Output as dmrt_label_finalize.glsl reads it: PACKED_LABELS 1 -> Key uvec2 (label, distance bits),
 // else Key uint distance bits and Label int label; EMPTY_BITS / EMPTY_LABEL where no disc covers.
@@ -49,9 +46,6 @@ uniform uint u_capacity;  // entries the list holds (a slice past it was lost: s
 shared Splat s_disc[THREADS];
 shared int s_label[THREADS];
 shared ivec4 s_box[THREADS];
-#if SORTED
-shared float s_near[THREADS];  // near_bits of each disc, as a float
-#endif
 
 vec3 g_q;         // the pixel's raytraced point, camera space (m)
 uint g_best;      // distance bits of the nearest covering disc so far
@@ -91,8 +85,6 @@ void main() {
     uint end = min(offsets[tile + 1u], u_capacity);
     // the raster's condition for holding the list in shared memory, on the same (cut) length
     bool masked = bool(HIT_MASKS) && min(end, u_capacity) - min(start, u_capacity) <= uint(BATCH);
-    bool sorted = bool(SORTED) && min(end, u_capacity) - min(start, u_capacity) <= uint(BATCH);
-    bool walking = z > 0.0;  // false once a sorted list has nothing nearer left for the pixel
     for (uint base = start; base < end; base += uint(THREADS)) {
         if (base + lid < end) {
             int label;
@@ -100,9 +92,6 @@ void main() {
             s_disc[lid] = s;
             s_label[lid] = label;
             s_box[lid] = splat_pixel_box(s);
-#if SORTED
-            s_near[lid] = uintBitsToFloat(near_bits(s));
-#endif
         }
         barrier();
         uint n = min(uint(THREADS), end - base);
@@ -113,16 +102,8 @@ void main() {
             visit(hi.x, 128u); visit(hi.y, 160u); visit(hi.z, 192u); visit(hi.w, 224u);
         } else
 #endif
-        if (walking) {
+        if (z > 0.0) {
             for (uint j = 0u; j < n; ++j) {
-#if SORTED
-                // the margins cover the rounding of the distances and of the difference (float32: ~1e-7)
-                if (sorted && g_best != EMPTY_BITS &&
-                    s_near[j] - g_q.z > 1.0001 * uintBitsToFloat(g_best) + 1e-5 * g_q.z) {
-                    walking = false;
-                    break;
-                }
-#endif
                 ivec4 b = s_box[j];
                 if (px.x < b.x || px.x > b.z || px.y < b.y || px.y > b.w) continue;
                 if (splat_depth_ray(s_disc[j], ray, ray_len) <= 0.0) continue;

@@ -57,15 +57,8 @@ layout(local_size_x = TILE, local_size_y = TILE) in;
 
 layout(std430, binding = B_LAYER_DEPTH) writeonly buffer LayerDepth { uint layer_depth[]; };
 layout(std430, binding = B_LAYER_LABEL) writeonly buffer LayerLabel { int layer_label[]; };
-#if SORTED
-layout(std430, binding = B_TILE_ENTRIES) buffer Entries { uint entries[]; };  // cached lists written back sorted
-#else
 layout(std430, binding = B_TILE_ENTRIES) readonly buffer Entries { uint entries[]; };
-#endif
 layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
-#if SORTED && HIT_MASKS
-#error "SORTED walks stop early: the hit masks would miss discs (the labeling pass walks the sorted list instead)"
-#endif
 #if HIT_MASKS
 layout(std430, binding = B_TILE_MASKS) writeonly buffer Masks { uvec4 masks[]; };  // 2 per pixel: g_lo, g_hi
 #endif
@@ -77,10 +70,6 @@ shared vec4 s_pr[BATCH];     // camera-space centre (m), radius (m)
 shared vec4 s_nl[BATCH];     // unit normal, label (uint bits)
 shared uvec2 s_box[BATCH];   // pixel box: col0 | row0 << 16, col1 | row1 << 16
 shared uint s_found[3];      // "some pixel found this layer", one per walk, rotating
-#if SORTED
-shared uint s_key[BATCH];    // near_bits of each disc, ascending once sorted
-shared uint s_idx[BATCH];    // its proxy index
-#endif
 
 // per-invocation state
 uvec2 g_px;               // the pixel
@@ -98,21 +87,11 @@ uvec4 g_lo, g_hi;
 uvec4 g_top_d0, g_top_l0, g_top_d1, g_top_l1, g_top_d2, g_top_l2, g_top_d3, g_top_l3;
 uint g_hits;   // hits of the pixel in the first walk
 bool g_first;  // the first walk (collect the nearest hits) or a later one (the filtered minimum)
-bool g_settled;  // SORTED: the pixel's k layers are known and no later disc can change them
-
-// Load discs first .. first + n - 1 of the list into shared memory: their proxy indices from
-// `entries` or, once a cached list is sorted, from s_idx.
-uint list_entry(uint first, uint i) {
-#if SORTED
-    if (g_count <= uint(BATCH)) return s_idx[i];
-#endif
-    return entries[first + i];
-}
 
 void load_batch(uint first, uint n) {
     for (uint i = gl_LocalInvocationIndex; i < n; i += uint(THREADS)) {
         int label;
-        Splat s = load_proxy(list_entry(first, i), label);
+        Splat s = load_proxy(entries[first + i], label);
         ivec4 box = splat_pixel_box(s);
         s_pr[i] = vec4(s.pc, s.r);
         s_nl[i] = vec4(s.nc, intBitsToFloat(label));
@@ -185,38 +164,9 @@ uint walk(uint from, uint to) {
     return mask;
 }
 
-#if SORTED
-// The peeling rule over the sorted nearest hits so far, without writing: true when it finds all k
-// layers and the k-th lies in front of `key`, the bound of every disc not yet walked (sorted list):
-// a later hit lies behind all k layers and can change none of them.
-#define PEEK(D, L) if (n < uint(u_layers) && D != EMPTY_BITS && D > pd && L != pl) { pd = D; pl = L; ++n; }
-#define PEEKS(D, L) PEEK(D.x, L.x) PEEK(D.y, L.y) PEEK(D.z, L.z) PEEK(D.w, L.w)
-
-bool settled(uint key) {
-    if (g_hits < uint(u_layers)) return false;
-    uint pd = 0u, pl = ~0u, n = 0u;
-    PEEKS(g_top_d0, g_top_l0)
-#if TOP > 4
-    PEEKS(g_top_d1, g_top_l1)
-#endif
-#if TOP > 8
-    PEEKS(g_top_d2, g_top_l2)
-#endif
-#if TOP > 12
-    PEEKS(g_top_d3, g_top_l3)
-#endif
-    return n == uint(u_layers) && pd < key;
-}
-#endif
-
-// The first walk over the 32 discs from `base` (of a cached list): their hit mask.
+// The first walk over the 32 discs from `base`: their hit mask.
 uint first_word(uint base) {
-    if (base >= g_count) return 0u;
-#if SORTED
-    // (base < g_count <= BATCH here; the min keeps a constant index within a small BATCH's array)
-    if (g_settled || (g_settled = settled(s_key[min(base, uint(BATCH) - 1u)]))) return 0u;
-#endif
-    return walk(base, min(g_count, base + 32u));
+    return base < g_count ? walk(base, min(g_count, base + 32u)) : 0u;
 }
 
 // A later walk over the remembered hits of a word; those at or in front of the last layer leave
@@ -277,47 +227,6 @@ void walk_batches(uint off, uint count, bool walking) {
     }
 }
 
-#if SORTED
-// Order a cached list by near_bits (bitonic sort of (key, index) in shared memory, padded to a
-// power of two with EMPTY_BITS keys) and write it back for the labeling pass. Uniform control
-// flow: it holds barriers.
-void sort_list(uint off, uint n) {
-    uint lid = gl_LocalInvocationIndex;
-    uint n2 = 1u;
-    while (n2 < n) n2 <<= 1u;
-    for (uint i = lid; i < n2; i += uint(THREADS)) {
-        uint k = 0u, key = EMPTY_BITS;
-        if (i < n) {
-            int label;
-            k = entries[off + i];
-            key = near_bits(load_proxy(k, label));
-        }
-        s_key[i] = key;
-        s_idx[i] = k;
-    }
-    for (uint size = 2u; size <= n2; size <<= 1u) {
-        for (uint stride = size >> 1u; stride > 0u; stride >>= 1u) {
-            memoryBarrierShared();
-            barrier();
-            for (uint t = lid; t < n2 / 2u; t += uint(THREADS)) {
-                uint i = ((t & ~(stride - 1u)) << 1u) | (t & (stride - 1u)), j = i + stride;  // stride: a power of 2
-                uint ki = s_key[i], kj = s_key[j];
-                if ((ki > kj) == ((i & size) == 0u)) {  // ascending where bit `size` of i is clear
-                    s_key[i] = kj;
-                    s_key[j] = ki;
-                    uint x = s_idx[i];
-                    s_idx[i] = s_idx[j];
-                    s_idx[j] = x;
-                }
-            }
-        }
-    }
-    memoryBarrierShared();
-    barrier();
-    for (uint i = lid; i < n; i += uint(THREADS)) entries[off + i] = s_idx[i];
-}
-#endif
-
 void main() {
     uint lid = gl_LocalInvocationIndex;
     uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
@@ -340,11 +249,7 @@ void main() {
     count = min(count, u_capacity - min(off, u_capacity));  // entries past the buffer were dropped
     g_count = count;
     bool cached = count <= uint(BATCH);
-    g_settled = false;
     if (lid < 3u) s_found[lid] = 0u;
-#if SORTED
-    if (cached) sort_list(off, count);
-#endif
     if (cached) load_batch(off, count);
     memoryBarrierShared();
     barrier();
@@ -359,7 +264,7 @@ void main() {
             masks[2u * g_pix] = g_lo;  // for the labeling pass (dmrt_tiles_labeling.glsl)
             masks[2u * g_pix + 1u] = g_hi;
 #endif
-            for (uint b = uint(MASK_DISCS); b < count; b += 32u) first_word(b);
+            walk(min(count, uint(MASK_DISCS)), count);
         }
     } else {
         walk_batches(off, count, inside);

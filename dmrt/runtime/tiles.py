@@ -74,11 +74,7 @@ class TileVisibility:
         whose frames :meth:`run` begins.
     hit_masks : bool
         The raster writes each pixel's hit bits for :meth:`label_pass` (32 bytes a pixel, 16 x 16
-        tiles only, not with ``sort``); False for a renderer without the labeling pass.
-    sort : bool
-        The raster orders each list of at most ``batch`` discs by near depth (and writes it back), and
-        a pixel's walk in the raster and the labeling pass stops where no later disc can change its
-        result.
+        tiles only); False for a renderer without the labeling pass.
 
     Attributes
     ----------
@@ -90,7 +86,7 @@ class TileVisibility:
 
     def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = 512,
                  max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None,
-                 hit_masks: bool = True, sort: bool = False):
+                 hit_masks: bool = True):
         if not 1 <= tile <= 32:
             raise ValueError(f"tile must be 1..32 (tile^2 invocations per workgroup), not {tile}")
         if batch < 1:
@@ -99,9 +95,8 @@ class TileVisibility:
             raise ValueError(f"check must be 'frame' or 'lagged', not {check!r}")
         self.ctx, self.splats = ctx, splats
         self.tile, self.check = int(tile), check
-        self.hit_masks = bool(hit_masks) and self.tile * self.tile == MASK_DISCS and not sort
-        self._defines = {"TILE": self.tile, "BATCH": int(batch), "HIT_MASKS": int(self.hit_masks),
-                         "SORTED": int(sort)}
+        self.hit_masks = bool(hit_masks) and self.tile * self.tile == MASK_DISCS
+        self._defines = {"TILE": self.tile, "BATCH": int(batch), "HIT_MASKS": int(self.hit_masks)}
         self._bin = {(scatter, large): load_program(ctx, "dmrt_tiles_bin", {**self._defines, "SCATTER": scatter,
                                                                             "LARGE": large,
                                                                             "MAX_THREAD_TILES": max_thread_tiles})
