@@ -11,7 +11,8 @@
 # walkthroughs, median / p95, sustained, clocks), and the paper's bisection beside the default
 # Illinois refinement; the default path with the search's step capped at 32 and 16 (time and what
 # the cap changes in the frames), with both list checks and a CPU profile of the issuing; the visibility paths'
-# agreement with compute peeling (bench.bench_visibility); with 2+ GPUs, the preprocessing again
+# agreement with compute peeling (bench.bench_visibility) and, at 3840x2160, the tile raster's time with
+# fewer discs in shared memory, fewer nearest hits kept and 8x8 tiles; with 2+ GPUs, the preprocessing again
 # on a 2-worker Dask LocalCluster (one GPU each) for the depth maps' speed-up.
 # The environment (EGL vendor file, PYTHONPATH with the wheels, DMRT_COMMIT) is the caller's:
 # see ../shared/GPU.md.
@@ -39,6 +40,8 @@ step render_caps python3 -m bench.bench_render --bundle "$work/bundle" --out "$o
     --no-leveling --cpu-profile
 step visibility python3 -m bench.bench_visibility --bundle "$work/bundle" --out "$out/results" --layers 5 \
     --slots 32 --max-thread-pixels 256
+step tile_sweep_4k python3 -m bench.bench_visibility --bundle "$work/bundle" --out "$out/results/tiles-4k" --layers 5 \
+    --width 3840 --height 2160 --no-paths --tile-sweep 16:512:16 16:256:16 16:128:16 16:512:8 16:512:12 8:256:16
 if [ "$(nvidia-smi -L 2>/dev/null | wc -l)" -ge 2 ]; then
     step preprocess_dask2 python3 -m dmrt.app.cli preprocess "$work/scene" --out "$work/bundle2" --force --quiet \
         --dask local:2

@@ -102,19 +102,22 @@ def test_tiles_match_peeling(ctx, bundle, splats):
         tiles.release()
 
 
-def test_tiles_of_8_match_peeling(ctx, bundle, splats):
-    """8 x 8 tiles (64 invocations a workgroup, no hit masks: they need 256 pixels a tile): 5 layers
-    equal peeling's at the photo and novel cameras."""
+@pytest.mark.parametrize("tile, batch, top", [(8, 256, 16), (16, 512, 4), (16, 64, 8)])
+def test_other_tile_settings_match_peeling(ctx, bundle, splats, tile, batch, top):
+    """8 x 8 tiles (64 invocations a workgroup, no hit masks: they need 256 pixels a tile), fewer
+    nearest hits kept (more pixels walk again) and short batches: 5 layers equal peeling's at the
+    photo and novel cameras (the settings bench_visibility --tile-sweep times)."""
     from dmrt.runtime.tiles import TileVisibility
     from dmrt.runtime.visibility import VisibilityStage
 
     peel = VisibilityStage(ctx, splats, "compute")
-    tiles = TileVisibility(ctx, splats, tile=8, batch=256)
+    tiles = TileVisibility(ctx, splats, tile=tile, batch=batch, top=top)
     try:
-        assert not tiles.hit_masks
+        assert tiles.hit_masks == (tile == 16)
         for cam in _views(bundle):
             splats.begin_frame()
-            _assert_equal(_layers(ctx, peel, cam, 5), _layers(ctx, tiles, cam, 5), 5, f"{cam.name}, 8 x 8 tiles")
+            _assert_equal(_layers(ctx, peel, cam, 5), _layers(ctx, tiles, cam, 5), 5,
+                          f"{cam.name}, tile {tile}, batch {batch}, top {top}")
     finally:
         peel.release()
         tiles.release()

@@ -65,6 +65,9 @@ class TileVisibility:
     batch : int
         Discs the raster pass holds in shared memory (40 bytes each): a tile's list up to this long
         is loaded once for all layers, a longer one in batches of it for each layer.
+    top : int
+        Nearest hits each pixel keeps sorted in registers during the raster's first walk: 4, 8,
+        12 or 16 (a pixel whose layers are not all among them walks the list again).
     max_thread_tiles : int
         Discs over more tiles are binned by a workgroup each instead of one thread.
     check : ``"frame"`` or ``"lagged"``
@@ -84,13 +87,15 @@ class TileVisibility:
         Frames whose list outgrew the buffer (``check="frame"``: built again).
     """
 
-    def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = 512,
+    def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = 512, top: int = 16,
                  max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None,
                  hit_masks: bool = True):
         if not 1 <= tile <= 32:
             raise ValueError(f"tile must be 1..32 (tile^2 invocations per workgroup), not {tile}")
         if batch < 1:
             raise ValueError(f"batch must be >= 1, not {batch}")
+        if top not in (4, 8, 12, 16):
+            raise ValueError(f"top must be 4, 8, 12 or 16, not {top}")
         if check not in ("frame", "lagged"):
             raise ValueError(f"check must be 'frame' or 'lagged', not {check!r}")
         self.ctx, self.splats = ctx, splats
@@ -102,7 +107,7 @@ class TileVisibility:
                                                                             "MAX_THREAD_TILES": max_thread_tiles})
                      for scatter in (0, 1) for large in (0, 1)}
         self._scan = load_program(ctx, "dmrt_tiles_scan")
-        self._raster = load_program(ctx, "dmrt_tiles_raster", self._defines)
+        self._raster = load_program(ctx, "dmrt_tiles_raster", {**self._defines, "TOP": int(top)})
         n = max(splats.n, 1)
         # large-disc list: dispatch-indirect header (groups x, y, z), its length, proxy indices
         self.large = ctx.buffer(reserve=16 + 4 * n)
