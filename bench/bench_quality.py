@@ -3,10 +3,11 @@
     python -m bench.bench_quality --scene SCENE --bundle BUNDLE --out RESULTS.json
     python -m bench.bench_quality --preset tiny --work /tmp/q --out RESULTS.json
 
-At every photo camera (at the photo's size): the DMRT hole rate for each layer count and number of
-hole-filling passes (``RenderConfig.fill_passes``), over the reference pixels the photo's own depth
-map holds (what DMRT can show there; the scan has shadows the mesh has not), and how far the
-filled pixels lie from the reference surface. Then screen-space leveling against the synthetic
+At every photo camera (at the photo's size): the DMRT hole rate for each layer count, number of
+hole-filling passes (``RenderConfig.fill_passes``) and cap on the search's steps
+(``RenderConfig.max_steps``, ``--max-steps``), over the reference pixels the photo's own depth map
+holds (what DMRT can show there; the scan has shadows the mesh has not), the depth error of the
+pixels both show, and how far the filled pixels lie from the reference surface. Then screen-space leveling against the synthetic
 generator's known per-photo exposure x white-balance gains (``synthetic.json``): the spread (std
 over the photos covering >= 1 % of a frame, mean over channels) of the effective log gains before
 and after leveling, for DMRT and for DMT at the bundle's depth-map width.
@@ -46,6 +47,8 @@ def main(argv=None) -> None:
     p.add_argument("--work", type=Path, default=Path("/tmp/dmrt-quality"))
     p.add_argument("--layers", type=int, nargs="+", default=[1, 3, 5])
     p.add_argument("--fill-passes", type=int, nargs="+", default=[0, 2, 4])
+    p.add_argument("--max-steps", type=int, nargs="+", default=[100],
+                   help="iterative-search steps per layer (the paper: 100): what a lower cap costs in holes and depth")
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args(argv)
     if args.preset:
@@ -64,29 +67,39 @@ def main(argv=None) -> None:
     refs = []
     for j, cam in enumerate(scene.cameras):
         ref = reference.render(cam)
-        ref["depth"] = np.where(bundle.depth_map(j) > 0, ref["depth"], 0)  # what DMRT can show here
+        # what DMRT can show here: the pixels whose depth-map texel (nearest, for maps smaller than
+        # the photo) holds a depth
+        held = bundle.depth_map(j) > 0
+        h, w = ref["depth"].shape
+        held = held[np.arange(h) * held.shape[0] // h][:, np.arange(w) * held.shape[1] // w]
+        ref["depth"] = np.where(held, ref["depth"], 0)
         refs.append(ref)
 
     holes = []
-    for k in args.layers:
-        for passes in args.fill_passes:
-            r = Renderer(bundle, RenderConfig(layers=k, fill_passes=passes, **sync))
-            rates, filled_err = [], []
-            for cam, ref in zip(bundle.cameras, refs):
-                frame = r.render(cam)
-                rates.append(compare(frame, ref)["hole_rate"])
-                filled = (frame["layer_used"] >= k) & (ref["depth"] > 0)
-                filled_err.append(np.abs(frame["depth"][filled] - ref["depth"][filled]))
-            r.release()
-            err = np.concatenate(filled_err)
-            row = {"layers": k, "fill_passes": passes, "hole_rate_per_camera": rates,
-                   "hole_rate_mean": float(np.mean(rates)), "filled_pixels": int(len(err)),
-                   "filled_within_5cm": float((err < 0.05).mean()) if len(err) else None,
-                   "filled_median_error_m": float(np.median(err)) if len(err) else None}
-            holes.append(row)
-            print(f"layers {k}  fill passes {passes}: holes {row['hole_rate_mean']:.2%} mean "
-                  f"({min(rates):.2%} .. {max(rates):.2%}); filled {row['filled_pixels']} px, "
-                  f"{row['filled_within_5cm'] or 0:.0%} within 5 cm", flush=True)
+    for k, passes, steps in ((k, passes, steps) for k in args.layers for passes in args.fill_passes
+                             for steps in args.max_steps):
+        r = Renderer(bundle, RenderConfig(layers=k, fill_passes=passes, max_steps=steps, **sync))
+        rates, filled_err, depth_err = [], [], []
+        for cam, ref in zip(bundle.cameras, refs):
+            frame = r.render(cam)
+            rates.append(compare(frame, ref)["hole_rate"])
+            filled = (frame["layer_used"] >= k) & (ref["depth"] > 0)
+            filled_err.append(np.abs(frame["depth"][filled] - ref["depth"][filled]))
+            both = (frame["depth"] > 0) & (ref["depth"] > 0)
+            depth_err.append(np.abs(frame["depth"][both] - ref["depth"][both]))
+        r.release()
+        err, dz = np.concatenate(filled_err), np.concatenate(depth_err)
+        row = {"layers": k, "fill_passes": passes, "max_steps": steps, "hole_rate_per_camera": rates,
+               "hole_rate_mean": float(np.mean(rates)), "filled_pixels": int(len(err)),
+               "filled_within_5cm": float((err < 0.05).mean()) if len(err) else None,
+               "filled_median_error_m": float(np.median(err)) if len(err) else None,
+               "depth_error_mean_m": float(dz.mean()) if len(dz) else None,
+               "depth_error_p95_m": float(np.percentile(dz, 95)) if len(dz) else None}
+        holes.append(row)
+        print(f"layers {k}  fill passes {passes}  steps {steps}: holes {row['hole_rate_mean']:.3%} mean "
+              f"({min(rates):.2%} .. {max(rates):.2%}); depth error mean {row['depth_error_mean_m'] or 0:.5f} m, "
+              f"p95 {row['depth_error_p95_m'] or 0:.4f} m; filled {row['filled_pixels']} px, "
+              f"{row['filled_within_5cm'] or 0:.0%} within 5 cm", flush=True)
 
     leveling = {}
     synth = Path(args.scene) / "synthetic.json"
@@ -103,7 +116,7 @@ def main(argv=None) -> None:
             leveling[name] = {"views": len(pairs), "spread_before": float(before), "spread_after": float(after)}
             print(f"leveling {name}: log-gain spread {before:.3f} -> {after:.3f} over {len(pairs)} views")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"benchmark": "quality", "version": 1, "scene": str(args.scene),
+    args.out.write_text(json.dumps({"benchmark": "quality", "version": 2, "scene": str(args.scene),
                                     "bundle": str(args.bundle), "holes": holes, "leveling": leveling}, indent=1))
     print(f"wrote {args.out}")
 
