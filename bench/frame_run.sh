@@ -4,11 +4,14 @@
 #
 #   setsid nohup bench/frame_run.sh /tmp/frame >/dev/null 2>&1 </dev/null &
 #   cat /tmp/frame/done.txt                 # one line per step: name, exit status, seconds
+#   bench/poll_run.sh /tmp/frame 540        # in the next commands, back to back (see there)
 #
 # Steps: the paper scene (32M points with the scan's normals, 192 photos 1024x684); its
 # preprocessing in-process; the per-stage frame times of every visibility path at 1280x720 and
 # 3840x2160 with 5 layers and the default configuration (bench.bench_render: GPU-resident
-# walkthroughs, median / p95, sustained, clocks), and the paper's bisection beside the default
+# walkthroughs, median / p95, sustained, clocks); Table 2 (`dmrt bench --only table2` on that scene,
+# preprocessed again in the bench's work folder; `dmrt report` builds reports/latest from
+# OUT_DIR/results/bench); the paper's bisection beside the default
 # Illinois refinement; the default path with the search's step capped at 32 and 16 (time and what
 # the cap changes in the frames), with both list checks and a CPU profile of the issuing; the visibility paths'
 # agreement with compute peeling (bench.bench_visibility) and, at 3840x2160, the tile raster's time with
@@ -33,6 +36,8 @@ step preprocess python3 -m dmrt.app.cli preprocess "$work/scene" --out "$work/bu
 cp "$work/bundle/bundle.json" "$out/results/bundle.json"
 step render python3 -m bench.bench_render --bundle "$work/bundle" --out "$out/results" --layers 5 \
     --methods tiles compute kbuffer --sizes 1280x720 3840x2160 --frames 30 --no-leveling
+step table2 python3 -m dmrt.app.cli bench --preset paper --scene "$work/scene" --work "$work/bench" \
+    --out "$out/results/bench" --only table2 --quiet
 step render_bisection python3 -m bench.bench_render --bundle "$work/bundle" --out "$out/results/bisection" \
     --layers 5 --methods tiles --refine bisection --sizes 1280x720 3840x2160 --frames 30 --no-leveling
 step render_caps python3 -m bench.bench_render --bundle "$work/bundle" --out "$out/results/caps" --layers 5 \

@@ -5,6 +5,7 @@
 #
 #   setsid nohup bench/paper_run.sh /tmp/paper >/dev/null 2>&1 </dev/null &
 #   cat /tmp/paper/done.txt                  # one line per experiment: name, exit status, seconds
+#   bench/poll_run.sh /tmp/paper 540         # from the next commands, back to back
 #   dmrt report RESULTS --out reports/latest # after unpacking results.tgz here
 #
 # The environment (EGL vendor file, PYTHONPATH with the wheels, DMRT_COMMIT for a tree without git
