@@ -12,6 +12,13 @@
 // each, eight words); with TILE 16 the labeling pass's first batch of TILE^2 discs is exactly those,
 // so it reads the bits (B_TILE_MASKS) instead of testing the discs again.
 #define MASK_DISCS 256
+
+// The masks' second half (discs 128-255) is written and read only for a list longer than 128 discs:
+// the first half holds every hit of a shorter one (half the masks' bytes at 3840x2160, where a tile
+// holds ~63 discs). `count`: the list's length as cut to the buffer.
+bool masks_second_half(uint count) {
+    return count > uint(MASK_DISCS / 2);
+}
 #ifndef HIT_MASKS  // the stage turns them off for a renderer without the labeling pass
 #define HIT_MASKS (TILE * TILE == MASK_DISCS)
 #endif

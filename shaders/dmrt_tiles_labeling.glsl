@@ -84,7 +84,8 @@ void main() {
     uint start = offsets[tile];
     uint end = min(offsets[tile + 1u], u_capacity);
     // the raster's condition for holding the list in shared memory, on the same (cut) length
-    bool masked = bool(HIT_MASKS) && min(end, u_capacity) - min(start, u_capacity) <= uint(BATCH);
+    uint count = min(end, u_capacity) - min(start, u_capacity);
+    bool masked = bool(HIT_MASKS) && count <= uint(BATCH);
     for (uint base = start; base < end; base += uint(THREADS)) {
         if (base + lid < end) {
             int label;
@@ -97,9 +98,12 @@ void main() {
         uint n = min(uint(THREADS), end - base);
 #if HIT_MASKS
         if (z > 0.0 && masked && base == start) {
-            uvec4 lo = masks[2u * pix], hi = masks[2u * pix + 1u];
+            uvec4 lo = masks[2u * pix];
             visit(lo.x, 0u); visit(lo.y, 32u); visit(lo.z, 64u); visit(lo.w, 96u);
-            visit(hi.x, 128u); visit(hi.y, 160u); visit(hi.z, 192u); visit(hi.w, 224u);
+            if (masks_second_half(count)) {  // else not written this frame (the raster's condition)
+                uvec4 hi = masks[2u * pix + 1u];
+                visit(hi.x, 128u); visit(hi.y, 160u); visit(hi.z, 192u); visit(hi.w, 224u);
+            }
         } else
 #endif
         if (z > 0.0) {

@@ -37,7 +37,8 @@
 //   B_TILE_ENTRIES  uint[capacity]: proxy indices, tile after tile (dmrt_tiles_bin.glsl)
 //   B_TILE_OFFSETS  uint[tiles + 1] (dmrt_tiles_scan.glsl)
 //   B_TILE_MASKS    h x w x 2 uvec4: the first walk's hit bits of discs 0-255, written for pixels of
-//                   tiles of up to BATCH discs (HIT_MASKS: read by dmrt_tiles_labeling.glsl)
+//                   tiles of up to BATCH discs, the second uvec4 only for lists of more than 128
+//                   (masks_second_half; HIT_MASKS: read by dmrt_tiles_labeling.glsl)
 #include "dmrt_tiles_common.glsl"
 
 #if defined COMPUTE_SHADER
@@ -262,7 +263,7 @@ void main() {
             g_hi = uvec4(first_word(128u), first_word(160u), first_word(192u), first_word(224u));
 #if HIT_MASKS
             masks[2u * g_pix] = g_lo;  // for the labeling pass (dmrt_tiles_labeling.glsl)
-            masks[2u * g_pix + 1u] = g_hi;
+            if (masks_second_half(count)) masks[2u * g_pix + 1u] = g_hi;
 #endif
             walk(min(count, uint(MASK_DISCS)), count);
         }
