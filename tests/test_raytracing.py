@@ -86,13 +86,15 @@ def test_hole_filling_from_neighbours(ctx, bundle):
     surface takes a hit in the depth map of a neighbour's label, within the discontinuity
     threshold of that neighbour's depth. Checked: it only fills (never changes a raytraced pixel),
     each filled pixel has such a neighbour from an earlier pass, the result is the same on every
-    run (pass p reads only hits of earlier passes), and fewer holes remain."""
+    run (pass p reads only hits of earlier passes), and fewer holes remain. ``fill_max_steps``
+    bounds each neighbour's search: a pixel's steps grow by at most passes x 8 x fill_max_steps."""
     from dmrt.runtime.renderer import RenderConfig, Renderer
 
     k = 1  # one layer leaves the most holes to fill
     sync = {"async_photos": False, "max_uploads_per_frame": 0, "layers": k}
     plain = Renderer(bundle, RenderConfig(fill_passes=0, **sync), ctx)
     filling = Renderer(bundle, RenderConfig(fill_passes=2, **sync), ctx)
+    short = Renderer(bundle, RenderConfig(fill_passes=2, fill_max_steps=1, **sync), ctx)
     try:
         cam = novel_camera(bundle.cameras[6], bundle.cameras[7]).resized(W)
         a, b = plain.render(cam), filling.render(cam)
@@ -109,9 +111,14 @@ def test_hole_filling_from_neighbours(ctx, bundle):
                   for i in range(max(x - 1, 0), min(x + 2, depth.shape[1]))
                   if (j, i) != (y, x) and 0 <= layer[j, i] < layer[y, x]]
             assert any(lab == label[y, x] and abs(d - depth[y, x]) <= 0.2 + 1e-6 for d, lab in nb), (y, x)
+        one = short.render(cam)
+        assert (one["iterations"] - a["iterations"]).max() <= 2 * 8 * 1
+        assert (b["iterations"] - a["iterations"]).max() > 2 * 8 * 1  # the default's searches run longer
+        assert 0 < (one["layer_used"] >= k).sum() <= filled.sum()
     finally:
         plain.release()
         filling.release()
+        short.release()
 
 
 def test_secant_search_loses_fewer_pixels_than_the_papers(ctx, bundle):
