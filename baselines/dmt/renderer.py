@@ -53,7 +53,7 @@ from dmrt.gl import abi
 from dmrt.gl.abi import HIT_DTYPE
 from dmrt.gl.kernels import fill_u32, groups
 from dmrt.gl.mapped import MappedBuffer
-from dmrt.runtime.shading import FrameShading, camera_uniforms
+from dmrt.runtime.shading import FrameShading, camera_uniforms, hit_depth_at
 
 STAGES = ("culling", "rasterization", "stitching", "image_management", "texturing", "leveling")
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
@@ -297,8 +297,7 @@ class DMTRenderer:
 
     def depth_at(self, x: int, y: int) -> float:
         """The last frame's camera z at pixel (x, y) (:class:`dmrt.runtime.protocol.GpuColorRenderer`)."""
-        offset = HIT_DTYPE.itemsize * (y * self._size[0] + x)  # Hit.depth is the record's first word
-        return float(np.frombuffer(self._fb["hits"].read(4, offset=offset), np.float32)[0])
+        return hit_depth_at(self._fb["hits"], self._size[0], x, y)
 
     def gpu_colors(self) -> moderngl.Buffer:
         """The last frame's colours on the GPU (:class:`dmrt.runtime.protocol.GpuColorRenderer`)."""

@@ -55,7 +55,7 @@ from dmrt.gl.context import get_context
 from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups, max_groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
-from dmrt.runtime.shading import FrameShading, camera_uniforms
+from dmrt.runtime.shading import FrameShading, camera_uniforms, hit_depth_at
 from dmrt.runtime.visibility import ProxySplats, VisibilityStage
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
@@ -404,8 +404,7 @@ class Renderer:
 
     def depth_at(self, x: int, y: int) -> float:
         """The last frame's camera z at pixel (x, y) (:class:`dmrt.runtime.protocol.GpuColorRenderer`)."""
-        offset = HIT_DTYPE.itemsize * (y * self._size[0] + x)  # Hit.depth is the record's first word
-        return float(np.frombuffer(self._buffers["hits"].read(4, offset=offset), np.float32)[0])
+        return hit_depth_at(self._buffers["hits"], self._size[0], x, y)
 
     def gpu_colors(self) -> moderngl.Buffer:
         """The last frame's colours on the GPU (:class:`dmrt.runtime.protocol.GpuColorRenderer`)."""

@@ -23,13 +23,13 @@ import time
 import moderngl
 import numpy as np
 
+from dmrt.camera import Camera
 from dmrt.gl import abi
 from dmrt.gl.abi import HIT_DTYPE, PHOTO_FLOATS
 from dmrt.gl.context import check_gl
 from dmrt.gl.kernels import Staging, fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.io.frames import empty_frame
-from dmrt.camera import Camera
 from dmrt.runtime.leveling import ScreenLeveler
 from dmrt.runtime.status import FrameStatus
 from dmrt.runtime.texturing import ImageCache, gains_buffer_data, texture_frame
@@ -59,6 +59,13 @@ def camera_uniforms(local: Camera) -> dict:
     once a frame: ``set_uniforms`` compares and writes them as they are."""
     return {"u_R": local.R.T.astype(np.float32).tobytes(), "u_t": np.float32(local.t).tobytes(),
             "u_K": (local.fx, local.fy, local.cx, local.cy), "u_size": (local.width, local.height)}
+
+
+def hit_depth_at(hits: moderngl.Buffer, width: int, x: int, y: int) -> float:
+    """Camera z (metres, 0 = background) of pixel (x, y) of a frame's ``Hit`` records, ``width``
+    pixels a row: one 4-byte read (it waits for the frame)."""
+    offset = HIT_DTYPE.itemsize * (y * width + x)  # Hit.depth is the record's first word
+    return float(np.frombuffer(hits.read(4, offset=offset), np.float32)[0])
 
 
 def read_gpu_frame(staging: Staging, hits_buffer: moderngl.Buffer, colors_buffer: moderngl.Buffer,
