@@ -5,9 +5,10 @@
 
 At every photo camera (at the photo's size): the DMRT hole rate for each layer count, number of
 hole-filling passes (``RenderConfig.fill_passes``) and cap on the search's steps
-(``RenderConfig.max_steps``, ``--max-steps``), over the reference pixels the photo's own depth map
-holds (what DMRT can show there; the scan has shadows the mesh has not), the depth error of the
-pixels both show, and how far the filled pixels lie from the reference surface. Then screen-space leveling against the synthetic
+(``RenderConfig.max_steps``, ``--max-steps``; the fill passes' own, ``--fill-max-steps``), over
+the reference pixels the photo's own depth map holds (what DMRT can show there; the scan has
+shadows the mesh has not), the depth error of the pixels both show, and how far the filled pixels
+lie from the reference surface. Then (``--no-leveling``: not) screen-space leveling against the synthetic
 generator's known per-photo exposure x white-balance gains (``synthetic.json``): the spread (std
 over the photos covering >= 1 % of a frame, mean over channels) of the effective log gains before
 and after leveling, for DMRT and for DMT at the bundle's depth-map width.
@@ -16,6 +17,7 @@ and after leveling, for DMRT and for DMT at the bundle's depth-map width.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 from pathlib import Path
 
@@ -49,6 +51,10 @@ def main(argv=None) -> None:
     p.add_argument("--fill-passes", type=int, nargs="+", default=[0, 2, 4])
     p.add_argument("--max-steps", type=int, nargs="+", default=[100],
                    help="iterative-search steps per layer (the paper: 100): what a lower cap costs in holes and depth")
+    p.add_argument("--fill-max-steps", type=int, nargs="+", default=[RenderConfig().fill_max_steps],
+                   help="the hole-filling passes' step cap (RenderConfig.fill_max_steps)")
+    p.add_argument("--leveling", action=argparse.BooleanOptionalAction, default=True,
+                   help="also measure leveling against the known photo exposures (DMRT and DMT)")
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args(argv)
     if args.preset:
@@ -76,9 +82,10 @@ def main(argv=None) -> None:
         refs.append(ref)
 
     holes = []
-    for k, passes, steps in ((k, passes, steps) for k in args.layers for passes in args.fill_passes
-                             for steps in args.max_steps):
-        r = Renderer(bundle, RenderConfig(layers=k, fill_passes=passes, max_steps=steps, **sync))
+    for k, passes, steps, fill_steps in itertools.product(args.layers, args.fill_passes, args.max_steps,
+                                                          args.fill_max_steps):
+        r = Renderer(bundle, RenderConfig(layers=k, fill_passes=passes, max_steps=steps, fill_max_steps=fill_steps,
+                                          **sync))
         rates, filled_err, depth_err = [], [], []
         for cam, ref in zip(bundle.cameras, refs):
             frame = r.render(cam)
@@ -89,21 +96,23 @@ def main(argv=None) -> None:
             depth_err.append(np.abs(frame["depth"][both] - ref["depth"][both]))
         r.release()
         err, dz = np.concatenate(filled_err), np.concatenate(depth_err)
-        row = {"layers": k, "fill_passes": passes, "max_steps": steps, "hole_rate_per_camera": rates,
+        row = {"layers": k, "fill_passes": passes, "max_steps": steps, "fill_max_steps": fill_steps,
+               "hole_rate_per_camera": rates,
                "hole_rate_mean": float(np.mean(rates)), "filled_pixels": int(len(err)),
                "filled_within_5cm": float((err < 0.05).mean()) if len(err) else None,
                "filled_median_error_m": float(np.median(err)) if len(err) else None,
                "depth_error_mean_m": float(dz.mean()) if len(dz) else None,
                "depth_error_p95_m": float(np.percentile(dz, 95)) if len(dz) else None}
         holes.append(row)
-        print(f"layers {k}  fill passes {passes}  steps {steps}: holes {row['hole_rate_mean']:.3%} mean "
+        print(f"layers {k}  fill passes {passes}  steps {steps}  fill steps {fill_steps}: holes "
+              f"{row['hole_rate_mean']:.4%} mean "
               f"({min(rates):.2%} .. {max(rates):.2%}); depth error mean {row['depth_error_mean_m'] or 0:.5f} m, "
               f"p95 {row['depth_error_p95_m'] or 0:.4f} m; filled {row['filled_pixels']} px, "
               f"{row['filled_within_5cm'] or 0:.0%} within 5 cm", flush=True)
 
     leveling = {}
     synth = Path(args.scene) / "synthetic.json"
-    if synth.is_file():
+    if synth.is_file() and args.leveling:
         truth = np.log(np.array(json.loads(synth.read_text())["photo_gains"], np.float64))
         # the photos' own colours (photometric off): leveling alone against the known exposures
         for name, renderer in (("dmrt", Renderer(bundle, RenderConfig(layers=3, leveling=True, photometric=False,
