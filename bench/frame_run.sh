@@ -6,17 +6,17 @@
 #   cat /tmp/frame/done.txt                 # one line per step: name, exit status, seconds
 #   bench/poll_run.sh /tmp/frame 540        # in the next commands, back to back (see there)
 #
-# Steps: the paper scene (32M points with the scan's normals, 192 photos 1024x684); its
-# preprocessing in-process; the per-stage frame times of every visibility path at 1280x720 and
-# 3840x2160 with 5 layers and the default configuration (bench.bench_render: GPU-resident
-# walkthroughs, median / p95, sustained, clocks); at 3840x2160 the tile raster's time with fewer discs in
-# shared memory, fewer nearest hits kept and 8x8 tiles; Table 2 (`dmrt bench --only table2` on that scene,
-# preprocessed again in the bench's work folder; `dmrt report` builds reports/latest from
-# OUT_DIR/results/bench); the paper's bisection beside the default
-# Illinois refinement; the default path with the search's step capped at 32 and 16 (time and what
-# the cap changes in the frames), with both list checks and a CPU profile of the issuing; the visibility paths'
-# agreement with compute peeling (bench.bench_visibility); with 2+ GPUs, the preprocessing again
-# on a 2-worker Dask LocalCluster (one GPU each) for the depth maps' speed-up.
+# Steps: the paper scene (32M points with the scan's normals, 192 photos 1024x684); Table 2
+# (`dmrt bench --only table2` on that scene: its preprocessing, once, in the bench's work folder,
+# whose main bundle every later step uses; `dmrt report` builds reports/latest from
+# OUT_DIR/results/bench); the default path's per-stage frame times at 1280x720 and 3840x2160 with 5
+# layers (bench.bench_render: GPU-resident walkthroughs, median / p95, sustained, clocks; Table 2
+# has the other paths beside it); at 3840x2160 the tile raster's time with fewer discs in shared
+# memory, fewer nearest hits kept and 8x8 tiles; the default path with the search's step capped at
+# 32 and 16 (time and what the cap changes in the frames), with both list checks and a CPU profile
+# of the issuing; the paper's bisection beside the default Illinois refinement; the visibility
+# paths' agreement with compute peeling (bench.bench_visibility); with 2+ GPUs, the preprocessing
+# again on a 2-worker Dask LocalCluster (one GPU each) for the depth maps' speed-up.
 # The environment (EGL vendor file, PYTHONPATH with the wheels, DMRT_COMMIT) is the caller's:
 # see ../shared/GPU.md.
 set -u
@@ -32,20 +32,23 @@ step() {  # step NAME COMMAND...: run, log, record, repack
 }
 nvidia-smi --query-gpu=name,clocks.sm,clocks.max.sm,memory.total --format=csv >"$out/results/gpus.csv" 2>&1
 step scene python3 -m dmrt.app.cli scene synth --preset paper --write-normals --out "$work/scene" --force --quiet
-step preprocess python3 -m dmrt.app.cli preprocess "$work/scene" --out "$work/bundle" --force --quiet
-cp "$work/bundle/bundle.json" "$out/results/bundle.json"
-step render python3 -m bench.bench_render --bundle "$work/bundle" --out "$out/results" --layers 5 \
-    --methods tiles compute kbuffer --sizes 1280x720 3840x2160 --frames 30 --no-leveling
-step tile_sweep_4k python3 -m bench.bench_visibility --bundle "$work/bundle" --out "$out/results/tiles-4k" --layers 5 \
-    --width 3840 --height 2160 --no-paths --tile-sweep 16:512:16 16:256:16 16:128:16 16:512:8 16:512:12 8:256:16
 step table2 python3 -m dmrt.app.cli bench --preset paper --scene "$work/scene" --work "$work/bench" \
     --out "$out/results/bench" --only table2 --quiet
-step render_bisection python3 -m bench.bench_render --bundle "$work/bundle" --out "$out/results/bisection" \
-    --layers 5 --methods tiles --refine bisection --sizes 1280x720 3840x2160 --frames 30 --no-leveling
-step render_caps python3 -m bench.bench_render --bundle "$work/bundle" --out "$out/results/caps" --layers 5 \
+bundle=$(python3 -c "from bench.workspace import PRESETS, Workspace; from pathlib import Path
+print(Workspace(PRESETS['paper'], Path('$work/bench'), scene=Path('$work/scene'), progress=False).bundle_path())" 2>>"$out/log.txt" | tail -n 1)
+[ -d "$bundle" ] || bundle=$work/bench/bundle-L4  # the paper preset's main bundle
+echo "bundle $bundle" >>"$out/done.txt"
+cp "$bundle/bundle.json" "$out/results/bundle.json"
+step render python3 -m bench.bench_render --bundle "$bundle" --out "$out/results" --layers 5 \
+    --methods tiles --sizes 1280x720 3840x2160 --frames 30 --no-leveling
+step tile_sweep_4k python3 -m bench.bench_visibility --bundle "$bundle" --out "$out/results/tiles-4k" --layers 5 \
+    --width 3840 --height 2160 --no-paths --tile-sweep 16:512:16 16:256:16 16:128:16 16:512:8 16:512:12 8:256:16
+step render_caps python3 -m bench.bench_render --bundle "$bundle" --out "$out/results/caps" --layers 5 \
     --methods tiles --tile-check frame lagged --max-steps 100 32 16 --sizes 1280x720 3840x2160 --frames 30 \
     --no-leveling --cpu-profile
-step visibility python3 -m bench.bench_visibility --bundle "$work/bundle" --out "$out/results" --layers 5 \
+step render_bisection python3 -m bench.bench_render --bundle "$bundle" --out "$out/results/bisection" \
+    --layers 5 --methods tiles --refine bisection --sizes 1280x720 3840x2160 --frames 30 --no-leveling
+step visibility python3 -m bench.bench_visibility --bundle "$bundle" --out "$out/results" --layers 5 \
     --slots 32 --max-thread-pixels 256
 if [ "$(nvidia-smi -L 2>/dev/null | wc -l)" -ge 2 ]; then
     step preprocess_dask2 python3 -m dmrt.app.cli preprocess "$work/scene" --out "$work/bundle2" --force --quiet \
