@@ -11,12 +11,12 @@ readback), and records the median GPU ms of the visibility stage and of the labe
 more splat pass). For the single passes also the agreement of their layers with the peeled ones
 (share of pixels with equal label, per layer) and the pixels whose list overflowed; for ``tiles``
 its list's statistics and GPU bytes. Then the tiles stage alone for each ``--tile-sweep``
-setting (tile side, discs in shared memory, nearest hits kept: what bounds the raster pass), its
-tile lists' and raster's median GPU ms and its layers against the first setting's. One JSON
-``visibility-<name>.json``.
+setting (tile side, discs in shared memory, nearest hits kept, the warps' pixel blocks: what bounds
+the raster pass), its tile lists' and raster's median GPU ms over frames back to back and its
+layers against the first setting's. One JSON ``visibility-<name>.json``.
 
-    python -m bench.bench_visibility --bundle B --out R --width 3840 --height 2160 \
-        --tile-sweep 16:512:16 16:256:16 16:128:16 16:512:8 8:256:16
+    python -m bench.bench_visibility --bundle B --out R --width 3840 --height 2160 --no-paths \
+        --tile-sweep 16:512:16 16:512:16:b 16:256:16 16:512:8 16:512:8:b 8:256:16
 """
 
 from __future__ import annotations
@@ -43,18 +43,18 @@ def main(argv=None) -> None:
     p.add_argument("--slots", type=int, nargs="+", default=[12, 22, 32], help="k-buffer sizes")
     p.add_argument("--frames", type=int, default=24)
     p.add_argument("--write-normals", action="store_true")
-    p.add_argument("--tile-sweep", nargs="*", default=["16:512:16", "16:256:16", "16:512:8"], metavar="T:B:K",
+    p.add_argument("--tile-sweep", nargs="*", default=["16:512:16", "16:512:16:b", "16:256:16", "16:512:8"],
+                   metavar="T:B:K[:b]",
                    help="tiles stage settings timed alone: tile side T, B discs in shared memory, K nearest "
-                        "hits kept (TileVisibility tile, batch, top); the first is the default")
+                        "hits kept, ':b' for warps of 8x4 pixel blocks (TileVisibility tile, batch, top, "
+                        "warp_blocks); the first is the reference of the layers' comparison")
     p.add_argument("--no-paths", action="store_true", help="only the --tile-sweep")
     args = p.parse_args(argv)
     try:
-        sweep = [tuple(int(x) for x in spec.split(":")) for spec in args.tile_sweep]
-        if any(len(t) != 3 or not 1 <= t[0] <= 32 or t[1] < 1 or t[2] not in (4, 8, 12, 16) for t in sweep):
-            raise ValueError
+        sweep = [parse_tile_setting(spec) for spec in args.tile_sweep]
     except ValueError:
-        p.error(f"--tile-sweep: settings are TILE:BATCH:TOP (tile 1-32, batch >= 1, top 4, 8, 12 or 16), "
-                f"e.g. 16:512:16, not {' '.join(args.tile_sweep)}")
+        p.error(f"--tile-sweep: settings are TILE:BATCH:TOP[:b] (tile 1-32, batch >= 1, top 4, 8, 12 or 16, "
+                f"b: 8x4 warp blocks, tile a multiple of 8), e.g. 16:512:16, not {' '.join(args.tile_sweep)}")
     args.out.mkdir(parents=True, exist_ok=True)
     args.bundle = bundle_path(args, {})
     bundle = read_bundle(args.bundle)
@@ -106,11 +106,29 @@ def main(argv=None) -> None:
     print(f"wrote {out}")
 
 
+def parse_tile_setting(spec: str) -> tuple[int, int, int, bool]:
+    """``"T:B:K"`` or ``"T:B:K:b"`` -> (tile, batch, top, warp_blocks); ValueError when malformed."""
+    parts = spec.split(":")
+    if len(parts) not in (3, 4) or (len(parts) == 4 and parts[3] != "b"):
+        raise ValueError(spec)
+    tile, batch, top = (int(x) for x in parts[:3])
+    blocks = len(parts) == 4
+    if not 1 <= tile <= 32 or batch < 1 or top not in (4, 8, 12, 16) or (blocks and tile % 8):
+        raise ValueError(spec)
+    return tile, batch, top, blocks
+
+
+SWEEP_ROUNDS = 2  # every setting timed this many times, the settings in turn (a clock drift shows)
+
+
 def tile_sweep(bundle, path, layers: int, settings) -> list[dict]:
     """The tiles stage alone (:class:`dmrt.runtime.tiles.TileVisibility`, hit masks written as in a
-    renderer with the labeling pass) for each (tile, batch, top) of ``settings`` over the camera
-    ``path``: median GPU ms of ``tile_lists`` and ``tile_raster`` and the share of pixels whose
-    layers (depth bits and labels) equal the first setting's (1.0: every setting is exact)."""
+    renderer with the labeling pass) for each (tile, batch, top, warp_blocks) of ``settings`` over
+    the camera ``path``: median GPU ms of ``tile_lists`` and ``tile_raster`` over frames rendered
+    back to back (deferred timer queries, the list checked two frames late: no wait between frames,
+    so the clocks stay up; SWEEP_ROUNDS rounds over the settings, each round's median kept) and the
+    share of pixels whose layers (depth bits and labels) equal the first setting's (1.0: every
+    setting is exact; compared on frames checked in the frame, as a renderer does)."""
     from dmrt.gl import get_context
     from dmrt.gl.timer import GpuTimer
     from dmrt.runtime.shading import camera_uniforms
@@ -122,31 +140,50 @@ def tile_sweep(bundle, path, layers: int, settings) -> list[dict]:
     splats = ProxySplats(ctx, bundle.proxy)
     depth, label = ctx.buffer(reserve=4 * layers * w * h), ctx.buffer(reserve=4 * layers * w * h)
     timer = GpuTimer(ctx)
-    rows, first = [], None
+    stages = [TileVisibility(ctx, splats, tile=t, batch=b, top=k, warp_blocks=wb) for t, b, k, wb in settings]
+
+    def render(stage, cam, timed):
+        splats.begin_frame()
+        stage.run(camera_uniforms(cam.relative_to(bundle.origin)), (w, h), layers, depth, label,
+                  timer if timed else None)
+
     try:
-        for tile, batch, top in settings:
-            stage = TileVisibility(ctx, splats, tile=tile, batch=batch, top=top)
-            parts, seen = [], []
-            for i, cam in enumerate(path[:3] + path):  # 3 frames of warm-up
-                splats.begin_frame()
+        times = [[] for _ in stages]
+        for _ in range(SWEEP_ROUNDS):
+            for i, stage in enumerate(stages):
+                stage.check = "lagged"
+                for cam in path[:3]:  # warm-up, and the list sized for the path
+                    render(stage, cam, False)
+                timer.deferred = True
+                for cam in path:
+                    timer.reset()
+                    render(stage, cam, True)
                 timer.reset()
-                stage.run(camera_uniforms(cam.relative_to(bundle.origin)), (w, h), layers, depth, label, timer)
-                if i >= 3:
-                    parts.append(timer.part_ms)
-                if i >= 3 and (i - 3) % max(1, len(path) // 4) == 0:  # 4 frames' layers for the comparison
-                    seen.append((np.frombuffer(depth.read(), np.uint32), np.frombuffer(label.read(), np.int32)))
-            stage.release()
+                frames = timer.collect()
+                timer.deferred = False
+                times[i].append({name: float(np.median([f.get(f"visibility:{name}", 0.0) for f in frames]))
+                                 for name in ("tile_lists", "tile_raster")})
+        rows, first = [], None
+        for (tile, batch, top, blocks), stage, t in zip(settings, stages, times):
+            stage.check = "frame"
+            seen = []
+            for cam in path[:: max(1, len(path) // 4)][:4]:  # 4 frames' layers for the comparison
+                render(stage, cam, False)
+                seen.append((np.frombuffer(depth.read(), np.uint32), np.frombuffer(label.read(), np.int32)))
             first = first or seen
-            row = {"tile": tile, "batch": batch, "top": top,
-                   **{f"{name}_ms": float(np.median([x.get(f"visibility:{name}", 0.0) for x in parts]))
-                      for name in ("tile_lists", "tile_raster")},
+            row = {"tile": tile, "batch": batch, "top": top, "warp_blocks": blocks,
+                   **{f"{name}_ms": min(r[name] for r in t) for name in ("tile_lists", "tile_raster")},
+                   "rounds_ms": t,
                    "layers_equal_to_first": float(np.mean([np.mean((da == db) & (la == lb))
                                                            for (da, la), (db, lb) in zip(first, seen)]))}
             rows.append(row)
-            print(f"  tiles {tile}x{tile}, batch {batch}, top {top}: lists {row['tile_lists_ms']:.3f} ms, "
-                  f"raster {row['tile_raster_ms']:.3f} ms, layers equal to the first {row['layers_equal_to_first']:.6f}",
-                  flush=True)
+            lists, raster = (" / ".join(f"{r[name]:.3f}" for r in t) for name in ("tile_lists", "tile_raster"))
+            print(f"  tiles {tile}x{tile}, batch {batch}, top {top}{', 8x4 warps' if blocks else ''}: lists "
+                  f"{lists} ms, raster {raster} ms (rounds), layers equal to the first "
+                  f"{row['layers_equal_to_first']:.6f}", flush=True)
     finally:
+        for stage in stages:
+            stage.release()
         depth.release()
         label.release()
         splats.release()

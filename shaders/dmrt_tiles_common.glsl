@@ -23,6 +23,25 @@ bool masks_second_half(uint count) {
 #define HIT_MASKS (TILE * TILE == MASK_DISCS)
 #endif
 
+// The pixel of this invocation within its tile. WARP_BLOCKS (TILE a multiple of 8): each run of 32
+// invocations (an NVIDIA warp, which runs in lockstep) covers an 8 x 4 block instead of two 16-pixel
+// rows, so a disc's pixel box overlaps fewer warps, and the per-disc work of the raster's walk (the
+// test, the insertion into the nearest hits) runs for fewer warps in which no lane needs it.
+#ifndef WARP_BLOCKS
+#define WARP_BLOCKS 0
+#endif
+#if defined COMPUTE_SHADER
+ivec2 tile_local_pixel() {
+#if WARP_BLOCKS && TILE % 8 == 0
+    uint lid = gl_LocalInvocationIndex;
+    uint w = lid >> 5u, lane = lid & 31u;
+    return ivec2((w % uint(TILE / 8)) * 8u + (lane & 7u), (w / uint(TILE / 8)) * 4u + (lane >> 3u));
+#else
+    return ivec2(gl_LocalInvocationID.xy);
+#endif
+}
+#endif
+
 // Binding points (B_PROXIES, B_LARGE, B_LAYER_DEPTH, B_LAYER_LABEL, B_TILE_*) and the sentinels
 // EMPTY_BITS, EMPTY_LABEL come from dmrt/gl/abi.py, injected as #defines by the loader.
 uniform ivec2 u_tiles;  // tiles per row, tile rows

@@ -231,7 +231,7 @@ void walk_batches(uint off, uint count, bool walking) {
 void main() {
     uint lid = gl_LocalInvocationIndex;
     uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
-    ivec2 p = ivec2(gl_WorkGroupID.xy) * TILE + ivec2(gl_LocalInvocationID.xy);
+    ivec2 p = ivec2(gl_WorkGroupID.xy) * TILE + tile_local_pixel();
     bool inside = p.x < u_size.x && p.y < u_size.y;
     g_npix = uint(u_size.x * u_size.y);
     g_pix = inside ? uint(p.y * u_size.x + p.x) : 0u;

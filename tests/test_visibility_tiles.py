@@ -102,22 +102,24 @@ def test_tiles_match_peeling(ctx, bundle, splats):
         tiles.release()
 
 
-@pytest.mark.parametrize("tile, batch, top", [(8, 256, 16), (16, 512, 4), (16, 64, 8)])
-def test_other_tile_settings_match_peeling(ctx, bundle, splats, tile, batch, top):
+@pytest.mark.parametrize("tile, batch, top, blocks", [(8, 256, 16, False), (16, 512, 4, False), (16, 64, 8, False),
+                                                     (16, 512, 16, True), (8, 256, 8, True)])
+def test_other_tile_settings_match_peeling(ctx, bundle, splats, tile, batch, top, blocks):
     """8 x 8 tiles (64 invocations a workgroup, no hit masks: they need 256 pixels a tile), fewer
-    nearest hits kept (more pixels walk again) and short batches: 5 layers equal peeling's at the
-    photo and novel cameras (the settings bench_visibility --tile-sweep times)."""
+    nearest hits kept (more pixels walk again), short batches and warps of 8 x 4 pixel blocks: 5
+    layers equal peeling's at the photo and novel cameras (the settings bench_visibility
+    --tile-sweep times)."""
     from dmrt.runtime.tiles import TileVisibility
     from dmrt.runtime.visibility import VisibilityStage
 
     peel = VisibilityStage(ctx, splats, "compute")
-    tiles = TileVisibility(ctx, splats, tile=tile, batch=batch, top=top)
+    tiles = TileVisibility(ctx, splats, tile=tile, batch=batch, top=top, warp_blocks=blocks)
     try:
         assert tiles.hit_masks == (tile == 16)
         for cam in _views(bundle):
             splats.begin_frame()
             _assert_equal(_layers(ctx, peel, cam, 5), _layers(ctx, tiles, cam, 5), 5,
-                          f"{cam.name}, tile {tile}, batch {batch}, top {top}")
+                          f"{cam.name}, tile {tile}, batch {batch}, top {top}, blocks {blocks}")
     finally:
         peel.release()
         tiles.release()

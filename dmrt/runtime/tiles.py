@@ -78,6 +78,10 @@ class TileVisibility:
     hit_masks : bool
         The raster writes each pixel's hit bits for :meth:`label_pass` (32 bytes a pixel, 16 x 16
         tiles only); False for a renderer without the labeling pass.
+    warp_blocks : bool
+        Each 32 invocations of the raster and labeling passes cover an 8 x 4 pixel block of the tile
+        instead of two rows (``tile_local_pixel`` in ``dmrt_tiles_common.glsl``; tile a multiple
+        of 8); the layers are the same either way.
 
     Attributes
     ----------
@@ -89,7 +93,7 @@ class TileVisibility:
 
     def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = 512, top: int = 16,
                  max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None,
-                 hit_masks: bool = True):
+                 hit_masks: bool = True, warp_blocks: bool = False):
         if not 1 <= tile <= 32:
             raise ValueError(f"tile must be 1..32 (tile^2 invocations per workgroup), not {tile}")
         if batch < 1:
@@ -101,7 +105,8 @@ class TileVisibility:
         self.ctx, self.splats = ctx, splats
         self.tile, self.check = int(tile), check
         self.hit_masks = bool(hit_masks) and self.tile * self.tile == MASK_DISCS
-        self._defines = {"TILE": self.tile, "BATCH": int(batch), "HIT_MASKS": int(self.hit_masks)}
+        self._defines = {"TILE": self.tile, "BATCH": int(batch), "HIT_MASKS": int(self.hit_masks),
+                         "WARP_BLOCKS": int(bool(warp_blocks))}
         self._bin = {(scatter, large): load_program(ctx, "dmrt_tiles_bin", {**self._defines, "SCATTER": scatter,
                                                                             "LARGE": large,
                                                                             "MAX_THREAD_TILES": max_thread_tiles})
