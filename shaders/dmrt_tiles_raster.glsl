@@ -119,15 +119,30 @@ void consider(uint d, uint j) {
     }
 }
 
+// DEPTH_ORDER: the nearest hits are kept in order of depth bits alone (one compare a step instead of
+// three), the label carried along; hits of equal depth then keep the order they came in, not the
+// label's, so a pixel whose kept hits hold two of equal depth (or that dropped one equal to the
+// farthest kept) takes no layer from them and walks again for every layer (g_tie): exact, and two
+// discs with bit-equal depths at a pixel centre are rare.
+#ifndef DEPTH_ORDER
+#define DEPTH_ORDER 0
+#endif
+bool g_tie;  // DEPTH_ORDER: equal depths among the kept hits (or with a dropped one)
+
 // One compare-exchange of the insertion: the entry keeps the smaller of itself and (d, l), which
 // carries the larger on.
-#define SORT_STEP(D, L) if (d < D || (d == D && l < L)) { uint t = D; D = d; d = t; t = L; L = l; l = t; }
+#if DEPTH_ORDER
+#define BEFORE(d, l, D, L) (d < D)
+#else
+#define BEFORE(d, l, D, L) (d < D || (d == D && l < L))
+#endif
+#define SORT_STEP(D, L) if (BEFORE(d, l, D, L)) { uint t = D; D = d; d = t; t = L; L = l; l = t; }
 
 // Insert a hit into the sorted nearest hits (dropping the farthest when they are full). A block of
 // four that lies wholly in front of the carried hit keeps its entries: it is skipped (the hit
 // carried on only grows, so every block before the insertion point is skipped, and a carried
 // empty entry matches no block).
-#define SORT_STEPS(D, L) if (d < D.w || (d == D.w && l < L.w)) { \
+#define SORT_STEPS(D, L) if (BEFORE(d, l, D.w, L.w)) { \
     SORT_STEP(D.x, L.x) SORT_STEP(D.y, L.y) SORT_STEP(D.z, L.z) SORT_STEP(D.w, L.w) }
 #define FARTHEST_D (TOP > 12 ? g_top_d3.w : TOP > 8 ? g_top_d2.w : TOP > 4 ? g_top_d1.w : g_top_d0.w)
 #define FARTHEST_L (TOP > 12 ? g_top_l3.w : TOP > 8 ? g_top_l2.w : TOP > 4 ? g_top_l1.w : g_top_l0.w)
@@ -135,7 +150,14 @@ void consider(uint d, uint j) {
 void keep_nearest(uint d, uint j) {
     uint l = floatBitsToUint(s_nl[j].w);
     ++g_hits;
+#if DEPTH_ORDER
+    if (d >= FARTHEST_D) {
+        g_tie = g_tie || d == FARTHEST_D;  // the list is full (an empty entry matches no hit)
+        return;
+    }
+#else
     if (d > FARTHEST_D || (d == FARTHEST_D && l >= FARTHEST_L)) return;
+#endif
     SORT_STEPS(g_top_d0, g_top_l0)
 #if TOP > 4
     SORT_STEPS(g_top_d1, g_top_l1)
@@ -146,7 +168,29 @@ void keep_nearest(uint d, uint j) {
 #if TOP > 12
     SORT_STEPS(g_top_d3, g_top_l3)
 #endif
+#if DEPTH_ORDER
+    g_tie = g_tie || (d == FARTHEST_D && d != EMPTY_BITS);  // d: the hit dropped off the end
+#endif
 }
+
+#if DEPTH_ORDER
+// Two neighbouring kept hits of equal depth (empty entries, all at the end, are not hits).
+#define TIE(a, b) (a == b && b != EMPTY_BITS)
+#define TIES4(D) (TIE(D.x, D.y) || TIE(D.y, D.z) || TIE(D.z, D.w))
+bool ties_in_nearest() {
+    bool t = TIES4(g_top_d0);
+#if TOP > 4
+    t = t || TIE(g_top_d0.w, g_top_d1.x) || TIES4(g_top_d1);
+#endif
+#if TOP > 8
+    t = t || TIE(g_top_d1.w, g_top_d2.x) || TIES4(g_top_d2);
+#endif
+#if TOP > 12
+    t = t || TIE(g_top_d2.w, g_top_d3.x) || TIES4(g_top_d3);
+#endif
+    return t;
+}
+#endif
 
 // Test discs [from, to) of the batch in shared memory; the bits of the hits, from bit 0 for disc
 // `from` (meaningful for up to 32 discs).
@@ -242,6 +286,7 @@ void main() {
     g_prev_l = ~0u;
     g_found = 0u;
     g_hits = 0u;
+    g_tie = false;
     g_top_d0 = g_top_l0 = g_top_d1 = g_top_l1 = uvec4(EMPTY_BITS);
     g_top_d2 = g_top_l2 = g_top_d3 = g_top_l3 = uvec4(EMPTY_BITS);
 
@@ -271,9 +316,17 @@ void main() {
         walk_batches(off, count, inside);
     }
     g_first = false;
+#if DEPTH_ORDER
+    g_tie = g_tie || ties_in_nearest();
+    if (inside && !g_tie) layers_from_nearest();
+    // a pixel whose hits did not all fit in the sorted prefix and which lacks layers walks again,
+    // and one with equal depths among its nearest hits for every layer
+    bool searching = inside && g_found < uint(u_layers) && (g_hits > uint(TOP) || g_tie);
+#else
     if (inside) layers_from_nearest();
     // a pixel whose hits did not all fit in the sorted prefix and which lacks layers walks again
     bool searching = inside && g_found < uint(u_layers) && g_hits > uint(TOP);
+#endif
 
     // then a walk per missing layer, over the pixels that need one, while any does; flag slot
     // i % 3 says "some pixel needs walk i + 1". A slot is reset (by invocation 0, before the

@@ -185,6 +185,30 @@ def test_long_tile_lists(ctx, discs, batch):
             obj.release()
 
 
+def test_equal_depths_take_the_smaller_label(ctx):
+    """Every disc twice, the copy with another label: each hit has a twin of bit-equal depth, and
+    peeling takes the smaller label (the order of (depth bits, label)); the tiles path the same,
+    both with lists held in shared memory and walked in batches."""
+    from dmrt.runtime.tiles import TileVisibility
+    from dmrt.runtime.visibility import ProxySplats, VisibilityStage
+
+    cam, proxy = _crowded_tile(200)
+    twin = {k: np.concatenate([v, v]) for k, v in proxy.items()}
+    twin["labels"][200:] = (twin["labels"][200:] + 1 + np.arange(200) % 3) % 4  # another label
+    splats = ProxySplats(ctx, twin)
+    peel = VisibilityStage(ctx, splats, "compute")
+    stages = [TileVisibility(ctx, splats, batch=batch) for batch in (512, 64)]
+    try:
+        splats.begin_frame()
+        ref = _layers(ctx, peel, cam, 5)
+        assert (ref[1][2][16:32, 16:32] != EMPTY_LABEL).mean() > 0.5  # most of the tile has 3+ layers
+        for stage, batch in zip(stages, (512, 64)):
+            _assert_equal(ref, _layers(ctx, stage, cam, 5), 5, f"twin discs, batch {batch}")
+    finally:
+        for obj in (*stages, peel, splats):
+            obj.release()
+
+
 def _tile_labels(ctx, tiles, splats, cam: Camera, depth: np.ndarray) -> np.ndarray:
     """(h, w) labels of the labeling pass for raytraced camera z ``depth`` (0 = none): on ``tiles``'
     lists of the last frame (dmrt_tiles_labeling.glsl), or with None by splatting the proxies
