@@ -14,12 +14,12 @@
 //    radius, label, pixel box) and serves every walk; a longer one is walked BATCH discs at a
 //    time, loaded again for each walk.
 // 2. The first walk tests every disc against the pixel box and the disc, and each invocation keeps
-//    its TOP nearest hits sorted, (depth bits, label), in registers. The layers are the peeling
-//    rule applied to the pixel's hits in that order (a hit is the next layer if it lies behind the
-//    last one with another label; one that fails can never pass later, as every later layer lies
-//    at or behind it), so the sorted prefix yields the pixel's first layers exactly: all k of them
-//    when the rule finds k in it (most pixels: the labels of the maps that see a surface
-//    interleave in depth), or all there are when the pixel has at most TOP hits.
+//    its TOP nearest hits sorted by depth in registers. The layers are the peeling rule applied to
+//    the pixel's hits in that order (a hit is the next layer if it lies behind the last one with
+//    another label; one that fails can never pass later, as every later layer lies at or behind
+//    it), so the sorted prefix yields the pixel's first layers exactly: all k of them when the rule
+//    finds k in it (most pixels: the labels of the maps that see a surface interleave in depth), or
+//    all there are when the pixel has at most TOP hits; with no two of equal depth among them.
 // 3. Only the other pixels walk again, once per missing layer, each keeping the smallest
 //    (depth bits, label) that passes the filter. The first walk also noted which of the tile's
 //    first MASK_DISCS (256) discs hit the pixel (a bit mask in eight registers); these walks
@@ -119,45 +119,33 @@ void consider(uint d, uint j) {
     }
 }
 
-// DEPTH_ORDER: the nearest hits are kept in order of depth bits alone (one compare a step instead of
-// three), the label carried along; hits of equal depth then keep the order they came in, not the
-// label's, so a pixel whose kept hits hold two of equal depth (or that dropped one equal to the
-// farthest kept) takes no layer from them and walks again for every layer (g_tie): exact, and two
-// discs with bit-equal depths at a pixel centre are rare.
-#ifndef DEPTH_ORDER
-#define DEPTH_ORDER 0
-#endif
-bool g_tie;  // DEPTH_ORDER: equal depths among the kept hits (or with a dropped one)
+// The nearest hits are kept in order of depth bits alone (one compare a step instead of three for
+// (depth bits, label)), the label carried along. Hits of equal depth then keep the order they came
+// in, not the label's, so a pixel whose kept hits hold two of equal depth (or that dropped one equal
+// to the farthest kept) takes no layer from them and walks again for every layer (g_tie): exact,
+// and two discs with bit-equal depths at a pixel centre are rare. (4 % off this pass at 3840x2160
+// on the H100, nothing at 1280x720: reports/frame-h200, session 13.)
+bool g_tie;
 
-// One compare-exchange of the insertion: the entry keeps the smaller of itself and (d, l), which
-// carries the larger on.
-#if DEPTH_ORDER
-#define BEFORE(d, l, D, L) (d < D)
-#else
-#define BEFORE(d, l, D, L) (d < D || (d == D && l < L))
-#endif
-#define SORT_STEP(D, L) if (BEFORE(d, l, D, L)) { uint t = D; D = d; d = t; t = L; L = l; l = t; }
+// One compare-exchange of the insertion: the entry keeps the nearer of itself and d (label
+// alongside), which carries the farther on.
+#define SORT_STEP(D, L) if (d < D) { uint t = D; D = d; d = t; t = L; L = l; l = t; }
 
 // Insert a hit into the sorted nearest hits (dropping the farthest when they are full). A block of
 // four that lies wholly in front of the carried hit keeps its entries: it is skipped (the hit
 // carried on only grows, so every block before the insertion point is skipped, and a carried
 // empty entry matches no block).
-#define SORT_STEPS(D, L) if (BEFORE(d, l, D.w, L.w)) { \
+#define SORT_STEPS(D, L) if (d < D.w) { \
     SORT_STEP(D.x, L.x) SORT_STEP(D.y, L.y) SORT_STEP(D.z, L.z) SORT_STEP(D.w, L.w) }
 #define FARTHEST_D (TOP > 12 ? g_top_d3.w : TOP > 8 ? g_top_d2.w : TOP > 4 ? g_top_d1.w : g_top_d0.w)
-#define FARTHEST_L (TOP > 12 ? g_top_l3.w : TOP > 8 ? g_top_l2.w : TOP > 4 ? g_top_l1.w : g_top_l0.w)
 
 void keep_nearest(uint d, uint j) {
     uint l = floatBitsToUint(s_nl[j].w);
     ++g_hits;
-#if DEPTH_ORDER
     if (d >= FARTHEST_D) {
         g_tie = g_tie || d == FARTHEST_D;  // the list is full (an empty entry matches no hit)
         return;
     }
-#else
-    if (d > FARTHEST_D || (d == FARTHEST_D && l >= FARTHEST_L)) return;
-#endif
     SORT_STEPS(g_top_d0, g_top_l0)
 #if TOP > 4
     SORT_STEPS(g_top_d1, g_top_l1)
@@ -168,12 +156,9 @@ void keep_nearest(uint d, uint j) {
 #if TOP > 12
     SORT_STEPS(g_top_d3, g_top_l3)
 #endif
-#if DEPTH_ORDER
     g_tie = g_tie || (d == FARTHEST_D && d != EMPTY_BITS);  // d: the hit dropped off the end
-#endif
 }
 
-#if DEPTH_ORDER
 // Two neighbouring kept hits of equal depth (empty entries, all at the end, are not hits).
 #define TIE(a, b) (a == b && b != EMPTY_BITS)
 #define TIES4(D) (TIE(D.x, D.y) || TIE(D.y, D.z) || TIE(D.z, D.w))
@@ -190,7 +175,6 @@ bool ties_in_nearest() {
 #endif
     return t;
 }
-#endif
 
 // Test discs [from, to) of the batch in shared memory; the bits of the hits, from bit 0 for disc
 // `from` (meaningful for up to 32 discs).
@@ -316,17 +300,11 @@ void main() {
         walk_batches(off, count, inside);
     }
     g_first = false;
-#if DEPTH_ORDER
     g_tie = g_tie || ties_in_nearest();
     if (inside && !g_tie) layers_from_nearest();
     // a pixel whose hits did not all fit in the sorted prefix and which lacks layers walks again,
     // and one with equal depths among its nearest hits for every layer
     bool searching = inside && g_found < uint(u_layers) && (g_hits > uint(TOP) || g_tie);
-#else
-    if (inside) layers_from_nearest();
-    // a pixel whose hits did not all fit in the sorted prefix and which lacks layers walks again
-    bool searching = inside && g_found < uint(u_layers) && g_hits > uint(TOP);
-#endif
 
     // then a walk per missing layer, over the pixels that need one, while any does; flag slot
     // i % 3 says "some pixel needs walk i + 1". A slot is reset (by invocation 0, before the

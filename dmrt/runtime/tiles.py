@@ -14,8 +14,9 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
 4. ``dmrt_tiles_raster``: one workgroup per tile, one invocation per pixel: each layer is the
    smallest (depth bits, label) among the pixel's hits behind the layer before with another label.
    The workgroup walks its tile's discs (held in shared memory) once, each invocation keeping its
-   16 nearest hits sorted in registers, and the peeling rule applied to them in order gives the
-   pixel's first layers exactly (all k for most pixels); a pixel still lacking layers walks again
+   16 nearest hits sorted by depth in registers, and the peeling rule applied to them in order
+   gives the pixel's first layers exactly (all k for most pixels, unless two of them have equal
+   depths: their order is the label's); a pixel still lacking layers walks again
    per layer, keeping the minimum that passes the filter and testing only the discs that hit it
    (a bit mask). The ray-disc test is the other paths' (``splat_depth_at``), so every
    layer equals compute peeling's to the bit; no order among the discs is needed and nothing is
@@ -81,7 +82,8 @@ class TileVisibility:
     warp_blocks : bool
         Each 32 invocations of the raster and labeling passes cover an 8 x 4 pixel block of the tile
         instead of two rows (``tile_local_pixel`` in ``dmrt_tiles_common.glsl``; tile a multiple
-        of 8); the layers are the same either way.
+        of 8; H100: raster 8 % faster at 1280x720, 4 % at 3840x2160); the layers are the same
+        either way.
 
     Attributes
     ----------
@@ -93,7 +95,7 @@ class TileVisibility:
 
     def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = 512, top: int = 16,
                  max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None,
-                 hit_masks: bool = True, warp_blocks: bool = False):
+                 hit_masks: bool = True, warp_blocks: bool = True):
         if not 1 <= tile <= 32:
             raise ValueError(f"tile must be 1..32 (tile^2 invocations per workgroup), not {tile}")
         if batch < 1:
