@@ -20,12 +20,16 @@ int hit_iters(Hit h) { return int(h.layer_iters >> 8); }
 
 #ifdef NORMALS_BUFFER
 // The unit world-space normal facing the render camera, 3 floats a pixel (0 = background), written
-// by the passes that find the surface when u_normals is set (a frame that is read back).
+// by the passes that find the surface when u_normals is set (a frame that is read back) in a
+// program built with NORMALS 1 (the default; NORMALS 0 leaves their code out: fewer registers).
+#ifndef NORMALS
+#define NORMALS 1
+#endif
 layout(std430, binding = B_NORMALS) writeonly buffer Normals { float normals[]; };
 uniform int u_normals;
 
 void write_normal(uint pix, vec3 n) {
-    if (u_normals == 0) return;
+    if (NORMALS == 0 || u_normals == 0) return;
     normals[3u * pix] = n.x;
     normals[3u * pix + 1u] = n.y;
     normals[3u * pix + 2u] = n.z;

@@ -175,7 +175,7 @@ bool valid_hit(int l, Photo ph, vec3 C, vec3 dir, float dlen, float s_hit, out v
 #else
     if (!(f2.x + f2.y <= 1.0 ? ok0 : ok1)) return false;
 #endif
-    if (u_normals == 0) return true;  // a frame not read back keeps no normal (write_normal)
+    if (NORMALS == 0 || u_normals == 0) return true;  // a frame not read back keeps no normal (write_normal)
     vec3 p00 = unproject_texel(ph, i0, d.x);
     vec3 p10 = unproject_texel(ph, i0 + ivec2(1, 0), d.y);
     vec3 p01 = unproject_texel(ph, i0 + ivec2(0, 1), d.z);

@@ -78,6 +78,13 @@ def test_frame_contract(renderers, bundle):
     assert set(kept) == {"timings", "part_timings", "cpu_ms"} and set(kept["timings"]) == set(frame["timings"])
     # the timed parts of stages are named "stage:part" after stages of the frame
     assert kept["part_timings"] and {k.split(":")[0] for k in kept["part_timings"]} <= set(frame["timings"])
+    # its search program leaves the normals' code out (NORMALS 0): the same surface as a frame read back
+    c1 = bundle.cameras[1]
+    pixels = [(x, y) for y in range(0, round(W * c1.height / c1.width), 7) for x in range(0, W, 9)]
+    kept_depth = [renderer.depth_at(x, y) for x, y in pixels]
+    shown = renderer.render(c1, W)["depth"]
+    assert kept_depth == [float(shown[y, x]) for x, y in pixels]
+    assert np.count_nonzero(kept_depth) > len(kept_depth) // 2
     after = renderer.render(cam, W)
     for key in ("depth", "label", "color"):
         np.testing.assert_array_equal(after[key], frame[key], err_msg=key)

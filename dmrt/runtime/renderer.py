@@ -225,8 +225,13 @@ class Renderer:
         defines = {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
                    "SECANT": int(self.config.search == "secant"), "RAYTRACE": int(self.config.raytrace),
                    "STATISTICS": int(self.config.statistics), "ILLINOIS": int(self.config.refine == "illinois")}
-        self._raytrace = load_program(self.ctx, "dmrt_raytrace", defines)
-        self._fill = load_program(self.ctx, "dmrt_raytrace", {**defines, "FILL": 1})
+        # the search and fill programs by "the frame is read back": only such a frame has normals, and
+        # without their code compiled in the search ran 15 % faster at 3840x2160 on the H100 (6 % at
+        # 1280x720; reports/frame-h200, session 13), not per the uniform u_normals alone
+        self._search_programs = {readback: (load_program(self.ctx, "dmrt_raytrace", {**defines, "NORMALS": int(readback)}),
+                                            load_program(self.ctx, "dmrt_raytrace",
+                                                         {**defines, "FILL": 1, "NORMALS": int(readback)}))
+                                 for readback in (False, True)}
         self._max_groups = max_groups(self.ctx)
         self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
         self.step_stats = self.ctx.buffer(reserve=16 * self.config.layers * STEP_BINS) if self.config.statistics else None
@@ -319,6 +324,7 @@ class Renderer:
                   "u_threshold": float(cfg.discontinuity_threshold), "u_depthmaps": 0,
                   "u_max_groups": self._max_groups, "u_normals": int(readback), **cam_uniforms}
         holes = (b["holes_a"], b["holes_b"])
+        raytrace, fill = self._search_programs[readback]
         with timer.section("raytracing:search"):
             if self.step_stats is not None:
                 fill_u32(ctx, self.step_stats, 0, 4 * cfg.layers * STEP_BINS)
@@ -332,8 +338,8 @@ class Renderer:
             b["normals"].bind_to_storage_buffer(abi.B_NORMALS)
             self.photos.bind_to_storage_buffer(abi.B_PHOTOS)
             self.depthmaps.use(0)
-            set_uniforms(self._raytrace, u_fill=int(fill_passes > 0), **search)
-            self._raytrace.run(*grid)
+            set_uniforms(raytrace, u_fill=int(fill_passes > 0), **search)
+            raytrace.run(*grid)
             ctx.memory_barrier(_BARRIER)
         with timer.section("raytracing:hole_fill"):
             for fill_pass in range(fill_passes):
@@ -341,9 +347,9 @@ class Renderer:
                 following.write(EMPTY_DISPATCH)
                 current.bind_to_storage_buffer(abi.B_HOLES)
                 following.bind_to_storage_buffer(abi.B_HOLES_NEXT)
-                set_uniforms(self._fill, u_pass=fill_pass, u_fill=int(fill_pass + 1 < fill_passes),
+                set_uniforms(fill, u_pass=fill_pass, u_fill=int(fill_pass + 1 < fill_passes),
                              **{**search, "u_max_steps": cfg.fill_max_steps})
-                self._fill.run_indirect(current)
+                fill.run_indirect(current)
                 ctx.memory_barrier(_BARRIER)
 
         with timer.section("labeling"):
