@@ -16,7 +16,7 @@ the raster pass), its tile lists' and raster's median GPU ms over frames back to
 layers against the first setting's. One JSON ``visibility-<name>.json``.
 
     python -m bench.bench_visibility --bundle B --out R --width 3840 --height 2160 --no-paths \
-        --tile-sweep 16:512:16 16:512:16:b 16:256:16 16:512:8 16:512:8:b 8:256:16
+        --tile-sweep 16:512:16 16:512:16:r 16:256:16 16:512:8 16:512:12 8:256:16
 """
 
 from __future__ import annotations
@@ -43,18 +43,18 @@ def main(argv=None) -> None:
     p.add_argument("--slots", type=int, nargs="+", default=[12, 22, 32], help="k-buffer sizes")
     p.add_argument("--frames", type=int, default=24)
     p.add_argument("--write-normals", action="store_true")
-    p.add_argument("--tile-sweep", nargs="*", default=["16:512:16", "16:512:16:b", "16:256:16", "16:512:8"],
-                   metavar="T:B:K[:b]",
+    p.add_argument("--tile-sweep", nargs="*", default=["16:512:16", "16:512:16:r", "16:256:16", "16:512:8"],
+                   metavar="T:B:K[:r]",
                    help="tiles stage settings timed alone: tile side T, B discs in shared memory, K nearest "
-                        "hits kept, ':b' for warps of 8x4 pixel blocks (TileVisibility tile, batch, top, "
-                        "warp_blocks); the first is the reference of the layers' comparison")
+                        "hits kept, ':r' for warps of two pixel rows instead of 8x4 blocks (TileVisibility tile, batch, "
+                        "top, warp_blocks); the first is the reference of the layers' comparison")
     p.add_argument("--no-paths", action="store_true", help="only the --tile-sweep")
     args = p.parse_args(argv)
     try:
         sweep = [parse_tile_setting(spec) for spec in args.tile_sweep]
     except ValueError:
-        p.error(f"--tile-sweep: settings are TILE:BATCH:TOP[:b] (tile 1-32, batch >= 1, top 4, 8, 12 or 16, "
-                f"b: 8x4 warp blocks, tile a multiple of 8), e.g. 16:512:16, not {' '.join(args.tile_sweep)}")
+        p.error(f"--tile-sweep: settings are TILE:BATCH:TOP[:r] (tile 1-32, batch >= 1, top 4, 8, 12 or 16, "
+                f"r: warps of pixel rows; else 8x4 blocks, for a tile a multiple of 8), e.g. 16:512:16, not {' '.join(args.tile_sweep)}")
     args.out.mkdir(parents=True, exist_ok=True)
     args.bundle = bundle_path(args, {})
     bundle = read_bundle(args.bundle)
@@ -107,15 +107,16 @@ def main(argv=None) -> None:
 
 
 def parse_tile_setting(spec: str) -> tuple[int, int, int, bool]:
-    """``"T:B:K"`` or ``"T:B:K:b"`` -> (tile, batch, top, warp_blocks); ValueError when malformed."""
+    """``"T:B:K"`` or ``"T:B:K:r"`` -> (tile, batch, top, warp_blocks); ValueError when malformed.
+    Warps cover 8x4 pixel blocks (the default) where the tile side is a multiple of 8, rows with
+    ``:r``."""
     parts = spec.split(":")
-    if len(parts) not in (3, 4) or (len(parts) == 4 and parts[3] != "b"):
+    if len(parts) not in (3, 4) or (len(parts) == 4 and parts[3] != "r"):
         raise ValueError(spec)
     tile, batch, top = (int(x) for x in parts[:3])
-    blocks = len(parts) == 4
-    if not 1 <= tile <= 32 or batch < 1 or top not in (4, 8, 12, 16) or (blocks and tile % 8):
+    if not 1 <= tile <= 32 or batch < 1 or top not in (4, 8, 12, 16):
         raise ValueError(spec)
-    return tile, batch, top, blocks
+    return tile, batch, top, len(parts) == 3 and tile % 8 == 0
 
 
 SWEEP_ROUNDS = 2  # every setting timed this many times, the settings in turn (a clock drift shows)
@@ -178,7 +179,7 @@ def tile_sweep(bundle, path, layers: int, settings) -> list[dict]:
                                                            for (da, la), (db, lb) in zip(first, seen)]))}
             rows.append(row)
             lists, raster = (" / ".join(f"{r[name]:.3f}" for r in t) for name in ("tile_lists", "tile_raster"))
-            print(f"  tiles {tile}x{tile}, batch {batch}, top {top}{', 8x4 warps' if blocks else ''}: lists "
+            print(f"  tiles {tile}x{tile}, batch {batch}, top {top}, warps of {'8x4 blocks' if blocks else 'rows'}: lists "
                   f"{lists} ms, raster {raster} ms (rounds), layers equal to the first "
                   f"{row['layers_equal_to_first']:.6f}", flush=True)
     finally:
