@@ -1,0 +1,78 @@
+"""The trees of one ``bench/ab_run.sh`` run side by side: a Markdown table per frame size.
+
+    python -m bench.ab_table RESULTS [--trees base new ...]
+
+RESULTS holds one folder per tree, each with the ``render-*.json`` of ``bench.bench_render``. Per
+tree and frame size: the GPU total's median and p95 and the sustained wall ms per frame (frames back
+to back), the render call's median (CPU), the stages' parts (GPU ms), and the mean search steps and
+surface fraction, which equal trees must share (a change meant to keep the frames must not move
+them). The first tree is the reference of the ``GPU / first`` column.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+PARTS = ("visibility:tile_lists", "visibility:tile_raster", "raytracing:search", "raytracing:hole_fill",
+         "image_management:histogram", "image_management:label_finalize")
+STAGES = ("labeling", "texturing")
+
+
+def load(results: Path, trees: list[str] | None) -> dict[str, list[dict]]:
+    """``{tree: runs of its render JSON}`` in the order asked (default: folder names, sorted)."""
+    names = trees or sorted(p.name for p in results.iterdir() if p.is_dir() and any(p.glob("render-*.json")))
+    out = {}
+    for name in names:
+        files = sorted((results / name).glob("render-*.json"))
+        if not files:
+            raise FileNotFoundError(f"{results / name}: no render-*.json")
+        out[name] = json.loads(files[0].read_text())["runs"]
+    return out
+
+
+def table(runs: dict[str, list[dict]], size: tuple[int, int]) -> str:
+    """The Markdown table of every tree's run at ``size`` (w, h)."""
+    head = (["tree", "GPU median", "GPU / first", "GPU p95", "sustained", "call median"]
+            + [p.split(":")[1] for p in PARTS] + list(STAGES) + ["steps", "surface"])
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    first = None
+    for name, rs in runs.items():
+        r = next((r for r in rs if tuple(r["frame_size"]) == size), None)
+        if r is None:
+            continue
+        s = r["sustained_timed"]
+        first = first if first is not None else s["median_total_ms"]
+        ratio = f"{s['median_total_ms'] / first:.3f}" if first > 0 else "-"  # software GL: no times
+        cells = [name, f"{s['median_total_ms']:.3f}", ratio,
+                 f"{s['p95_total_ms']:.3f}", f"{r['sustained_ms']:.3f}", f"{r['sustained_call_ms']['median']:.3f}"]
+        cells += [f"{s['median_part_ms'].get(p, 0.0):.3f}" for p in PARTS]
+        cells += [f"{s['median_ms'].get(st, 0.0):.3f}" for st in STAGES]
+        cells += [f"{r['mean_iterations']:.4f}", f"{r['surface_fraction']:.6f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("results", type=Path, help="bench/ab_run.sh's OUT_DIR/results")
+    p.add_argument("--trees", nargs="+", help="tree folders in this order (default: all, sorted)")
+    args = p.parse_args(argv)
+    try:
+        runs = load(args.results, args.trees)
+    except (OSError, ValueError, KeyError) as exc:
+        print(f"ab_table: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    if not runs:
+        print(f"ab_table: {args.results}: no tree folder with a render-*.json", file=sys.stderr)
+        raise SystemExit(2)
+    sizes = list(dict.fromkeys(tuple(r["frame_size"]) for rs in runs.values() for r in rs))
+    for w, h in sizes:
+        print(f"\n{w}x{h}, ms (GPU: the sustained pass's timer queries; sustained: wall per frame)\n")
+        print(table(runs, (w, h)))
+
+
+if __name__ == "__main__":
+    main()

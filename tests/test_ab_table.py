@@ -1,0 +1,40 @@
+"""bench.ab_table: the trees of an A/B run side by side, from bench_render's JSON layout."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+
+def _run(size, total, raster, steps=3.1):
+    return {"frame_size": list(size), "sustained_ms": total + 0.2, "sustained_call_ms": {"median": 1.4},
+            "mean_iterations": steps, "surface_fraction": 0.99,
+            "sustained_timed": {"median_total_ms": total, "p95_total_ms": 2 * total,
+                                "median_part_ms": {"visibility:tile_raster": raster}, "median_ms": {"labeling": 0.1}}}
+
+
+def test_table_per_size_against_the_first_tree(tmp_path, capsys):
+    from bench.ab_table import main
+
+    for name, total, raster in (("base", 2.0, 0.8), ("new", 1.5, 0.4)):
+        (tmp_path / name).mkdir()
+        runs = [_run((1280, 720), total, raster), _run((3840, 2160), 4 * total, 4 * raster)]
+        (tmp_path / name / "render-bundle.json").write_text(json.dumps({"runs": runs}))
+    main([str(tmp_path), "--trees", "base", "new"])
+    out = capsys.readouterr().out
+    assert "1280x720" in out and "3840x2160" in out
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| new")]
+    assert [r[2] for r in rows] == ["0.750", "0.750"]  # GPU / first: 1.5 / 2.0 and 6.0 / 8.0
+    assert [r[7] for r in rows] == ["0.400", "1.600"]  # tile_raster
+
+
+def test_missing_tree_is_one_line_and_status_2(tmp_path, capsys):
+    from bench.ab_table import main
+
+    (tmp_path / "base").mkdir()
+    with pytest.raises(SystemExit) as exc:
+        main([str(tmp_path), "--trees", "base"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "base" in err and "render-*.json" in err and len(err.strip().splitlines()) == 1
