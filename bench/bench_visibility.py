@@ -54,7 +54,8 @@ def main(argv=None) -> None:
         sweep = [parse_tile_setting(spec) for spec in args.tile_sweep]
     except ValueError:
         p.error(f"--tile-sweep: settings are TILE:BATCH:TOP[:r] (tile 1-32, batch >= 1, top 4, 8, 12 or 16, "
-                f"r: warps of pixel rows; else 8x4 blocks, for a tile a multiple of 8), e.g. 16:512:16, not {' '.join(args.tile_sweep)}")
+                f"r: warps of pixel rows; else 8x4 blocks, for a tile a multiple of 8), e.g. 16:512:16, "
+                f"not {' '.join(args.tile_sweep)}")
     args.out.mkdir(parents=True, exist_ok=True)
     args.bundle = bundle_path(args, {})
     bundle = read_bundle(args.bundle)
@@ -179,7 +180,8 @@ def tile_sweep(bundle, path, layers: int, settings) -> list[dict]:
                                                            for (da, la), (db, lb) in zip(first, seen)]))}
             rows.append(row)
             lists, raster = (" / ".join(f"{r[name]:.3f}" for r in t) for name in ("tile_lists", "tile_raster"))
-            print(f"  tiles {tile}x{tile}, batch {batch}, top {top}, warps of {'8x4 blocks' if blocks else 'rows'}: lists "
+            warps = "8x4 blocks" if blocks else "rows"
+            print(f"  tiles {tile}x{tile}, batch {batch}, top {top}, warps of {warps}: lists "
                   f"{lists} ms, raster {raster} ms (rounds), layers equal to the first "
                   f"{row['layers_equal_to_first']:.6f}", flush=True)
     finally:
