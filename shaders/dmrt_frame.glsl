@@ -37,7 +37,8 @@ void write_normal(uint pix, vec3 n) {
 #endif
 
 // The ray of the render camera through pixel centre uv (pixels, corner origin) in camera space,
-// scaled so that the point at parameter s has camera z = s (uses u_K of splat_depth_common.glsl).
+// scaled so that the point at parameter s has camera z = s: the splat passes' own
+// (splat_depth_common.glsl), so a surface point and a splat hit at one pixel share the ray.
 vec3 camera_ray(vec2 uv) {
-    return vec3((uv.x - u_K.z) / u_K.x, (uv.y - u_K.w) / u_K.y, 1.0);
+    return splat_ray(uv);
 }

@@ -75,10 +75,10 @@ void main() {
     bool inside = px.x < u_size.x && px.y < u_size.y;
     uint pix = uint(px.y * u_size.x + px.x);
     vec2 uv = vec2(px) + 0.5;
-    vec3 ray = splat_ray(uv);  // splat_depth_at's, once for every disc
+    vec3 ray = camera_ray(uv);  // splat_depth_at's, once for every disc
     float ray_len = length(ray);
     float z = inside ? hits[pix].depth : 0.0;
-    g_q = z * camera_ray(uv);
+    g_q = z * ray;
     g_best = EMPTY_BITS;
     g_best_label = EMPTY_LABEL;
     uint start = offsets[tile];
