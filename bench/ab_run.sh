@@ -16,6 +16,7 @@
 # The environment (EGL vendor file, PYTHONPATH with the wheels) is the caller's: ../shared/GPU.md.
 set -u
 out=${1:?usage: bench/ab_run.sh OUT_DIR TREE_DIR...}
+mkdir -p "$out" && out=$(cd "$out" && pwd)  # absolute: the trees run from their own folders
 shift
 [ $# -gt 0 ] || { echo "ab_run: no tree given" >&2; exit 2; }
 for t in "$@"; do
@@ -26,9 +27,7 @@ mkdir -p "$out/results"
 log=$out/log.txt
 t0=$(date +%s)
 nvidia-smi --query-gpu=name,clocks.sm,clocks.max.sm,memory.total --format=csv >"$out/results/gpus.csv" 2>&1
-bundle=${BUNDLE:-$(PYTHONPATH="$repo:${PYTHONPATH:-}" python3 -c "from bench.workspace import PRESETS, Workspace
-from pathlib import Path
-print(Workspace(PRESETS['paper'], Path('$out/work'), progress=False).bundle_path())" 2>>"$log" | tail -n 1)}
+bundle=${BUNDLE:-$(cd "$repo" && python3 -m bench.workspace paper "$out/work" 2>>"$log" | tail -n 1)}
 echo "bundle ${bundle:-none} $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
 [ -d "$bundle" ] || { echo "failed: no bundle (see log.txt)" >>"$out/done.txt"; echo finished >>"$out/done.txt"; exit 1; }
 for t in "$@"; do

@@ -34,8 +34,7 @@ nvidia-smi --query-gpu=name,clocks.sm,clocks.max.sm,memory.total --format=csv >"
 step scene python3 -m dmrt.app.cli scene synth --preset paper --write-normals --out "$work/scene" --force --quiet
 step table2 python3 -m dmrt.app.cli bench --preset paper --scene "$work/scene" --work "$work/bench" \
     --out "$out/results/bench" --only table2 --quiet
-bundle=$(python3 -c "from bench.workspace import PRESETS, Workspace; from pathlib import Path
-print(Workspace(PRESETS['paper'], Path('$work/bench'), scene=Path('$work/scene'), progress=False).bundle_path())" 2>>"$out/log.txt" | tail -n 1)
+bundle=$(python3 -m bench.workspace paper "$work/bench" --scene "$work/scene" 2>>"$out/log.txt" | tail -n 1)
 [ -d "$bundle" ] || bundle=$work/bench/bundle-L4  # the paper preset's main bundle
 echo "bundle $bundle" >>"$out/done.txt"
 cp "$bundle/bundle.json" "$out/results/bundle.json"

@@ -486,3 +486,28 @@ def representable_mask(camera, depth: np.ndarray, bundle, threshold: float = 0.2
 # ----------------------------------------------------------------------------------------------
 def default_work(preset: str) -> Path:
     return Path(tempfile.gettempdir()) / "dmrt-bench" / preset
+
+
+def main(argv=None) -> None:
+    """``python -m bench.workspace PRESET WORK [--scene SCENE]``: make the preset's main bundle in the
+    work folder (as ``dmrt bench`` does: scene, preprocessing, proxy set; kept between runs) and
+    print its path (the GPU-machine scripts time renderers on it)."""
+    import argparse
+    import sys
+
+    p = argparse.ArgumentParser(prog="python -m bench.workspace",
+                                description="make a bench preset's main bundle in a work folder and print its path")
+    p.add_argument("preset", choices=sorted(PRESETS))
+    p.add_argument("work", type=Path)
+    p.add_argument("--scene", type=Path, help="a scene made already (default: the preset's, generated)")
+    args = p.parse_args(argv)
+    try:
+        path = Workspace(PRESETS[args.preset], args.work, scene=args.scene, progress=False).bundle_path()
+    except InputError as exc:
+        print(f"bench.workspace: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    print(path)
+
+
+if __name__ == "__main__":
+    main()
