@@ -1,5 +1,6 @@
 // Per-pixel results of the DMRT passes, shared by the raytracing, labeling, finalize and texturing
 // programs. Included; no #version. Pixels are row-major from the top-left (image order).
+#include "splat_depth_common.glsl"  // the render camera (u_K) and its pixel rays (splat_ray)
 
 // 16 bytes: every pass after raytracing reads a pixel's record (labeling, finalize, histogram,
 // texturing, leveling), so its size is their memory traffic. The normal, read only with the frame,

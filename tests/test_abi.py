@@ -17,7 +17,6 @@ pytestmark = pytest.mark.gpu
 PROBE = """
 #if defined COMPUTE_SHADER
 layout(local_size_x = 1) in;
-uniform vec4 u_K;  // dmrt_frame.glsl's camera_ray reads it
 #include "dmrt_frame.glsl"
 #include "dmrt_photos.glsl"
 layout(std430, binding = B_FILL) buffer Out { uint o[]; };
@@ -43,7 +42,7 @@ def probe(ctx, tmp_path, monkeypatch):
     import dmrt.gl.shaders as shader_mod
 
     (tmp_path / "abi_probe.glsl").write_text(PROBE)
-    for inc in ("dmrt_frame.glsl", "dmrt_photos.glsl"):
+    for inc in ("dmrt_frame.glsl", "splat_depth_common.glsl", "dmrt_photos.glsl"):
         (tmp_path / inc).write_text((SHADER_DIR / inc).read_text())
     monkeypatch.setattr(shader_mod, "SHADER_DIR", tmp_path)
     return load_program(ctx, "abi_probe")
