@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dmrt.gl import abi
-from dmrt.runtime.texturing import choose_photos
+from dmrt.runtime.texturing import ImageCache, choose_photos
 
 from helpers import W
 
@@ -72,7 +72,7 @@ def test_one_read_back_a_frame(ctx, bundle, method, check, streamed, synchronous
     from dmrt.runtime.renderer import RenderConfig, Renderer
 
     cam = bundle.cameras[1].resized(W)
-    slot_mb = max(c.width * c.height for c in bundle.cameras) * 3 / 2 ** 20
+    slot_mb = max(c.width * c.height for c in bundle.cameras) * ImageCache.SLOT_TEXEL_BYTES / 2 ** 20
     for sync, expected in ((False, streamed), (True, synchronous)):
         r = Renderer(bundle, RenderConfig(layers=2, method=method, tile_check=check, cache_mb=2.5 * slot_mb,
                                           async_photos=not sync), ctx)

@@ -22,10 +22,11 @@ def test_image_cache_and_texturing(ctx, bundle):
       (half the resolution here) are at least 3 dB worse.
     """
     from dmrt.runtime.renderer import RenderConfig, Renderer
+    from dmrt.runtime.texturing import ImageCache
     from reference.metrics import psnr
 
     cam = bundle.cameras[2].resized(W)
-    slot_mb = max(c.width * c.height for c in bundle.cameras) * 3 / 2 ** 20
+    slot_mb = max(c.width * c.height for c in bundle.cameras) * ImageCache.SLOT_TEXEL_BYTES / 2 ** 20
     sync = {"async_photos": False, "max_uploads_per_frame": 0}
     low = Renderer(bundle, RenderConfig(layers=3, cache_mb=0), ctx)
     two = Renderer(bundle, RenderConfig(layers=3, cache_mb=2.5 * slot_mb, **sync), ctx)
@@ -78,7 +79,7 @@ def test_image_cache_replaces_the_least_recently_wanted(ctx, bundle):
     the frame does not want (equal frames: the smaller slot), never into a wanted photo's slot."""
     from dmrt.runtime.texturing import ImageCache
 
-    slot_mb = max(c.width * c.height for c in bundle.cameras) * 3 / 2 ** 20
+    slot_mb = max(c.width * c.height for c in bundle.cameras) * ImageCache.SLOT_TEXEL_BYTES / 2 ** 20
     cache = ImageCache(ctx, bundle, cache_mb=3.5 * slot_mb)
     try:
         assert cache.n_slots == 3 and len(bundle.cameras) >= 5
