@@ -128,42 +128,36 @@ void consider(uint d, uint j) {
 // on the H100, nothing at 1280x720: reports/frame-h200, session 13.)
 bool g_tie;
 
-// Insert a hit into the sorted nearest hits (dropping the farthest when they are full), a block of
-// four entries at a time, the four at once: entry i becomes max(D[i-1], min(d, D[i])) - the entry
-// before it where the hit goes in front of that one, the hit where it goes between the two, itself
-// otherwise - with no chain from one entry to the next (a chain of compare-exchanges carrying the
-// hit along is 16 dependent steps, and this pass is latency-bound). A hit goes behind kept ones of
-// equal depth (d < D[i], strict). Blocks are updated from the last to the first, as each reads the
-// entry before it as it was; a block wholly in front of the hit (d >= D.w) keeps its entries and
-// is skipped. pd, pl: the block before's last depth and label (0 and anything for the first).
-#define SEL(c, a, b) ((c) ? (a) : (b))
-#define INSERT_BLOCK(D, L, pd, pl) if (d < D.w) { \
-    bool cp = d < pd; \
-    bvec4 c = lessThan(uvec4(d), D); \
-    L = uvec4(SEL(cp, pl, SEL(c.x, l, L.x)), SEL(c.x, L.x, SEL(c.y, l, L.y)), \
-              SEL(c.y, L.y, SEL(c.z, l, L.z)), SEL(c.z, L.z, SEL(c.w, l, L.w))); \
-    D = max(uvec4(pd, D.xyz), min(uvec4(d), D)); }
+// One compare-exchange of the insertion: the entry keeps the nearer of itself and d (label
+// alongside), which carries the farther on.
+#define SORT_STEP(D, L) if (d < D) { uint t = D; D = d; d = t; t = L; L = l; l = t; }
+
+// Insert a hit into the sorted nearest hits (dropping the farthest when they are full). A block of
+// four that lies wholly in front of the carried hit keeps its entries: it is skipped (the hit
+// carried on only grows, so every block before the insertion point is skipped, and a carried
+// empty entry matches no block).
+#define SORT_STEPS(D, L) if (d < D.w) { \
+    SORT_STEP(D.x, L.x) SORT_STEP(D.y, L.y) SORT_STEP(D.z, L.z) SORT_STEP(D.w, L.w) }
 #define FARTHEST_D (TOP > 12 ? g_top_d3.w : TOP > 8 ? g_top_d2.w : TOP > 4 ? g_top_d1.w : g_top_d0.w)
 
 void keep_nearest(uint d, uint j) {
     uint l = floatBitsToUint(s_nl[j].w);
     ++g_hits;
-    uint dropped = FARTHEST_D;  // an empty entry matches no hit
-    if (d >= dropped) {
-        g_tie = g_tie || d == dropped;  // the list is full
+    if (d >= FARTHEST_D) {
+        g_tie = g_tie || d == FARTHEST_D;  // the list is full (an empty entry matches no hit)
         return;
     }
-#if TOP > 12
-    INSERT_BLOCK(g_top_d3, g_top_l3, g_top_d2.w, g_top_l2.w)
+    SORT_STEPS(g_top_d0, g_top_l0)
+#if TOP > 4
+    SORT_STEPS(g_top_d1, g_top_l1)
 #endif
 #if TOP > 8
-    INSERT_BLOCK(g_top_d2, g_top_l2, g_top_d1.w, g_top_l1.w)
+    SORT_STEPS(g_top_d2, g_top_l2)
 #endif
-#if TOP > 4
-    INSERT_BLOCK(g_top_d1, g_top_l1, g_top_d0.w, g_top_l0.w)
+#if TOP > 12
+    SORT_STEPS(g_top_d3, g_top_l3)
 #endif
-    INSERT_BLOCK(g_top_d0, g_top_l0, 0u, 0u)
-    g_tie = g_tie || (dropped == FARTHEST_D && dropped != EMPTY_BITS);  // the hit dropped off the end
+    g_tie = g_tie || (d == FARTHEST_D && d != EMPTY_BITS);  // d: the hit dropped off the end
 }
 
 // Two neighbouring kept hits of equal depth (empty entries, all at the end, are not hits).
