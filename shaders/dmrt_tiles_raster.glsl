@@ -11,8 +11,8 @@
 //
 // The walk's cost is in the loads and the tests, so:
 // 1. A list of up to BATCH discs is loaded into shared memory once (camera-space centre, normal,
-//    squared radius, label, pixel box and the ray test's per-disc numerator) and serves every
-//    walk; a longer one is walked BATCH discs at a time, loaded again for each walk.
+//    squared radius, label, pixel box and the ray test's per-disc numerator) and serves every walk; a longer one is walked BATCH discs at a
+//    time, loaded again for each walk.
 // 2. The first walk tests every disc against the pixel box and the disc, and each invocation keeps
 //    its TOP nearest hits sorted by depth in registers. The layers are the peeling rule applied to
 //    the pixel's hits in that order (a hit is the next layer if it lies behind the last one with
