@@ -11,7 +11,7 @@
 //
 // The walk's cost is in the loads and the tests, so:
 // 1. A list of up to BATCH discs is loaded into shared memory once (camera-space centre, normal,
-//    squared radius, label, pixel box and the ray test's per-disc numerator) and serves every walk; a longer one is walked BATCH discs at a
+//    radius, label, pixel box) and serves every walk; a longer one is walked BATCH discs at a
 //    time, loaded again for each walk.
 // 2. The first walk tests every disc against the pixel box and the disc, and each invocation keeps
 //    its TOP nearest hits sorted by depth in registers. The layers are the peeling rule applied to
@@ -44,7 +44,7 @@
 #if defined COMPUTE_SHADER
 
 #ifndef BATCH
-#define BATCH 512  // discs in shared memory at once: 44 bytes each
+#define BATCH 512  // discs in shared memory at once: 40 bytes each
 #endif
 #define THREADS (TILE * TILE)
 #ifndef TOP
@@ -67,9 +67,8 @@ layout(std430, binding = B_TILE_MASKS) writeonly buffer Masks { uvec4 masks[]; }
 uniform uint u_capacity;  // entries the buffer holds (a slice past it was cut short)
 uniform int u_layers;     // k
 
-shared vec4 s_pr[BATCH];     // camera-space centre (m), squared radius (m^2)
+shared vec4 s_pr[BATCH];     // camera-space centre (m), radius (m)
 shared vec4 s_nl[BATCH];     // unit normal, label (uint bits)
-shared float s_np[BATCH];    // dot(normal, centre) (m): the ray-plane depth's numerator
 shared uvec2 s_box[BATCH];   // pixel box: col0 | row0 << 16, col1 | row1 << 16
 shared uint s_found[3];      // "some pixel found this layer", one per walk, rotating
 // Each invocation's hit masks of discs 0-255, word w (32 discs) at [w * THREADS + invocation]: in
@@ -96,18 +95,19 @@ void load_batch(uint first, uint n) {
         int label;
         Splat s = load_proxy(entries[first + i], label);
         ivec4 box = splat_pixel_box(s);
-        s_pr[i] = vec4(s.pc, s.r * s.r);
+        s_pr[i] = vec4(s.pc, s.r);
         s_nl[i] = vec4(s.nc, intBitsToFloat(label));
-        s_np[i] = dot(s.nc, s.pc);
         s_box[i] = uvec2(uint(box.x) | (uint(box.y) << 16), uint(box.z) | (uint(box.w) << 16));
     }
 }
 
-// Depth bits of disc j's hit at the pixel, 0 for none (splat_depth_ray's, its per-disc terms
-// computed once by load_batch).
+// Depth bits of disc j's hit at the pixel, 0 for none.
 uint hit_bits(uint j) {
-    vec4 pr = s_pr[j];
-    float z = splat_depth_terms(pr.xyz, s_nl[j].xyz, s_np[j], pr.w, g_ray, g_ray_len);
+    Splat s;
+    s.pc = s_pr[j].xyz;
+    s.r = s_pr[j].w;
+    s.nc = s_nl[j].xyz;
+    float z = splat_depth_ray(s, g_ray, g_ray_len);
     return z > 0.0 ? floatBitsToUint(z) : 0u;
 }
 

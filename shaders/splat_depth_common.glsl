@@ -120,24 +120,18 @@ vec3 splat_ray(vec2 uv) {
     return vec3((uv.x - u_K.z) / u_K.x, (uv.y - u_K.w) / u_K.y, 1.0);
 }
 
-// splat_depth_ray with the disc's per-disc terms given: np = dot(nc, pc), r2 = r * r (a pass that
-// tests one disc at many pixels computes them once; the same values, so the same bits).
-float splat_depth_terms(vec3 pc, vec3 nc, float np, float r2, vec3 d, float dlen) {
-    float nd = dot(nc, d);
-    if (abs(nd) > GRAZING_COS * dlen) {
-        float z = np / nd;
-        vec3 q = z * d - pc;
-        return (z > 0.0 && dot(q, q) <= r2) ? z : 0.0;
-    }
-    vec3 dh = normalize(d);
-    vec3 q = dot(pc, dh) * dh - pc;
-    return (pc.z > 0.0 && dot(q, q) <= r2) ? pc.z : 0.0;
-}
-
 // Camera z where the pixel ray d = splat_ray(uv), of length dlen = length(d), meets the disc; 0.0
 // if it misses. A pass that tests many discs at one pixel computes d and dlen once.
 float splat_depth_ray(Splat s, vec3 d, float dlen) {
-    return splat_depth_terms(s.pc, s.nc, dot(s.nc, s.pc), s.r * s.r, d, dlen);
+    float nd = dot(s.nc, d);
+    if (abs(nd) > GRAZING_COS * dlen) {
+        float z = dot(s.nc, s.pc) / nd;
+        vec3 q = z * d - s.pc;
+        return (z > 0.0 && dot(q, q) <= s.r * s.r) ? z : 0.0;
+    }
+    vec3 dh = normalize(d);
+    vec3 q = dot(s.pc, dh) * dh - s.pc;
+    return (s.pc.z > 0.0 && dot(q, q) <= s.r * s.r) ? s.pc.z : 0.0;
 }
 
 // Camera z where the ray of the pixel centred at uv meets the disc; 0.0 if it misses.
