@@ -22,7 +22,7 @@
 //    all there are when the pixel has at most TOP hits; with no two of equal depth among them.
 // 3. Only the other pixels walk again, once per missing layer, each keeping the smallest
 //    (depth bits, label) that passes the filter. The first walk also noted which of the tile's
-//    first MASK_DISCS (256) discs hit the pixel (a bit mask of eight words in shared memory); these walks
+//    first MASK_DISCS (256) discs hit the pixel (a bit mask in eight registers); these walks
 //    test only those (findLSB), dropping the hits at or in front of the last layer (they can never
 //    pass a filter again). Most tiles hold fewer discs (paper preset: ~180 a tile at 1280x720, ~63
 //    at 3840x2160), so a pixel then visits only its own hits. The workgroup stops when none of its
@@ -71,10 +71,6 @@ shared vec4 s_pr[BATCH];     // camera-space centre (m), radius (m)
 shared vec4 s_nl[BATCH];     // unit normal, label (uint bits)
 shared uvec2 s_box[BATCH];   // pixel box: col0 | row0 << 16, col1 | row1 << 16
 shared uint s_found[3];      // "some pixel found this layer", one per walk, rotating
-// Each invocation's hit masks of discs 0-255, word w (32 discs) at [w * THREADS + invocation]: in
-// shared memory rather than in eight registers live from the first walk to the last, which the
-// first walk's insertions need for the nearest hits (fewer registers: more warps resident).
-shared uint s_mask[8 * THREADS];
 
 // per-invocation state
 uvec2 g_px;               // the pixel
@@ -83,9 +79,12 @@ float g_ray_len;          // length(g_ray)
 uint g_prev_d, g_prev_l;  // the last layer's depth bits and label (label ~0u before the first)
 uint g_best_d, g_best_l;  // the nearest hit that passes the filter so far
 uint g_count;             // discs in the tile's list
-// The TOP nearest hits so far, ascending (depth bits, label); EMPTY_BITS = none. Vectors filled
-// component by component with constant indices: an array indexed by a loop counter may be kept in
-// local memory (dmrt_photos.glsl's snap_try says more).
+// The hit masks of discs 0-127 and 128-255, one word of 32 discs a component. Written as vectors
+// filled component by component with constant indices: an array indexed by a loop counter may be
+// kept in local memory (dmrt_photos.glsl's snap_try says more).
+uvec4 g_lo, g_hi;
+// The TOP nearest hits so far, ascending (depth bits, label); EMPTY_BITS = none. Vectors with
+// constant indices, as the masks.
 uvec4 g_top_d0, g_top_l0, g_top_d1, g_top_l1, g_top_d2, g_top_l2, g_top_d3, g_top_l3;
 uint g_hits;   // hits of the pixel in the first walk
 bool g_first;  // the first walk (collect the nearest hits) or a later one (the filtered minimum)
@@ -198,17 +197,14 @@ uint walk(uint from, uint to) {
     return mask;
 }
 
-// The first walk over the 32 discs of mask word w: their hit mask.
-uint first_word(uint w) {
-    uint base = 32u * w;
+// The first walk over the 32 discs from `base`: their hit mask.
+uint first_word(uint base) {
     return base < g_count ? walk(base, min(g_count, base + 32u)) : 0u;
 }
 
-// A later walk over the remembered hits of mask word w; those at or in front of the last layer
-// leave the mask for good.
-void again(uint w) {
-    uint base = 32u * w;
-    uint word = s_mask[w * uint(THREADS) + gl_LocalInvocationIndex];
+// A later walk over the remembered hits of a word; those at or in front of the last layer leave
+// the mask for good.
+uint again(uint word, uint base) {
     uint m = word;
     while (m != 0u) {
         int b = findLSB(m);
@@ -218,7 +214,7 @@ void again(uint w) {
         if (d <= g_prev_d) word &= ~(1u << uint(b));
         else consider(d, j);
     }
-    s_mask[w * uint(THREADS) + gl_LocalInvocationIndex] = word;
+    return word;
 }
 
 uint g_npix, g_pix, g_found;  // pixels of the frame, this one's index, its layers written
@@ -296,14 +292,11 @@ void main() {
     g_first = true;
     if (cached) {
         if (inside) {
-            for (uint w = 0u; w < 8u; ++w) s_mask[w * uint(THREADS) + lid] = first_word(w);
+            g_lo = uvec4(first_word(0u), first_word(32u), first_word(64u), first_word(96u));
+            g_hi = uvec4(first_word(128u), first_word(160u), first_word(192u), first_word(224u));
 #if HIT_MASKS
-            // for the labeling pass (dmrt_tiles_labeling.glsl)
-            masks[2u * g_pix] = uvec4(s_mask[lid], s_mask[THREADS + lid], s_mask[2 * THREADS + lid],
-                                      s_mask[3 * THREADS + lid]);
-            if (masks_second_half(count))
-                masks[2u * g_pix + 1u] = uvec4(s_mask[4 * THREADS + lid], s_mask[5 * THREADS + lid],
-                                               s_mask[6 * THREADS + lid], s_mask[7 * THREADS + lid]);
+            masks[2u * g_pix] = g_lo;  // for the labeling pass (dmrt_tiles_labeling.glsl)
+            if (masks_second_half(count)) masks[2u * g_pix + 1u] = g_hi;
 #endif
             walk(min(count, uint(MASK_DISCS)), count);
         }
@@ -330,7 +323,8 @@ void main() {
         g_best_l = EMPTY_BITS;
         if (cached) {
             if (searching) {
-                for (uint w = 0u; w < 8u; ++w) again(w);
+                g_lo = uvec4(again(g_lo.x, 0u), again(g_lo.y, 32u), again(g_lo.z, 64u), again(g_lo.w, 96u));
+                g_hi = uvec4(again(g_hi.x, 128u), again(g_hi.y, 160u), again(g_hi.z, 192u), again(g_hi.w, 224u));
                 walk(min(count, uint(MASK_DISCS)), count);
             }
         } else {
