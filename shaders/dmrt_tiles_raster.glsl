@@ -58,8 +58,7 @@ layout(local_size_x = TILE, local_size_y = TILE) in;
 
 layout(std430, binding = B_LAYER_DEPTH) writeonly buffer LayerDepth { uint layer_depth[]; };
 layout(std430, binding = B_LAYER_LABEL) writeonly buffer LayerLabel { int layer_label[]; };
-// coherent: a cached list is put in depth order in place (sort_list), then read by the workgroup
-layout(std430, binding = B_TILE_ENTRIES) coherent buffer Entries { uint entries[]; };
+layout(std430, binding = B_TILE_ENTRIES) readonly buffer Entries { uint entries[]; };
 layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
 #if HIT_MASKS
 // 8 words a pixel (the labeling pass reads them as 2 uvec4); read back by the same invocation only
@@ -87,37 +86,6 @@ uint g_count;             // discs in the tile's list
 uvec4 g_top_d0, g_top_l0, g_top_d1, g_top_l1, g_top_d2, g_top_l2, g_top_d3, g_top_l3;
 uint g_hits;   // hits of the pixel in the first walk
 bool g_first;  // the first walk (collect the nearest hits) or a later one (the filtered minimum)
-
-// A cached list (n <= BATCH discs from off) put in order of its discs' centre depths, in place, by
-// rank (the number of discs before it: nearer, or as near and earlier in the list). The walk then
-// meets a pixel's hits roughly front to back, so most insertions into its nearest hits append (the
-// blocks in front are skipped) and, once they are full, most later hits fail the first compare.
-// The list's order is otherwise free (the layers are minima); the labeling pass reads it in this
-// order with the hit masks that index it. s_pr serves as scratch before load_batch fills it, so
-// the sort takes no shared memory (24 KB a workgroup is too many: see reports/frame-h200).
-void sort_list(uint off, uint n) {
-    uint lid = gl_LocalInvocationIndex;
-    for (uint i = lid; i < n; i += uint(THREADS)) {
-        uint e = entries[off + i];
-        uint o = uint(PROXY_FLOATS) * e;
-        float z = (u_R * vec3(proxies[o], proxies[o + 1u], proxies[o + 2u]) + u_t).z;
-        s_pr[i] = vec4(z, uintBitsToFloat(e), 0.0, 0.0);
-    }
-    memoryBarrierShared();
-    barrier();
-    for (uint i = lid; i < n; i += uint(THREADS)) {
-        float zi = s_pr[i].x;
-        uint rank = 0u;
-        for (uint j = 0u; j < n; ++j) {
-            float zj = s_pr[j].x;
-            rank += (zj < zi || (zj == zi && j < i)) ? 1u : 0u;
-        }
-        entries[off + rank] = floatBitsToUint(s_pr[i].y);
-    }
-    memoryBarrierBuffer();
-    memoryBarrierShared();
-    barrier();
-}
 
 void load_batch(uint first, uint n) {
     for (uint i = gl_LocalInvocationIndex; i < n; i += uint(THREADS)) {
@@ -304,10 +272,7 @@ void main() {
     g_count = count;
     bool cached = count <= uint(BATCH);
     if (lid < 3u) s_found[lid] = 0u;
-    if (cached) {
-        sort_list(off, count);
-        load_batch(off, count);
-    }
+    if (cached) load_batch(off, count);
     memoryBarrierShared();
     barrier();
 
