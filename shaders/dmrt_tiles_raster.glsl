@@ -22,9 +22,9 @@
 //    all there are when the pixel has at most TOP hits; with no two of equal depth among them.
 // 3. Only the other pixels walk again, once per missing layer, each keeping the smallest
 //    (depth bits, label) that passes the filter. The first walk also noted which of the tile's
-//    first MASK_DISCS (256) discs hit the pixel (eight words, written to B_TILE_MASKS as they are
-//    made and read back there: registers are what bounds the resident warps); these walks test
-//    only those (findLSB). Most tiles hold fewer discs (paper preset: ~180 a tile at 1280x720, ~63
+//    first MASK_DISCS (256) discs hit the pixel (a bit mask in eight registers); these walks
+//    test only those (findLSB), dropping the hits at or in front of the last layer (they can never
+//    pass a filter again). Most tiles hold fewer discs (paper preset: ~180 a tile at 1280x720, ~63
 //    at 3840x2160), so a pixel then visits only its own hits. The workgroup stops when none of its
 //    pixels needs another walk (a shared flag per walk).
 // Every layer of every pixel is written once (empty ones as EMPTY_BITS / EMPTY_LABEL), so the layer
@@ -61,8 +61,7 @@ layout(std430, binding = B_LAYER_LABEL) writeonly buffer LayerLabel { int layer_
 layout(std430, binding = B_TILE_ENTRIES) readonly buffer Entries { uint entries[]; };
 layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
 #if HIT_MASKS
-// 8 words a pixel (the labeling pass reads them as 2 uvec4); read back by the same invocation only
-layout(std430, binding = B_TILE_MASKS) buffer Masks { uint mask_words[]; };
+layout(std430, binding = B_TILE_MASKS) writeonly buffer Masks { uvec4 masks[]; };  // 2 per pixel: g_lo, g_hi
 #endif
 
 uniform uint u_capacity;  // entries the buffer holds (a slice past it was cut short)
@@ -80,9 +79,12 @@ float g_ray_len;          // length(g_ray)
 uint g_prev_d, g_prev_l;  // the last layer's depth bits and label (label ~0u before the first)
 uint g_best_d, g_best_l;  // the nearest hit that passes the filter so far
 uint g_count;             // discs in the tile's list
-// The TOP nearest hits so far, ascending (depth bits, label); EMPTY_BITS = none. Vectors filled
-// component by component with constant indices: an array indexed by a loop counter may be kept in
-// local memory (dmrt_photos.glsl's snap_try says more).
+// The hit masks of discs 0-127 and 128-255, one word of 32 discs a component. Written as vectors
+// filled component by component with constant indices: an array indexed by a loop counter may be
+// kept in local memory (dmrt_photos.glsl's snap_try says more).
+uvec4 g_lo, g_hi;
+// The TOP nearest hits so far, ascending (depth bits, label); EMPTY_BITS = none. Vectors with
+// constant indices, as the masks.
 uvec4 g_top_d0, g_top_l0, g_top_d1, g_top_l1, g_top_d2, g_top_l2, g_top_d3, g_top_l3;
 uint g_hits;   // hits of the pixel in the first walk
 bool g_first;  // the first walk (collect the nearest hits) or a later one (the filtered minimum)
@@ -195,14 +197,24 @@ uint walk(uint from, uint to) {
     return mask;
 }
 
-// A later walk over the hits of a mask word (32 discs from `base`).
-void again(uint word, uint base) {
-    while (word != 0u) {
-        int b = findLSB(word);
-        word &= word - 1u;
+// The first walk over the 32 discs from `base`: their hit mask.
+uint first_word(uint base) {
+    return base < g_count ? walk(base, min(g_count, base + 32u)) : 0u;
+}
+
+// A later walk over the remembered hits of a word; those at or in front of the last layer leave
+// the mask for good.
+uint again(uint word, uint base) {
+    uint m = word;
+    while (m != 0u) {
+        int b = findLSB(m);
+        m &= m - 1u;
         uint j = base + uint(b);
-        consider(hit_bits(j), j);
+        uint d = hit_bits(j);
+        if (d <= g_prev_d) word &= ~(1u << uint(b));
+        else consider(d, j);
     }
+    return word;
 }
 
 uint g_npix, g_pix, g_found;  // pixels of the frame, this one's index, its layers written
@@ -280,18 +292,13 @@ void main() {
     g_first = true;
     if (cached) {
         if (inside) {
+            g_lo = uvec4(first_word(0u), first_word(32u), first_word(64u), first_word(96u));
+            g_hi = uvec4(first_word(128u), first_word(160u), first_word(192u), first_word(224u));
 #if HIT_MASKS
-            // each word to memory at once, not held in registers until the last walk; the labeling
-            // pass reads them too (dmrt_tiles_labeling.glsl: the second half only for > 128 discs)
-            for (uint w = 0u; w < uint(MASK_DISCS / 32); ++w) {
-                uint base = 32u * w;
-                uint m = base < count ? walk(base, min(count, base + 32u)) : 0u;
-                if (w < 4u || masks_second_half(count)) mask_words[8u * g_pix + w] = m;
-            }
-            walk(min(count, uint(MASK_DISCS)), count);
-#else
-            walk(0u, count);
+            masks[2u * g_pix] = g_lo;  // for the labeling pass (dmrt_tiles_labeling.glsl)
+            if (masks_second_half(count)) masks[2u * g_pix + 1u] = g_hi;
 #endif
+            walk(min(count, uint(MASK_DISCS)), count);
         }
     } else {
         walk_batches(off, count, inside);
@@ -316,13 +323,9 @@ void main() {
         g_best_l = EMPTY_BITS;
         if (cached) {
             if (searching) {
-#if HIT_MASKS
-                for (uint w = 0u; w < uint(MASK_DISCS / 32) && 32u * w < count; ++w)
-                    again(mask_words[8u * g_pix + w], 32u * w);
+                g_lo = uvec4(again(g_lo.x, 0u), again(g_lo.y, 32u), again(g_lo.z, 64u), again(g_lo.w, 96u));
+                g_hi = uvec4(again(g_hi.x, 128u), again(g_hi.y, 160u), again(g_hi.z, 192u), again(g_hi.w, 224u));
                 walk(min(count, uint(MASK_DISCS)), count);
-#else
-                walk(0u, count);
-#endif
             }
         } else {
             walk_batches(off, count, searching);
