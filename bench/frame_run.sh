@@ -11,7 +11,7 @@
 # whose main bundle every later step uses; `dmrt report` builds reports/latest from
 # OUT_DIR/results/bench); the default path's per-stage frame times at 1280x720 and 3840x2160 with 5
 # layers (bench.bench_render: GPU-resident walkthroughs, median / p95, sustained, clocks; Table 2
-# has the other paths beside it); at 3840x2160 the tile raster's time with fewer discs in shared
+# has the other paths beside it); at 3840x2160 the tile raster's time with other disc batches in shared
 # memory, fewer nearest hits kept, warps of pixel rows and 8x8 tiles; the default path with the search's step capped at
 # 32 and 16 (time and what the cap changes in the frames), with both list checks and a CPU profile
 # of the issuing; the paper's bisection beside the default Illinois refinement; the visibility
@@ -41,7 +41,7 @@ cp "$bundle/bundle.json" "$out/results/bundle.json"
 step render python3 -m bench.bench_render --bundle "$bundle" --out "$out/results" --layers 5 \
     --methods tiles --sizes 1280x720 3840x2160 --frames 30 --no-leveling
 step tile_sweep_4k python3 -m bench.bench_visibility --bundle "$bundle" --out "$out/results/tiles-4k" --layers 5 \
-    --width 3840 --height 2160 --no-paths --tile-sweep 16:512:16 16:512:16:r 16:256:16 16:512:8 16:512:12 8:256:16
+    --width 3840 --height 2160 --no-paths --tile-sweep 16:384:16 16:384:16:r 16:512:16 16:320:16 16:384:8 16:384:12 8:256:16
 step render_caps python3 -m bench.bench_render --bundle "$bundle" --out "$out/results/caps" --layers 5 \
     --methods tiles --tile-check frame lagged --max-steps 100 32 16 --sizes 1280x720 3840x2160 --frames 30 \
     --no-leveling --cpu-profile

@@ -44,7 +44,7 @@
 #if defined COMPUTE_SHADER
 
 #ifndef BATCH
-#define BATCH 512  // discs in shared memory at once: 40 bytes each
+#define BATCH 384  // discs in shared memory at once: 40 bytes each (TileVisibility's batch says why)
 #endif
 #define THREADS (TILE * TILE)
 #ifndef TOP
