@@ -43,19 +43,24 @@ layout(std430, binding = B_TILE_MASKS) readonly buffer Masks { uvec4 masks[]; };
 
 uniform uint u_capacity;  // entries the list holds (a slice past it was lost: see tiles.py)
 
-shared Splat s_disc[THREADS];
-shared int s_label[THREADS];
-shared ivec4 s_box[THREADS];
+// 40 bytes a disc, 10 KB a workgroup: few enough for several workgroups an SM (the raster's batch
+// in dmrt/runtime/tiles.py says why that matters). A batch whose discs the hit masks name needs
+// only the centres and labels.
+shared vec4 s_cl[THREADS];    // camera-space centre (m), label (int bits)
+shared vec4 s_nr[THREADS];    // unit normal, radius (m)
+shared uvec2 s_box[THREADS];  // pixel box: col0 | row0 << 16, col1 | row1 << 16
 
 vec3 g_q;         // the pixel's raytraced point, camera space (m)
 uint g_best;      // distance bits of the nearest covering disc so far
 int g_best_label;
 
 void consider(uint j) {
-    uint bits = floatBitsToUint(distance(g_q, s_disc[j].pc));
-    if (bits < g_best || (bits == g_best && s_label[j] < g_best_label)) {
+    vec4 cl = s_cl[j];
+    uint bits = floatBitsToUint(distance(g_q, cl.xyz));
+    int label = floatBitsToInt(cl.w);
+    if (bits < g_best || (bits == g_best && label < g_best_label)) {
         g_best = bits;
-        g_best_label = s_label[j];
+        g_best_label = label;
     }
 }
 
@@ -87,17 +92,21 @@ void main() {
     uint count = min(end, u_capacity) - min(start, u_capacity);
     bool masked = bool(HIT_MASKS) && count <= uint(BATCH);
     for (uint base = start; base < end; base += uint(THREADS)) {
+        bool by_masks = bool(HIT_MASKS) && masked && base == start;  // the same for the whole workgroup
         if (base + lid < end) {
             int label;
             Splat s = load_proxy(entries[base + lid], label);
-            s_disc[lid] = s;
-            s_label[lid] = label;
-            s_box[lid] = splat_pixel_box(s);
+            s_cl[lid] = vec4(s.pc, intBitsToFloat(label));
+            if (!by_masks) {
+                s_nr[lid] = vec4(s.nc, s.r);
+                ivec4 b = splat_pixel_box(s);
+                s_box[lid] = uvec2(uint(b.x) | (uint(b.y) << 16), uint(b.z) | (uint(b.w) << 16));
+            }
         }
         barrier();
         uint n = min(uint(THREADS), end - base);
 #if HIT_MASKS
-        if (z > 0.0 && masked && base == start) {
+        if (z > 0.0 && by_masks) {
             uvec4 lo = masks[2u * pix];
             visit(lo.x, 0u); visit(lo.y, 32u); visit(lo.z, 64u); visit(lo.w, 96u);
             if (masks_second_half(count)) {  // else not written this frame (the raster's condition)
@@ -107,10 +116,13 @@ void main() {
         } else
 #endif
         if (z > 0.0) {
+            uvec2 p = uvec2(px);
             for (uint j = 0u; j < n; ++j) {
-                ivec4 b = s_box[j];
-                if (px.x < b.x || px.x > b.z || px.y < b.y || px.y > b.w) continue;
-                if (splat_depth_ray(s_disc[j], ray, ray_len) <= 0.0) continue;
+                uvec2 b = s_box[j];
+                if (p.x < (b.x & 0xFFFFu) || p.x > (b.y & 0xFFFFu) || p.y < (b.x >> 16) || p.y > (b.y >> 16))
+                    continue;
+                vec4 nr = s_nr[j];
+                if (splat_depth_ray(Splat(s_cl[j].xyz, nr.xyz, nr.w), ray, ray_len) <= 0.0) continue;
                 consider(j);
             }
         }
