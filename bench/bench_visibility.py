@@ -16,7 +16,7 @@ the raster pass), its tile lists' and raster's median GPU ms over frames back to
 layers against the first setting's. One JSON ``visibility-<name>.json``.
 
     python -m bench.bench_visibility --bundle B --out R --width 3840 --height 2160 --no-paths \
-        --tile-sweep 16:384:16 16:384:16:r 16:512:16 16:320:16 16:384:8 16:384:12 8:256:16
+        --tile-sweep 16:288:12 16:288:12:r 16:384:16 16:512:16 16:256:8 16:192:12 8:256:12
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ def main(argv=None) -> None:
     p.add_argument("--slots", type=int, nargs="+", default=[12, 22, 32], help="k-buffer sizes")
     p.add_argument("--frames", type=int, default=24)
     p.add_argument("--write-normals", action="store_true")
-    p.add_argument("--tile-sweep", nargs="*", default=["16:384:16", "16:384:16:r", "16:512:16", "16:384:8"],
+    p.add_argument("--tile-sweep", nargs="*", default=["16:288:12", "16:288:12:r", "16:384:16", "16:256:8"],
                    metavar="T:B:K[:r]",
                    help="tiles stage settings timed alone: tile side T, B discs in shared memory, K nearest "
                         "hits kept, ':r' for warps of two pixel rows instead of 8x4 blocks (TileVisibility tile, batch, "

@@ -41,7 +41,7 @@ cp "$bundle/bundle.json" "$out/results/bundle.json"
 step render python3 -m bench.bench_render --bundle "$bundle" --out "$out/results" --layers 5 \
     --methods tiles --sizes 1280x720 3840x2160 --frames 30 --no-leveling
 step tile_sweep_4k python3 -m bench.bench_visibility --bundle "$bundle" --out "$out/results/tiles-4k" --layers 5 \
-    --width 3840 --height 2160 --no-paths --tile-sweep 16:384:16 16:384:16:r 16:512:16 16:320:16 16:384:8 16:384:12 8:256:16
+    --width 3840 --height 2160 --no-paths --tile-sweep 16:288:12 16:288:12:r 16:384:16 16:512:16 16:256:8 16:192:12 8:256:12
 step render_caps python3 -m bench.bench_render --bundle "$bundle" --out "$out/results/caps" --layers 5 \
     --methods tiles --tile-check frame lagged --max-steps 100 32 16 --sizes 1280x720 3840x2160 --frames 30 \
     --no-leveling --cpu-profile

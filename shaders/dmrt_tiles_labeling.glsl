@@ -22,7 +22,7 @@
 #define PACKED_LABELS 0
 #endif
 #ifndef BATCH
-#define BATCH 384  // as dmrt_tiles_raster.glsl's: tiles of up to BATCH discs have hit masks
+#define BATCH 288  // as dmrt_tiles_raster.glsl's: tiles of up to BATCH discs have hit masks
 #endif
 #define THREADS (TILE * TILE)
 

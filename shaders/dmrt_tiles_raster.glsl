@@ -44,11 +44,11 @@
 #if defined COMPUTE_SHADER
 
 #ifndef BATCH
-#define BATCH 384  // discs in shared memory at once: 40 bytes each (TileVisibility's batch says why)
+#define BATCH 288  // discs in shared memory at once: 40 bytes each (TileVisibility's batch says why)
 #endif
 #define THREADS (TILE * TILE)
 #ifndef TOP
-#define TOP 16  // nearest hits a pixel keeps sorted during the first walk: 4, 8, 12 or 16
+#define TOP 12  // nearest hits a pixel keeps sorted during the first walk: 4, 8, 12 or 16
 #endif
 #if TOP != 4 && TOP != 8 && TOP != 12 && TOP != 16
 #error "TOP must be 4, 8, 12 or 16 (the registers keep the nearest hits in vectors of 4)"

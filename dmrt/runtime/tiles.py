@@ -14,7 +14,7 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
 4. ``dmrt_tiles_raster``: one workgroup per tile, one invocation per pixel: each layer is the
    smallest (depth bits, label) among the pixel's hits behind the layer before with another label.
    The workgroup walks its tile's discs (held in shared memory) once, each invocation keeping its
-   16 nearest hits sorted by depth in registers, and the peeling rule applied to them in order
+   nearest hits (12 by default) sorted by depth in registers, and the peeling rule applied to them in order
    gives the pixel's first layers exactly (all k for most pixels, unless two of them have equal
    depths: their order is the label's); a pixel still lacking layers walks again
    per layer, keeping the minimum that passes the filter and testing only the discs that hit it
@@ -65,14 +65,15 @@ class TileVisibility:
         Tile side, pixels; a workgroup has tile^2 invocations (16: 256).
     batch : int
         Discs the raster pass holds in shared memory (40 bytes each): a tile's list up to this long
-        is loaded once for all layers, a longer one in batches of it for each layer. 384 (15 KB a
-        workgroup): four workgroups then fit an SM's shared memory on NVIDIA's GL driver (H200:
-        batches of 320-400 discs run the raster in 2.00 ms at 3840x2160, 416-512 in 2.60 ms; 0.56
-        against 0.58 ms at 1280x720: reports/frame-h200, session 14), and at 1280x720, where a
-        tile holds ~180 discs, few lists are longer.
+        is loaded once for all layers, a longer one in batches of it for each layer. The default
+        with ``top``: what bounds the raster is the workgroups resident on an SM, set by its
+        registers (``top``) and its shared memory (``batch``). H200, 5 layers (reports/frame-h200,
+        session 14): with 16 hits, 320-400 discs run it in 2.00 ms at 3840x2160 and 0.56 ms at
+        1280x720, 416-512 in 2.60 / 0.58 ms, 128-288 in 2.62+ ms; with 12 hits, 192-288 discs in
+        1.83 / 0.58 ms (a 720p tile holds ~180 discs, a 4K one ~63).
     top : int
         Nearest hits each pixel keeps sorted in registers during the raster's first walk: 4, 8,
-        12 or 16 (a pixel whose layers are not all among them walks the list again).
+        12 or 16 (a pixel whose layers are not all among them walks the list again; see batch).
     max_thread_tiles : int
         Discs over more tiles are binned by a workgroup each instead of one thread.
     check : ``"frame"`` or ``"lagged"``
@@ -97,7 +98,7 @@ class TileVisibility:
         Frames whose list outgrew the buffer (``check="frame"``: built again).
     """
 
-    def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = 384, top: int = 16,
+    def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = 288, top: int = 12,
                  max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None,
                  hit_masks: bool = True, warp_blocks: bool = True):
         if not 1 <= tile <= 32:
