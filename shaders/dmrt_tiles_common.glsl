@@ -42,6 +42,17 @@ ivec2 tile_local_pixel() {
 }
 #endif
 
+// A disc's pixel box (splat_pixel_box) in 8 bytes of shared memory: col0 | row0 << 16,
+// col1 | row1 << 16. A disc in a tile's list overlaps the tile, so its box is not empty and its
+// coordinates lie in 0..65535 (frames are smaller).
+uvec2 pack_box(ivec4 box) {
+    return uvec2(uint(box.x) | (uint(box.y) << 16), uint(box.z) | (uint(box.w) << 16));
+}
+
+bool in_box(uvec2 px, uvec2 b) {
+    return px.x >= (b.x & 0xFFFFu) && px.x <= (b.y & 0xFFFFu) && px.y >= (b.x >> 16) && px.y <= (b.y >> 16);
+}
+
 // Binding points (B_PROXIES, B_LARGE, B_LAYER_DEPTH, B_LAYER_LABEL, B_TILE_*) and the sentinels
 // EMPTY_BITS, EMPTY_LABEL come from dmrt/gl/abi.py, injected as #defines by the loader.
 uniform ivec2 u_tiles;  // tiles per row, tile rows

@@ -48,7 +48,7 @@ uniform uint u_capacity;  // entries the list holds (a slice past it was lost: s
 // only the centres and labels.
 shared vec4 s_cl[THREADS];    // camera-space centre (m), label (int bits)
 shared vec4 s_nr[THREADS];    // unit normal, radius (m)
-shared uvec2 s_box[THREADS];  // pixel box: col0 | row0 << 16, col1 | row1 << 16
+shared uvec2 s_box[THREADS];  // pixel box (pack_box)
 
 vec3 g_q;         // the pixel's raytraced point, camera space (m)
 uint g_best;      // distance bits of the nearest covering disc so far
@@ -99,8 +99,7 @@ void main() {
             s_cl[lid] = vec4(s.pc, intBitsToFloat(label));
             if (!by_masks) {
                 s_nr[lid] = vec4(s.nc, s.r);
-                ivec4 b = splat_pixel_box(s);
-                s_box[lid] = uvec2(uint(b.x) | (uint(b.y) << 16), uint(b.z) | (uint(b.w) << 16));
+                s_box[lid] = pack_box(splat_pixel_box(s));
             }
         }
         barrier();
@@ -116,11 +115,8 @@ void main() {
         } else
 #endif
         if (z > 0.0) {
-            uvec2 p = uvec2(px);
             for (uint j = 0u; j < n; ++j) {
-                uvec2 b = s_box[j];
-                if (p.x < (b.x & 0xFFFFu) || p.x > (b.y & 0xFFFFu) || p.y < (b.x >> 16) || p.y > (b.y >> 16))
-                    continue;
+                if (!in_box(uvec2(px), s_box[j])) continue;
                 vec4 nr = s_nr[j];
                 if (splat_depth_ray(Splat(s_cl[j].xyz, nr.xyz, nr.w), ray, ray_len) <= 0.0) continue;
                 consider(j);

@@ -69,7 +69,7 @@ uniform int u_layers;     // k
 
 shared vec4 s_pr[BATCH];     // camera-space centre (m), radius (m)
 shared vec4 s_nl[BATCH];     // unit normal, label (uint bits)
-shared uvec2 s_box[BATCH];   // pixel box: col0 | row0 << 16, col1 | row1 << 16
+shared uvec2 s_box[BATCH];   // pixel box (pack_box)
 shared uint s_found[3];      // "some pixel found this layer", one per walk, rotating
 
 // per-invocation state
@@ -93,10 +93,9 @@ void load_batch(uint first, uint n) {
     for (uint i = gl_LocalInvocationIndex; i < n; i += uint(THREADS)) {
         int label;
         Splat s = load_proxy(entries[first + i], label);
-        ivec4 box = splat_pixel_box(s);
         s_pr[i] = vec4(s.pc, s.r);
         s_nl[i] = vec4(s.nc, intBitsToFloat(label));
-        s_box[i] = uvec2(uint(box.x) | (uint(box.y) << 16), uint(box.z) | (uint(box.w) << 16));
+        s_box[i] = pack_box(splat_pixel_box(s));
     }
 }
 
@@ -186,8 +185,7 @@ uint walk(uint from, uint to) {
     for (uint j = from; j < to; ++j) {
         uvec2 b = next;
         next = s_box[min(j + 1u, uint(BATCH - 1))];
-        if (g_px.x < (b.x & 0xFFFFu) || g_px.x > (b.y & 0xFFFFu) || g_px.y < (b.x >> 16) || g_px.y > (b.y >> 16))
-            continue;
+        if (!in_box(g_px, b)) continue;
         uint d = hit_bits(j);
         if (d == 0u) continue;
         mask |= 1u << ((j - from) & 31u);
