@@ -816,7 +816,10 @@ def section_memory(rs: ResultSet, out: Path) -> Section:
                       f"layer pixel 2 floats; photo cache: the smaller of the renderer's budget and every photo at full size, "
                       f"RGB8)", rows)
     s.text("The paper's 37 MB (proxies) and 28 MB (layers) are swapped with respect to its own formulas "
-           "(1M x 28 B = 28 MB, 1280 x 720 x 8 B x 5 = 36.9 MB); their sum, 65 MB, agrees.")
+           "(1M x 28 B = 28 MB, 1280 x 720 x 8 B x 5 = 36.9 MB); their sum, 65 MB, agrees. The photo cache's "
+           "slots are RGBA8 since session 14 (an RGBA8 upload is a copy, an RGB8 one is widened by the driver on "
+           "the CPU, and the GPU stores RGB8 in 4 bytes a texel as well): 4/3 of the RGB8 formula where every "
+           "photo fits the budget.")
     return s
 
 
