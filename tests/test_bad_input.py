@@ -469,6 +469,8 @@ CONFIG_CASES = {
                               ["--max-steps", "0"]),
     "render_cache_negative": (["render", "BUNDLE", "--camera", PHOTO, "--cache-mb", "-1", "--out", "OUTDIR/f.png"],
                               ["--cache-mb", "-1"]),
+    "render_tile_hits": (["render", "BUNDLE", "--camera", PHOTO, "--tile-hits", "6", "--out", "OUTDIR/f.png"],
+                         ["--tile-hits", "6"]),
     "render_leveling_gain": (["render", "BUNDLE", "--camera", PHOTO, "--leveling-max-gain", "0.5", "--out",
                               "OUTDIR/f.png"], ["--leveling-max-gain", "0.5"]),
     "render_dmt_epsilon_negative": (["render", "BUNDLE", "--camera", PHOTO, "--method", "dmt", "--dmt-epsilon", "-1",

@@ -56,6 +56,7 @@ from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups, max_groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.runtime.shading import FrameShading, camera_uniforms, hit_depth_at
+from dmrt.runtime.tiles import DEFAULT_BATCH, DEFAULT_TOP
 from dmrt.runtime.visibility import ProxySplats, VisibilityStage
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
@@ -110,6 +111,15 @@ class RenderConfig:
                  "and a frame that outgrew the list is rendered again: no frame loses discs) or lagged (reads "
                  "the length of two frames back and never waits; a frame whose list outgrew the buffer loses "
                  "the discs past its end)")
+    # the tile raster's speed moves in steps with these two (the workgroups an SM holds at once): 12
+    # hits and 288 discs are the fastest on an H200 (dmrt/runtime/tiles.py, TileVisibility's batch)
+    tile_batch: int = option(DEFAULT_BATCH, "tiles: discs a workgroup holds in shared memory (40 bytes each; a tile's "
+                                            "list up to this long is loaded once for all layers); the fastest value "
+                                            "depends on the GPU: python -m bench.bench_visibility --tile-sweep",
+                             minimum=1)
+    tile_hits: int = option(DEFAULT_TOP, "tiles: nearest hits each pixel keeps sorted in registers, 4, 8, 12 or 16 "
+                                         "(a pixel whose layers are not all among them walks its list again); the "
+                                         "same layers either way", minimum=4, maximum=16)
     kbuffer_slots: int = option(0, "k-buffer fragments kept per pixel; 0 = 6 per layer + 2 (>= 99.9 % of the "
                                    "peeled layers' pixels); a pixel with more fragments in front of its k-th layer "
                                    "loses its deepest layers", minimum=0)
@@ -152,6 +162,8 @@ class RenderConfig:
         validate(self)
         if self.statistics and self.layers > STAT_LAYERS:
             raise ConfigError("layers", f"the step statistics record at most {STAT_LAYERS} layers, not {self.layers}")
+        if self.tile_hits % 4:
+            raise ConfigError("tile_hits", f"must be 4, 8, 12 or 16, not {self.tile_hits}")
         if self.layers + self.fill_passes > MAX_HIT_LAYER:
             raise ConfigError("layers", f"layers + fill_passes must be at most {MAX_HIT_LAYER} (the Hit record's "
                                         f"layer field), not {self.layers + self.fill_passes}")
@@ -221,7 +233,8 @@ class Renderer:
         self.splats = ProxySplats(self.ctx, bundle.proxy, self.config.max_thread_pixels)
         self.visibility = VisibilityStage(self.ctx, self.splats, self.config.method, self.int64,
                                           self.config.kbuffer_slots or 6 * self.config.layers + 2, n,
-                                          self.config.tile_check, self.shading.status, hit_masks=self.config.labeling)
+                                          self.config.tile_check, self.shading.status, hit_masks=self.config.labeling,
+                                          tile_batch=self.config.tile_batch, tile_top=self.config.tile_hits)
         defines = {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
                    "SECANT": int(self.config.search == "secant"), "RAYTRACE": int(self.config.raytrace),
                    "STATISTICS": int(self.config.statistics), "ILLINOIS": int(self.config.refine == "illinois")}

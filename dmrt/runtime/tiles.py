@@ -50,6 +50,10 @@ _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 ENTRY_BYTES = 4  # a disc index per disc-tile overlap
 LAG = RING - 1  # check="lagged" reads the record of the frame this many frames back
 MASK_DISCS = 256  # the raster's hit masks cover a tile's first 256 discs (dmrt_tiles_common.glsl)
+# The raster's defaults, chosen by timing (TileVisibility's batch says how; RenderConfig.tile_batch
+# and tile_hits set them for another GPU)
+DEFAULT_BATCH = 288
+DEFAULT_TOP = 12
 
 
 class TileVisibility:
@@ -92,13 +96,14 @@ class TileVisibility:
 
     Attributes
     ----------
+    tile, batch, top, check : the parameters above
     capacity : int
         Entries the list buffer holds.
     dropped_frames : int
         Frames whose list outgrew the buffer (``check="frame"``: built again).
     """
 
-    def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = 288, top: int = 12,
+    def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = DEFAULT_BATCH, top: int = DEFAULT_TOP,
                  max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None,
                  hit_masks: bool = True, warp_blocks: bool = True):
         if not 1 <= tile <= 32:
@@ -110,7 +115,7 @@ class TileVisibility:
         if check not in ("frame", "lagged"):
             raise ValueError(f"check must be 'frame' or 'lagged', not {check!r}")
         self.ctx, self.splats = ctx, splats
-        self.tile, self.check = int(tile), check
+        self.tile, self.check, self.batch, self.top = int(tile), check, int(batch), int(top)
         self.hit_masks = bool(hit_masks) and self.tile * self.tile == MASK_DISCS
         self._defines = {"TILE": self.tile, "BATCH": int(batch), "HIT_MASKS": int(self.hit_masks),
                          "WARP_BLOCKS": int(bool(warp_blocks))}
