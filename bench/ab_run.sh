@@ -11,7 +11,9 @@
 # Steps: the bench workspace's main bundle (scene and preprocessing, ~3 minutes on an H100; or
 # BUNDLE=path to use one), then for each tree, in order, `bench.bench_render` with the tree's own
 # code (5 layers, no leveling, tiles, 1280x720 and 3840x2160; SIZES, FRAMES override), its results
-# in OUT_DIR/results/<tree name>/ and OUT_DIR/results.tgz repacked after each tree. Trees need
+# in OUT_DIR/results/<tree name>/ and OUT_DIR/results.tgz repacked after each tree; with SWEEP="T:B:K ..."
+# also each tree's tile raster alone per setting and size (`bench.bench_visibility --tile-sweep`, in
+# OUT_DIR/results/<tree name>/sweep-<width>/: ~10 s a setting). Trees need
 # dmrt/, shaders/ and bench/; reference/ and baselines/ come from this checkout.
 # The environment (EGL vendor file, PYTHONPATH with the wheels) is the caller's: ../shared/GPU.md.
 set -u
@@ -24,6 +26,7 @@ for t in "$@"; do
 done
 repo=$(cd "$(dirname "$0")/.." && pwd)
 mkdir -p "$out/results"
+rm -f "$out/done.txt"  # a record left by an earlier run on a warm machine would end bench/poll_run.sh at once
 log=$out/log.txt
 t0=$(date +%s)
 nvidia-smi --query-gpu=name,clocks.sm,clocks.max.sm,memory.total --format=csv >"$out/results/gpus.csv" 2>&1
@@ -36,6 +39,12 @@ for t in "$@"; do
         python3 -m bench.bench_render --bundle "$bundle" --out "$out/results/$name" --layers 5 --no-leveling \
         --methods tiles --sizes ${SIZES:-1280x720 3840x2160} --frames ${FRAMES:-30}) >>"$log" 2>&1
     echo "$name rc=$? $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
+    for size in ${SWEEP:+${SIZES:-1280x720 3840x2160}}; do
+        (cd "$t" && PYTHONPATH="$PWD:$repo:${PYTHONPATH:-}" python3 -m bench.bench_visibility --bundle "$bundle" \
+            --out "$out/results/$name/sweep-${size%x*}" --layers 5 --width "${size%x*}" --height "${size#*x}" \
+            --no-paths --tile-sweep $SWEEP) >>"$log" 2>&1
+        echo "$name sweep $size rc=$? $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
+    done
     tar czf "$out/results.tgz.tmp" -C "$out" results && mv "$out/results.tgz.tmp" "$out/results.tgz"
 done
 echo finished >>"$out/done.txt"

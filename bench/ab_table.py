@@ -6,7 +6,10 @@ RESULTS holds one folder per tree, each with the ``render-*.json`` of ``bench.be
 tree and frame size: the GPU total's median and p95 and the sustained wall ms per frame (frames back
 to back), the render call's median (CPU), the stages' parts (GPU ms), and the mean search steps and
 surface fraction, which equal trees must share (a change meant to keep the frames must not move
-them). The first tree is the reference of the ``GPU / first`` column.
+them). The first tree is the reference of the ``GPU / first`` column. Where a tree has tile sweeps
+(``bench/ab_run.sh`` with ``SWEEP``: ``sweep-<width>/visibility-*.json``), also a table per frame
+size of the tile raster's ms per setting (``T:B:K[:r]``) and tree, with the layers' agreement with
+the sweep's first setting where it is not 1.
 """
 
 from __future__ import annotations
@@ -31,6 +34,34 @@ def load(results: Path, trees: list[str] | None) -> dict[str, list[dict]]:
             raise FileNotFoundError(f"{results / name}: no render-*.json")
         out[name] = json.loads(files[0].read_text())["runs"]
     return out
+
+
+def load_sweeps(results: Path, names) -> dict[tuple[int, int], dict[str, dict[str, dict]]]:
+    """``{(w, h): {setting: {tree: sweep entry}}}`` from the trees' ``sweep-*/visibility-*.json``."""
+    out: dict = {}
+    for name in names:
+        for f in sorted((results / name).glob("sweep-*/visibility-*.json")):
+            d = json.loads(f.read_text())
+            for e in d["tile_sweep"]:
+                key = f"{e['tile']}:{e['batch']}:{e['top']}" + ("" if e["warp_blocks"] else ":r")
+                out.setdefault(tuple(d["frame_size"]), {}).setdefault(key, {})[name] = e
+    return out
+
+
+def sweep_table(settings: dict[str, dict[str, dict]], names) -> str:
+    """The Markdown table of the tile raster's ms per setting (rows) and tree (columns)."""
+    lines = ["| setting | " + " | ".join(names) + " |", "|" + "---|" * (len(names) + 1)]
+    for key, by_tree in settings.items():
+        cells = []
+        for name in names:
+            e = by_tree.get(name)
+            if e is None:
+                cells.append("-")
+                continue
+            agree = e["layers_equal_to_first"]
+            cells.append(f"{e['tile_raster_ms']:.3f}" + ("" if agree == 1.0 else f" (layers {agree:.6f})"))
+        lines.append(f"| {key} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def table(runs: dict[str, list[dict]], size: tuple[int, int]) -> str:
@@ -72,6 +103,9 @@ def main(argv=None) -> None:
     for w, h in sizes:
         print(f"\n{w}x{h}, ms (GPU: the sustained pass's timer queries; sustained: wall per frame)\n")
         print(table(runs, (w, h)))
+    for (w, h), settings in load_sweeps(args.results, list(runs)).items():
+        print(f"\n{w}x{h}, the tile raster alone, ms per setting T:B:K[:r] (bench_visibility --tile-sweep)\n")
+        print(sweep_table(settings, list(runs)))
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ set -u
 out=${1:?usage: bench/frame_run.sh OUT_DIR}
 work=${WORK:-$out/work}
 mkdir -p "$out/results" "$work"
+rm -f "$out/done.txt"  # a record left by an earlier run on a warm machine would end bench/poll_run.sh at once
 step() {  # step NAME COMMAND...: run, log, record, repack
     local name=$1; shift
     local t0=$(date +%s)

@@ -16,6 +16,7 @@ shift
 experiments=("$@")
 [ ${#experiments[@]} -gt 0 ] || read -ra experiments <<<"$(python3 -m bench.experiments)"  # every experiment, in run order
 mkdir -p "$out"
+rm -f "$out/done.txt"  # a record left by an earlier run on a warm machine would end bench/poll_run.sh at once
 for e in "${experiments[@]}"; do
     t0=$(date +%s)
     python3 -m dmrt.app.cli bench --preset paper --out "$out/results" --work "$out/work" --only "$e" >>"$out/log.txt" 2>&1

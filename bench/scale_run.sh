@@ -12,6 +12,7 @@
 set -u
 out=${1:?usage: bench/scale_run.sh OUT_DIR}
 mkdir -p "$out/results"
+rm -f "$out/done.txt"  # a record left by an earlier run on a warm machine would end bench/poll_run.sh at once
 echo -e "unix_s\tdisk_used_mb\tmem_used_mb\tload_1min" >"$out/results/samples.tsv"
 ( while true; do
     echo -e "$(date +%s)\t$(df -B1M --output=used "$out" | tail -1 | tr -d ' ')\t$(free -m | awk '/Mem:/{print $3}')\t$(cut -d' ' -f1 /proc/loadavg)"

@@ -29,6 +29,27 @@ def test_table_per_size_against_the_first_tree(tmp_path, capsys):
     assert [r[7] for r in rows] == ["0.400", "1.600"]  # tile_raster
 
 
+def test_tile_sweeps_per_size_and_setting(tmp_path, capsys):
+    """A tree's sweeps (ab_run.sh SWEEP) become a table per frame size: the raster's ms per setting
+    and tree, '-' where a tree lacks the setting, the layers' agreement where it is not 1."""
+    from bench.ab_table import main
+
+    for name, ms in (("base", 2.6), ("new", 2.0)):
+        (tmp_path / name / "sweep-3840").mkdir(parents=True)
+        (tmp_path / name / "render-bundle.json").write_text(json.dumps({"runs": [_run((3840, 2160), 5.0, ms)]}))
+        entries = [{"tile": 16, "batch": 384, "top": 16, "warp_blocks": True, "tile_raster_ms": ms,
+                    "layers_equal_to_first": 1.0}]
+        if name == "new":
+            entries.append({"tile": 16, "batch": 288, "top": 12, "warp_blocks": False, "tile_raster_ms": 1.8,
+                            "layers_equal_to_first": 0.5})
+        (tmp_path / name / "sweep-3840" / "visibility-b.json").write_text(
+            json.dumps({"frame_size": [3840, 2160], "tile_sweep": entries}))
+    main([str(tmp_path)])
+    out = capsys.readouterr().out
+    assert "| 16:384:16 | 2.600 | 2.000 |" in out
+    assert "| 16:288:12:r | - | 1.800 (layers 0.500000) |" in out
+
+
 def test_missing_tree_is_one_line_and_status_2(tmp_path, capsys):
     from bench.ab_table import main
 
