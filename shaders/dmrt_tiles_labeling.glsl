@@ -92,7 +92,7 @@ void main() {
     uint count = min(end, u_capacity) - min(start, u_capacity);
     bool masked = bool(HIT_MASKS) && count <= uint(BATCH);
     for (uint base = start; base < end; base += uint(THREADS)) {
-        bool by_masks = bool(HIT_MASKS) && masked && base == start;  // the same for the whole workgroup
+        bool by_masks = masked && base == start;  // the same for the whole workgroup
         if (base + lid < end) {
             int label;
             Splat s = load_proxy(entries[base + lid], label);
