@@ -104,18 +104,13 @@ vec3 unproject_texel(Photo ph, ivec2 t, float z) {
     return z * vec3((uv - ph.k.zw) / ph.k.xy, 1.0);
 }
 
-// Depth of D_l's surface at depth-map position uv: the texel centres around uv form the quad
-// (00, 10, 01, 11), split along the 10-01 diagonal into T0 = (00, 10, 01) and T1 = (10, 11, 01);
-// inside the triangle holding uv, inverse depth is interpolated linearly in image coordinates,
-// which is exact for a plane (1/z is affine in image coordinates on a plane). ok = false outside
-// the map or where the triangle has an empty texel.
-float surface_depth(int l, Photo ph, vec2 uv, out bool ok) {
-    ivec2 i0;
-    vec2 f;
-    vec4 d;
-    ok = false;
-    if (!depth_quad(l, ph, uv, 1e29, i0, f, d)) return 0.0;
+// Depth of the surface of a quad from depth_quad (f, d): the texel centres (00, 10, 01, 11) split
+// along the 10-01 diagonal into T0 = (00, 10, 01) and T1 = (10, 11, 01); inside the triangle holding
+// f, inverse depth is interpolated linearly in image coordinates, which is exact for a plane (1/z is
+// affine in image coordinates on a plane). ok = false where that triangle has an empty texel.
+float triangle_depth(vec2 f, vec4 d, out bool ok) {
     float inv;
+    ok = false;
     if (f.x + f.y <= 1.0) {  // T0
         if (d.x == 0.0 || d.y == 0.0 || d.z == 0.0) return 0.0;
         inv = 1.0 / d.x + f.x * (1.0 / d.y - 1.0 / d.x) + f.y * (1.0 / d.z - 1.0 / d.x);
@@ -125,4 +120,15 @@ float surface_depth(int l, Photo ph, vec2 uv, out bool ok) {
     }
     ok = true;
     return 1.0 / inv;
+}
+
+// Depth of D_l's surface at depth-map position uv (triangle_depth of the quad around it). ok =
+// false outside the map or where the triangle has an empty texel.
+float surface_depth(int l, Photo ph, vec2 uv, out bool ok) {
+    ivec2 i0;
+    vec2 f;
+    vec4 d;
+    ok = false;
+    if (!depth_quad(l, ph, uv, 1e29, i0, f, d)) return 0.0;
+    return triangle_depth(f, d, ok);
 }
