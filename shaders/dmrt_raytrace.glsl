@@ -518,7 +518,9 @@ void write_pixel() {
 // when the block has none left.
 bool next_pixel(mat3 Rt) {
     uint n = uint(u_block * u_block);
-    for (uint i = atomicAdd(s_next, 1u); i < n; i = atomicAdd(s_next, 1u)) {
+    for (;;) {
+        uint i = atomicAdd(s_next, 1u);
+        if (i >= n) return false;
         // 8 x 8 pixel squares in row order: a turn's 64 lanes take neighbours (texture locality)
         uint sq = i >> 6u, per_row = uint(u_block) >> 3u;
         ivec2 p = ivec2(gl_WorkGroupID.xy) * u_block +
