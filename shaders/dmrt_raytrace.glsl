@@ -49,15 +49,14 @@
 #define FILL 0
 #endif
 
-// The pixel pass: a block of pixels a workgroup of POOL_THREADS (see its main); the fill pass: one
-// hole a workgroup, its LIST_THREADS neighbours searched side by side
+// The pixel pass: 8 x 8 pixels a workgroup; the fill pass: one hole a workgroup, its LIST_THREADS
+// neighbours searched side by side
 #if FILL
 #define LIST_THREADS 8
 layout(local_size_x = LIST_THREADS) in;
 #else
 #define LIST_THREADS 1
-#define POOL_THREADS 64
-layout(local_size_x = POOL_THREADS) in;
+layout(local_size_x = 8, local_size_y = 8) in;
 #endif
 
 layout(std430, binding = B_LAYER_DEPTH) readonly buffer LayerDepth { uint layer_depth[]; };
@@ -147,9 +146,8 @@ void flush_steps() {
 const float CONVERGED = 1e-5;  // |h| / camera z below which the search has landed on the surface
 
 // The search of one layer as a state machine that stops at every depth-map lookup: the pixel pass
-// runs its lanes' searches side by side one lookup at a time, and a lane whose pixel is done takes
-// the next pixel of its workgroup's block (see the pixel pass below); the fill pass runs one search
-// to its end (trace). The state is per invocation, in globals:
+// runs its lanes' searches side by side one lookup at a time (see raytrace_pixel), the fill pass
+// one search to its end (trace). The state is per invocation, in globals:
 vec3 g_C, g_dir;        // the ray C + s * dir (s = camera z of the render camera)
 float g_dlen;           // length(g_dir)
 int g_l;                // the label whose depth map is searched
@@ -481,19 +479,12 @@ void main() {
     }
 }
 #else
-// The pixel pass. Its searches take from 1 to hundreds of lookups (a ray that passes in front of a
-// layer's surface runs to the step cap, then the next layer's search starts), and a warp whose
-// lanes each held one pixel ran as long as its longest. So a workgroup of POOL_THREADS takes a
-// block of u_block x u_block pixels, each lane a pixel at a time from a counter in shared memory:
-// every turn of the loop below, each lane does one lookup of whatever search it is in, then takes
-// its result (advance); a lane whose pixel is done writes it and takes the next. A warp then runs
-// about as long as the mean of its lanes' work, not their maximum (small scene, 1280x720, 5
-// layers: the warps' lookups 1.77x the pixels' with one pixel a lane, ~1.1x with 32 x 32 blocks).
-uniform int u_block;  // pixels a side of a workgroup's block: 8, 16 or 32 (a multiple of 8)
-shared uint s_next;   // the block's next pixel
-
+// The pixel pass: one pixel an invocation, its layers' searches one after the other in one loop
+// whose every turn does one lookup (advance() takes its result), so the lanes of a warp fetch side
+// by side whatever search or phase each is in. Written as nested loops (layers, steps, refinement)
+// with a lookup in each place, the search was ~20 % slower on an H200 (reports/frame-h200, session
+// 15). Lanes that take further pixels of a block once theirs is done were slower still.
 uint g_npix, g_pix;
-int g_found;  // the layer that gave the hit, -1 = none
 
 // Starts the search of layer g_layer; false when the pixel has no such layer (peeling: every later
 // layer is empty too).
@@ -507,78 +498,52 @@ bool begin_layer() {
     return true;
 }
 
-void write_pixel() {
-    bool hit = g_found >= 0;
-    hits[g_pix] = hit ? Hit(g_hit, g_l, -1, layer_iters(g_found, g_iters)) : Hit(0.0, -1, -1, layer_iters(-1, g_iters));
-    write_normal(g_pix, hit ? g_n : vec3(0.0));
-    if (u_fill != 0 && !(hit && g_hit > 0.0) && layer_depth[g_pix] != EMPTY_BITS) push_hole(g_pix);
-}
-
-// Takes the block's next pixel with a lookup to do (one with no layer is written at once); false
-// when the block has none left.
-bool next_pixel(mat3 Rt) {
-    uint n = uint(u_block * u_block);
-    for (;;) {
-        uint i = atomicAdd(s_next, 1u);
-        if (i >= n) return false;
-        // 8 x 8 pixel squares in row order: a turn's 64 lanes take neighbours (texture locality)
-        uint sq = i >> 6u, per_row = uint(u_block) >> 3u;
-        ivec2 p = ivec2(gl_WorkGroupID.xy) * u_block +
-                  ivec2((sq % per_row) * 8u + (i & 7u), (sq / per_row) * 8u + ((i >> 3u) & 7u));
-        if (p.x >= u_size.x || p.y >= u_size.y) continue;
-        g_pix = uint(p.y * u_size.x + p.x);
-        g_dir = Rt * camera_ray(vec2(p) + 0.5);
-        g_dlen = length(g_dir);
-        g_iters = 0;
-        g_found = -1;
-        g_n = vec3(0.0);
-        g_layer = 0;
-        if (begin_layer()) return true;
-        write_pixel();
+void raytrace_pixel() {
+    ivec2 p = ivec2(gl_GlobalInvocationID.xy);
+    if (p.x >= u_size.x || p.y >= u_size.y) return;
+    g_npix = uint(u_size.x * u_size.y);
+    g_pix = uint(p.y * u_size.x + p.x);
+    mat3 Rt = transpose(u_R);  // camera -> world
+    g_C = -(Rt * u_t);
+    g_dir = Rt * camera_ray(vec2(p) + 0.5);
+    g_dlen = length(g_dir);
+    g_iters = 0;
+    g_n = vec3(0.0);
+    int found = -1;  // the layer that gave the hit
+#if RAYTRACE
+    g_layer = 0;
+    bool busy = begin_layer();
+    while (busy) {
+        bool ok;
+        float h = lookup(ok);
+        int r = advance(h, ok);
+        if (r == HIT) found = g_layer;
+        if (r == MISS) {
+            ++g_layer;
+            busy = begin_layer();
+        }
+        busy = busy && r != HIT;
     }
-    return false;
+    Hit hit = found >= 0 ? Hit(g_hit, g_l, -1, layer_iters(found, g_iters)) : Hit(0.0, -1, -1, layer_iters(-1, g_iters));
+#else
+    // the ablation: the first layer's splat is the surface
+    uint bits0 = layer_depth[g_pix];
+    if (bits0 != EMPTY_BITS) {
+        found = 0;
+        g_n = -g_dir / g_dlen;
+    }
+    Hit hit = found >= 0 ? Hit(uintBitsToFloat(bits0), layer_label[g_pix], -1, layer_iters(0, 0)) : Hit(0.0, -1, -1, layer_iters(-1, 0));
+#endif
+    hits[g_pix] = hit;
+    write_normal(g_pix, found >= 0 ? g_n : vec3(0.0));
+    if (RAYTRACE != 0 && u_fill != 0 && hit.depth <= 0.0 && layer_depth[g_pix] != EMPTY_BITS) push_hole(g_pix);
 }
 
 void main() {
 #if STATISTICS
     clear_steps();
 #endif
-    if (gl_LocalInvocationIndex == 0u) s_next = 0u;
-    memoryBarrierShared();
-    barrier();
-    g_npix = uint(u_size.x * u_size.y);
-    mat3 Rt = transpose(u_R);  // camera -> world
-    g_C = -(Rt * u_t);
-#if RAYTRACE
-    bool busy = next_pixel(Rt);
-    while (busy) {
-        bool ok;
-        float h = lookup(ok);
-        int r = advance(h, ok);
-        if (r == PENDING) continue;
-        if (r == HIT) {
-            g_found = g_layer;
-        } else {
-            ++g_layer;
-            if (begin_layer()) continue;
-        }
-        write_pixel();
-        busy = next_pixel(Rt);
-    }
-#else
-    // the ablation: the first layer's splat is the surface
-    uint n = uint(u_block * u_block);
-    for (uint i = gl_LocalInvocationIndex; i < n; i += uint(POOL_THREADS)) {
-        ivec2 p = ivec2(gl_WorkGroupID.xy) * u_block + ivec2(i % uint(u_block), i / uint(u_block));
-        if (p.x >= u_size.x || p.y >= u_size.y) continue;
-        uint pix = uint(p.y * u_size.x + p.x);
-        uint bits0 = layer_depth[pix];
-        bool hit = bits0 != EMPTY_BITS;
-        vec3 dir = Rt * camera_ray(vec2(p) + 0.5);
-        hits[pix] = hit ? Hit(uintBitsToFloat(bits0), layer_label[pix], -1, layer_iters(0, 0)) : Hit(0.0, -1, -1, layer_iters(-1, 0));
-        write_normal(pix, hit ? -dir / length(dir) : vec3(0.0));
-    }
-#endif
+    raytrace_pixel();
 #if STATISTICS
     flush_steps();
 #endif

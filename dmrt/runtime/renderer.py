@@ -62,20 +62,6 @@ from dmrt.runtime.visibility import ProxySplats, VisibilityStage
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 STAGES = ("visibility", "raytracing", "labeling", "image_management", "texturing", "leveling")
 
-# The search's workgroups each take a block of pixels, their lanes a pixel at a time
-# (shaders/dmrt_raytrace.glsl): the larger the block, the less a lane waits for the others of its
-# warp, but a frame then has fewer workgroups to fill the GPU. Blocks of 32 x 32 where the frame
-# still has this many of them, else 16 x 16, else 8 x 8.
-SEARCH_MIN_GROUPS = 2048
-
-
-def search_block(w: int, h: int) -> int:
-    """Side of the search's pixel blocks (8, 16 or 32) for a w x h frame."""
-    for side in (32, 16):
-        if groups(w, side) * groups(h, side) >= SEARCH_MIN_GROUPS:
-            return side
-    return 8
-
 
 Visibility = Literal["tiles", "compute", "kbuffer", "raster"]
 
@@ -365,9 +351,8 @@ class Renderer:
             b["normals"].bind_to_storage_buffer(abi.B_NORMALS)
             self.photos.bind_to_storage_buffer(abi.B_PHOTOS)
             self.depthmaps.use(0)
-            block = search_block(w, h)
-            set_uniforms(raytrace, u_fill=int(fill_passes > 0), u_block=block, **search)
-            raytrace.run(groups(w, block), groups(h, block))
+            set_uniforms(raytrace, u_fill=int(fill_passes > 0), **search)
+            raytrace.run(*grid)
             ctx.memory_barrier(_BARRIER)
         with timer.section("raytracing:hole_fill"):
             for fill_pass in range(fill_passes):
