@@ -42,15 +42,29 @@ ivec2 tile_local_pixel() {
 }
 #endif
 
-// A disc's pixel box (splat_pixel_box) in 8 bytes of shared memory: col0 | row0 << 16,
-// col1 | row1 << 16. A disc in a tile's list overlaps the tile, so its box is not empty and its
-// coordinates lie in 0..65535 (frames are smaller).
-uvec2 pack_box(ivec4 box) {
-    return uvec2(uint(box.x) | (uint(box.y) << 16), uint(box.z) | (uint(box.w) << 16));
+// A disc's pixel box (splat_pixel_box) where it meets a tile, in one word of shared memory: bit x
+// for each of the tile's columns x it spans, bit 16 + y for each of its rows y (none: 0). A pixel
+// lies in the box when its column's and its row's bits are both set (in_box: one AND, one compare;
+// the corners' four compares and their unpacking cost more on the raster's hot path). `origin`: the
+// tile's first pixel.
+#if TILE > 16
+#error "TILE must be at most 16 (a tile's columns and rows are the halves of a box word)"
+#endif
+uint box_bits(ivec4 box, ivec2 origin) {
+    ivec2 lo = max(box.xy - origin, ivec2(0));
+    ivec2 hi = min(box.zw - origin, ivec2(TILE - 1));
+    if (any(greaterThan(lo, hi))) return 0u;
+    uvec2 span = ((uvec2(2u) << uvec2(hi)) - 1u) & ~((uvec2(1u) << uvec2(lo)) - 1u);
+    return span.x | (span.y << 16);
 }
 
-bool in_box(uvec2 px, uvec2 b) {
-    return px.x >= (b.x & 0xFFFFu) && px.x <= (b.y & 0xFFFFu) && px.y >= (b.x >> 16) && px.y <= (b.y >> 16);
+// A pixel's bits: its column's and its row's (local: its position in the tile).
+uint pixel_bits(ivec2 local) {
+    return (1u << uint(local.x)) | (1u << uint(16 + local.y));
+}
+
+bool in_box(uint pixel, uint box) {
+    return (box & pixel) == pixel;
 }
 
 // Binding points (B_PROXIES, B_LARGE, B_LAYER_DEPTH, B_LAYER_LABEL, B_TILE_*) and the sentinels

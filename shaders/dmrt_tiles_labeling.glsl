@@ -48,7 +48,7 @@ uniform uint u_capacity;  // entries the list holds (a slice past it was lost: s
 // only the centres and labels.
 shared vec4 s_cl[THREADS];    // camera-space centre (m), label (int bits)
 shared vec4 s_nr[THREADS];    // unit normal, radius (m)
-shared uvec2 s_box[THREADS];  // pixel box (pack_box)
+shared uint s_box[THREADS];   // pixel box in the tile (box_bits)
 
 vec3 g_q;         // the pixel's raytraced point, camera space (m)
 uint g_best;      // distance bits of the nearest covering disc so far
@@ -77,6 +77,7 @@ void main() {
     uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
     uint lid = gl_LocalInvocationIndex;
     ivec2 px = ivec2(gl_WorkGroupID.xy) * TILE + tile_local_pixel();
+    uint bits = pixel_bits(tile_local_pixel());
     bool inside = px.x < u_size.x && px.y < u_size.y;
     uint pix = uint(px.y * u_size.x + px.x);
     vec2 uv = vec2(px) + 0.5;
@@ -99,7 +100,7 @@ void main() {
             s_cl[lid] = vec4(s.pc, intBitsToFloat(label));
             if (!by_masks) {
                 s_nr[lid] = vec4(s.nc, s.r);
-                s_box[lid] = pack_box(splat_pixel_box(s));
+                s_box[lid] = box_bits(splat_pixel_box(s), ivec2(gl_WorkGroupID.xy) * TILE);
             }
         }
         barrier();
@@ -116,7 +117,7 @@ void main() {
 #endif
         if (z > 0.0) {
             for (uint j = 0u; j < n; ++j) {
-                if (!in_box(uvec2(px), s_box[j])) continue;
+                if (!in_box(bits, s_box[j])) continue;
                 vec4 nr = s_nr[j];
                 if (splat_depth_ray(Splat(s_cl[j].xyz, nr.xyz, nr.w), ray, ray_len) <= 0.0) continue;
                 consider(j);

@@ -69,11 +69,11 @@ uniform int u_layers;     // k
 
 shared vec4 s_pr[BATCH];     // camera-space centre (m), radius (m)
 shared vec4 s_nl[BATCH];     // unit normal, label (uint bits)
-shared uvec2 s_box[BATCH];   // pixel box (pack_box)
+shared uint s_box[BATCH];    // pixel box in the tile (box_bits)
 shared uint s_found[3];      // "some pixel found this layer", one per walk, rotating
 
 // per-invocation state
-uvec2 g_px;               // the pixel
+uint g_px;                // the pixel's bits in the tile (pixel_bits)
 vec3 g_ray;               // its ray through the pixel centre (splat_ray)
 float g_ray_len;          // length(g_ray)
 uint g_prev_d, g_prev_l;  // the last layer's depth bits and label (label ~0u before the first)
@@ -95,7 +95,7 @@ void load_batch(uint first, uint n) {
         Splat s = load_proxy(entries[first + i], label);
         s_pr[i] = vec4(s.pc, s.r);
         s_nl[i] = vec4(s.nc, intBitsToFloat(label));
-        s_box[i] = pack_box(splat_pixel_box(s));
+        s_box[i] = box_bits(splat_pixel_box(s), ivec2(gl_WorkGroupID.xy) * TILE);
     }
 }
 
@@ -181,9 +181,9 @@ uint walk(uint from, uint to) {
     uint mask = 0u;
     // each disc's pixel box is read one iteration ahead: the load's latency overlaps the tests (H100:
     // 2-5 % off this pass, reports/frame-h200, session 13)
-    uvec2 next = s_box[min(from, uint(BATCH - 1))];
+    uint next = s_box[min(from, uint(BATCH - 1))];
     for (uint j = from; j < to; ++j) {
-        uvec2 b = next;
+        uint b = next;
         next = s_box[min(j + 1u, uint(BATCH - 1))];
         if (!in_box(g_px, b)) continue;
         uint d = hit_bits(j);
@@ -265,7 +265,7 @@ void main() {
     bool inside = p.x < u_size.x && p.y < u_size.y;
     g_npix = uint(u_size.x * u_size.y);
     g_pix = inside ? uint(p.y * u_size.x + p.x) : 0u;
-    g_px = uvec2(p);
+    g_px = pixel_bits(tile_local_pixel());
     g_ray = splat_ray(vec2(p) + 0.5);  // the pixel centre, as in every splat path
     g_ray_len = length(g_ray);
     g_prev_d = 0u;
