@@ -43,7 +43,7 @@ layout(std430, binding = B_TILE_MASKS) readonly buffer Masks { uvec4 masks[]; };
 
 uniform uint u_capacity;  // entries the list holds (a slice past it was lost: see tiles.py)
 
-// 40 bytes a disc, 10 KB a workgroup: few enough for several workgroups an SM (the raster's batch
+// 36 bytes a disc, 9 KB a workgroup: few enough for several workgroups an SM (the raster's batch
 // in dmrt/runtime/tiles.py says why that matters). A batch whose discs the hit masks name needs
 // only the centres and labels.
 shared vec4 s_cl[THREADS];    // camera-space centre (m), label (int bits)

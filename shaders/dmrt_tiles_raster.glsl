@@ -44,7 +44,7 @@
 #if defined COMPUTE_SHADER
 
 #ifndef BATCH
-#define BATCH 288  // discs in shared memory at once: 40 bytes each (TileVisibility's batch says why)
+#define BATCH 288  // discs in shared memory at once: 36 bytes each (TileVisibility's batch says why)
 #endif
 #define THREADS (TILE * TILE)
 #ifndef TOP

@@ -113,7 +113,7 @@ class RenderConfig:
                  "the discs past its end)")
     # the tile raster's speed moves in steps with these two (the workgroups an SM holds at once): 12
     # hits and 288 discs are the fastest on an H200 (dmrt/runtime/tiles.py, TileVisibility's batch)
-    tile_batch: int = option(DEFAULT_BATCH, "tiles: discs a workgroup holds in shared memory (40 bytes each; a tile's "
+    tile_batch: int = option(DEFAULT_BATCH, "tiles: discs a workgroup holds in shared memory (36 bytes each; a tile's "
                                             "list up to this long is loaded once for all layers); the fastest value "
                                             "depends on the GPU: python -m bench.bench_visibility --tile-sweep",
                              minimum=1)

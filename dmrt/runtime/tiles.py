@@ -68,13 +68,14 @@ class TileVisibility:
     tile : int
         Tile side, pixels; a workgroup has tile^2 invocations (16: 256).
     batch : int
-        Discs the raster pass holds in shared memory (40 bytes each): a tile's list up to this long
+        Discs the raster pass holds in shared memory (36 bytes each): a tile's list up to this long
         is loaded once for all layers, a longer one in batches of it for each layer. The default
         with ``top``: what bounds the raster is the workgroups resident on an SM, set by its
-        registers (``top``) and its shared memory (``batch``). H200, 5 layers (reports/frame-h200,
-        session 14): with 16 hits, 320-400 discs run it in 2.00 ms at 3840x2160 and 0.56 ms at
-        1280x720, 416-512 in 2.60 / 0.58 ms, 128-288 in 2.62+ ms; with 12 hits, 192-288 discs in
-        1.83 / 0.58 ms (a 720p tile holds ~180 discs, a 4K one ~63).
+        registers (``top``) and its shared memory (``batch``), so its time moves in steps. H200, 5
+        layers (reports/frame-h200, session 15): with 12 hits, 256-320 discs run it in 1.73 ms at
+        3840x2160 and 0.51-0.54 ms at 1280x720, 352-384 in 1.98 / 0.52 ms; with 16 hits, 384-448
+        discs in 1.91 / 0.50-0.52 ms, 320 in 2.54 / 0.60 ms; 8 hits and 288 discs 1.84 / 0.55 ms
+        (a 720p tile holds ~180 discs, a 4K one ~63).
     top : int
         Nearest hits each pixel keeps sorted in registers during the raster's first walk: 4, 8,
         12 or 16 (a pixel whose layers are not all among them walks the list again; see batch).
