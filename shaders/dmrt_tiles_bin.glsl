@@ -6,17 +6,19 @@
 //            whose header holds the dispatch-indirect arguments of the LARGE 1 passes (the host
 //            resets it to zero workgroups and an empty list before this pass);
 //   SCATTER 0, LARGE 1: one workgroup per listed large disc, its threads striding over its tiles;
-//   SCATTER 1, LARGE 0/1: the same walk again, writing the proxy index into the tile's slice of
-//            Entries: slot = Offsets[tile] + (Counts[tile] decremented atomically) - 1, so the
+//   SCATTER 1, LARGE 0/1: the same walk again, writing the proxy index and its box in the tile
+//            (box_bits, which the raster and labeling passes test pixels against) into the tile's
+//            slice of Entries: slot = Offsets[tile] + (Counts[tile] decremented atomically) - 1, so the
 //            counts are back to 0 afterwards and the order within a slice is arbitrary (the raster
 //            and labeling passes take minima, which need no order). Entries at or past u_capacity
 //            are dropped (the host grows the buffer from the frame's total, dmrt_tiles_scan.glsl).
 // Both walks recompute the disc's box (cheaper than storing it): the same box, so the same tiles.
+// The raster and labeling passes read it from the entry instead of computing it for every tile.
 //
 // Buffers (binding: layout):
 //   B_PROXIES       n x 8 floats (dmrt_tiles_common.glsl)
 //   B_LARGE         uint groups_x, groups_y, groups_z, n_large; uint large[n]  (proxy indices)
-//   B_TILE_ENTRIES  uint[capacity]: proxy indices, tile after tile
+//   B_TILE_ENTRIES  uvec2[capacity]: proxy index, box_bits in the tile; tile after tile
 //   B_TILE_COUNTS   uint[tiles]: discs per tile
 //   B_TILE_OFFSETS  uint[tiles + 1]: exclusive prefix sum of Counts (SCATTER 1 only)
 #include "dmrt_tiles_common.glsl"
@@ -37,17 +39,19 @@
 layout(std430, binding = B_LARGE) buffer Large { uint groups_x; uint groups_y; uint groups_z; uint n_large; uint large[]; };
 layout(std430, binding = B_TILE_COUNTS) buffer Counts { uint counts[]; };
 #if SCATTER
-layout(std430, binding = B_TILE_ENTRIES) writeonly buffer Entries { uint entries[]; };
+layout(std430, binding = B_TILE_ENTRIES) writeonly buffer Entries { uvec2 entries[]; };
 layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
 uniform uint u_capacity;  // entries the buffer holds
 #endif
 
 uniform uint u_count;  // number of proxies
 
-void bin_into(uint tile, uint k) {
+// Disc k, whose pixel box is `box`, in tile (tx, ty).
+void bin_into(int tx, int ty, uint k, ivec4 box) {
+    uint tile = uint(ty * u_tiles.x + tx);
 #if SCATTER
     uint pos = offsets[tile] + atomicAdd(counts[tile], ~0u) - 1u;  // decrement: adding 2^32 - 1
-    if (pos < u_capacity) entries[pos] = k;
+    if (pos < u_capacity) entries[pos] = uvec2(k, box_bits(box, ivec2(tx, ty) * TILE));
 #else
     atomicAdd(counts[tile], 1u);
 #endif
@@ -62,11 +66,12 @@ void main() {
         uint k = large[i];
         int label;
         Splat s = load_proxy(k, label);
-        ivec4 tb = splat_pixel_box(s) / TILE;  // the box is non-empty and non-negative here
+        ivec4 box = splat_pixel_box(s);
+        ivec4 tb = box / TILE;  // the box is non-empty and non-negative here
         int w = tb.z - tb.x + 1;
         int n = w * (tb.w - tb.y + 1);
         for (int j = int(gl_LocalInvocationID.x); j < n; j += int(gl_WorkGroupSize.x))
-            bin_into(uint((tb.y + j / w) * u_tiles.x + tb.x + j % w), k);
+            bin_into(tb.x + j % w, tb.y + j / w, k, box);
     }
 }
 
@@ -92,7 +97,7 @@ void main() {
         }
         for (int ty = tb.y; ty <= tb.w; ++ty)
             for (int tx = tb.x; tx <= tb.z; ++tx)
-                bin_into(uint(ty * u_tiles.x + tx), k);
+                bin_into(tx, ty, k, box);
     }
 }
 

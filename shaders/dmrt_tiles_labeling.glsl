@@ -28,7 +28,7 @@
 
 layout(local_size_x = TILE, local_size_y = TILE) in;
 
-layout(std430, binding = B_TILE_ENTRIES) readonly buffer Entries { uint entries[]; };
+layout(std430, binding = B_TILE_ENTRIES) readonly buffer Entries { uvec2 entries[]; };
 layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
 #if PACKED_LABELS
 layout(std430, binding = B_KEY) writeonly buffer Key { uvec2 key[]; };
@@ -96,11 +96,12 @@ void main() {
         bool by_masks = masked && base == start;  // the same for the whole workgroup
         if (base + lid < end) {
             int label;
-            Splat s = load_proxy(entries[base + lid], label);
+            uvec2 e = entries[base + lid];
+            Splat s = load_proxy(e.x, label);
             s_cl[lid] = vec4(s.pc, intBitsToFloat(label));
             if (!by_masks) {
                 s_nr[lid] = vec4(s.nc, s.r);
-                s_box[lid] = box_bits(splat_pixel_box(s), ivec2(gl_WorkGroupID.xy) * TILE);
+                s_box[lid] = e.y;
             }
         }
         barrier();

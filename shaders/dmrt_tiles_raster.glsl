@@ -34,7 +34,7 @@
 //   B_PROXIES       n x 8 floats (dmrt_tiles_common.glsl)
 //   B_LAYER_DEPTH   k x h x w uint: float bits of camera z, EMPTY_BITS = none (row 0 at the top)
 //   B_LAYER_LABEL   k x h x w int: label, EMPTY_LABEL = none
-//   B_TILE_ENTRIES  uint[capacity]: proxy indices, tile after tile (dmrt_tiles_bin.glsl)
+//   B_TILE_ENTRIES  uvec2[capacity]: proxy index, box_bits in the tile; tile after tile (dmrt_tiles_bin.glsl)
 //   B_TILE_OFFSETS  uint[tiles + 1] (dmrt_tiles_scan.glsl)
 //   B_TILE_MASKS    h x w x 2 uvec4: the first walk's hit bits of discs 0-255, written for pixels of
 //                   tiles of up to BATCH discs, the second uvec4 only for lists of more than 128
@@ -58,7 +58,7 @@ layout(local_size_x = TILE, local_size_y = TILE) in;
 
 layout(std430, binding = B_LAYER_DEPTH) writeonly buffer LayerDepth { uint layer_depth[]; };
 layout(std430, binding = B_LAYER_LABEL) writeonly buffer LayerLabel { int layer_label[]; };
-layout(std430, binding = B_TILE_ENTRIES) readonly buffer Entries { uint entries[]; };
+layout(std430, binding = B_TILE_ENTRIES) readonly buffer Entries { uvec2 entries[]; };
 layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
 #if HIT_MASKS
 layout(std430, binding = B_TILE_MASKS) writeonly buffer Masks { uvec4 masks[]; };  // 2 per pixel: g_lo, g_hi
@@ -92,10 +92,11 @@ bool g_first;  // the first walk (collect the nearest hits) or a later one (the 
 void load_batch(uint first, uint n) {
     for (uint i = gl_LocalInvocationIndex; i < n; i += uint(THREADS)) {
         int label;
-        Splat s = load_proxy(entries[first + i], label);
+        uvec2 e = entries[first + i];
+        Splat s = load_proxy(e.x, label);
         s_pr[i] = vec4(s.pc, s.r);
         s_nl[i] = vec4(s.nc, intBitsToFloat(label));
-        s_box[i] = box_bits(splat_pixel_box(s), ivec2(gl_WorkGroupID.xy) * TILE);
+        s_box[i] = e.y;
     }
 }
 
