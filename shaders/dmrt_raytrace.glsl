@@ -329,10 +329,8 @@ int advance(float h, bool ok) {
         g_fn = h;
         if ((h > 0.0) == (g_f > 0.0)) return search_next();
         // enclosed: refine [s, sn]
-        g_sa = g_s;
-        g_fa = g_f;
-        g_sb = g_sn;
-        g_fb = h;
+        g_sa = g_s; g_fa = g_f;
+        g_sb = g_sn; g_fb = h;
         g_side = 0;
         g_b = 0;
         g_hit = g_sa;
