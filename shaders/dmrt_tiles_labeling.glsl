@@ -76,8 +76,9 @@ void visit(uint word, uint base) {
 void main() {
     uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
     uint lid = gl_LocalInvocationIndex;
-    ivec2 px = ivec2(gl_WorkGroupID.xy) * TILE + tile_local_pixel();
-    uint bits = pixel_bits(tile_local_pixel());
+    ivec2 local = tile_local_pixel();
+    ivec2 px = ivec2(gl_WorkGroupID.xy) * TILE + local;
+    uint bits = pixel_bits(local);
     bool inside = px.x < u_size.x && px.y < u_size.y;
     uint pix = uint(px.y * u_size.x + px.x);
     vec2 uv = vec2(px) + 0.5;

@@ -262,11 +262,12 @@ void walk_batches(uint off, uint count, bool walking) {
 void main() {
     uint lid = gl_LocalInvocationIndex;
     uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
-    ivec2 p = ivec2(gl_WorkGroupID.xy) * TILE + tile_local_pixel();
+    ivec2 local = tile_local_pixel();
+    ivec2 p = ivec2(gl_WorkGroupID.xy) * TILE + local;
     bool inside = p.x < u_size.x && p.y < u_size.y;
     g_npix = uint(u_size.x * u_size.y);
     g_pix = inside ? uint(p.y * u_size.x + p.x) : 0u;
-    g_px = pixel_bits(tile_local_pixel());
+    g_px = pixel_bits(local);
     g_ray = splat_ray(vec2(p) + 0.5);  // the pixel centre, as in every splat path
     g_ray_len = length(g_ray);
     g_prev_d = 0u;
