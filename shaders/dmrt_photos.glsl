@@ -32,9 +32,9 @@ vec2 photo_uv(Photo ph, vec3 pc) {
 // wholly inside the map. One textureGather at the corner the four texels share (its texel
 // coordinate i0 + 1 - 0.5 lies half a texel from any rounding boundary), in place of four
 // texelFetch: the same values, a quarter of the texture instructions. Gather returns (01, 11, 10, 00).
-bool fetch_quad(int l, Photo ph, ivec2 i0, out vec4 d) {
+bool fetch_quad(int l, vec2 size, ivec2 i0, out vec4 d) {
     d = vec4(0.0);
-    if (any(lessThan(i0, ivec2(0))) || any(greaterThanEqual(i0 + 1, ivec2(ph.size.xy)))) return false;
+    if (any(lessThan(i0, ivec2(0))) || any(greaterThanEqual(i0 + 1, ivec2(size)))) return false;
     vec2 corner = vec2(i0 + 1) / vec2(textureSize(u_depthmaps, 0).xy);
     d = textureGather(u_depthmaps, vec3(corner, float(l))).wzxy;
     return true;
@@ -65,13 +65,14 @@ ivec2 snap_try(ivec2 s, int k) {
 // its texels are present and span at most max_span metres, else the first other one that does
 // (else the first other complete one). At a photo's own camera every pixel ray passes through a
 // texel centre, and float32 rounding would otherwise pick, along every depth edge of the map, the
-// quad on the empty or discontinuous side half of the time.
-bool depth_quad(int l, Photo ph, vec2 uv, float max_span, out ivec2 i0, out vec2 f, out vec4 d) {
-    vec2 x = clamp(uv, vec2(-4.0), ph.size.xy + 4.0) - 0.5;  // clamp: keep int conversion defined
+// quad on the empty or discontinuous side half of the time. `size`: the map's width and height
+// (Photo.size.xy).
+bool depth_quad(int l, vec2 size, vec2 uv, float max_span, out ivec2 i0, out vec2 f, out vec4 d) {
+    vec2 x = clamp(uv, vec2(-4.0), size + 4.0) - 0.5;  // clamp: keep int conversion defined
     vec2 fl = floor(x);
     i0 = ivec2(fl);
     f = x - fl;
-    bool inside = fetch_quad(l, ph, i0, d);
+    bool inside = fetch_quad(l, size, i0, d);
     float span = inside ? quad_span(d) : 1e30;
     if (span <= max_span) return true;
     ivec2 s = ivec2(f.x < SNAP ? -1 : (f.x > 1.0 - SNAP ? 1 : 0), f.y < SNAP ? -1 : (f.y > 1.0 - SNAP ? 1 : 0));
@@ -81,7 +82,7 @@ bool depth_quad(int l, Photo ph, vec2 uv, float max_span, out ivec2 i0, out vec2
     for (int k = 0; k < 3; ++k) {
         vec4 d2;
         ivec2 o = snap_try(s, k);
-        if (o == ivec2(0) || !fetch_quad(l, ph, i0 + o, d2)) continue;
+        if (o == ivec2(0) || !fetch_quad(l, size, i0 + o, d2)) continue;
         float span2 = quad_span(d2);
         if (span2 < span && (span2 <= max_span || span >= 1e30)) {
             best = k;
@@ -129,6 +130,6 @@ float surface_depth(int l, Photo ph, vec2 uv, out bool ok) {
     vec2 f;
     vec4 d;
     ok = false;
-    if (!depth_quad(l, ph, uv, 1e29, i0, f, d)) return 0.0;
+    if (!depth_quad(l, ph.size.xy, uv, 1e29, i0, f, d)) return 0.0;
     return triangle_depth(f, d, ok);
 }

@@ -32,7 +32,9 @@
 // unit normals of the triangles that pass the test (the paper: of both triangles).
 //
 // Hole filling walks a list of the holes the pixel pass leaves (HoleList), a workgroup per hole and
-// a thread per neighbour (see FILL below).
+// a thread per neighbour (see FILL below). The few searches still running after a number of turns
+// are handed to a second pass (DEFERRED, see raytrace_pixel), so that they hold no warp of mostly
+// finished pixels.
 //
 // RAYTRACE 0 (ablation, the paper's Fig. 8a "coarse splats"): no search; the first layer's splat is
 // the surface (its depth and label; the normal faces the camera).
@@ -48,12 +50,18 @@
 #ifndef FILL
 #define FILL 0
 #endif
+#ifndef DEFERRED
+#define DEFERRED 0  // the pass over the pixels the pixel pass handed over (see raytrace_pixel)
+#endif
 
 // The pixel pass: 8 x 8 pixels a workgroup; the fill pass: one hole a workgroup, its LIST_THREADS
-// neighbours searched side by side
+// neighbours searched side by side; the deferred pass: 64 lanes a workgroup, a pixel at a time each
 #if FILL
 #define LIST_THREADS 8
 layout(local_size_x = LIST_THREADS) in;
+#elif DEFERRED
+#define LIST_THREADS 1
+layout(local_size_x = 64) in;
 #else
 #define LIST_THREADS 1
 layout(local_size_x = 8, local_size_y = 8) in;
@@ -148,12 +156,14 @@ const float CONVERGED = 1e-5;  // |h| / camera z below which the search has land
 // The search of one layer as a state machine that stops at every depth-map lookup: the pixel pass
 // runs its lanes' searches side by side one lookup at a time (see raytrace_pixel), the fill pass
 // one search to its end (trace). The state is per invocation, in globals:
-vec3 g_C, g_dir;        // the ray C + s * dir (s = camera z of the render camera)
-float g_dlen;           // length(g_dir)
+float g_dlen;           // length of the ray's direction (camera_ray: camera z grows by 1 a unit)
 int g_l;                // the label whose depth map is searched
-// read once a layer: every lookup projects into D_l (96 bytes a step otherwise, which the compiler
-// does not hoist out of the loop)
-Photo g_ph;
+// The ray in photo l's camera, pc(s) = g_o + s * g_v, its intrinsics and its depth map's size,
+// set once a search (set_ray): a lookup then costs three FMAs for the point, and the state holds
+// 12 words of the photo instead of the 18 its rows, intrinsics and size take.
+vec3 g_o, g_v;
+vec4 g_fc;              // fx, fy, cx, cy (texels)
+vec2 g_size;            // the depth map's width, height (texels)
 int g_layer;            // the layer searched (-1: a fill search), for the statistics
 int g_iters;            // search steps so far (the paper's c_total)
 // the pending lookup: what it is for (PH_*) and where (s along the ray)
@@ -200,17 +210,19 @@ bool quad_valid(ivec2 i0, vec2 f, vec4 d) {
     if (!(f.x + f.y <= 1.0 ? ok0 : ok1)) return false;
 #endif
     if (NORMALS == 0 || u_normals == 0) return true;  // a frame not read back keeps no normal (write_normal)
-    vec3 p00 = unproject_texel(g_ph, i0, d.x);
-    vec3 p10 = unproject_texel(g_ph, i0 + ivec2(1, 0), d.y);
-    vec3 p01 = unproject_texel(g_ph, i0 + ivec2(0, 1), d.z);
-    vec3 p11 = unproject_texel(g_ph, i0 + ivec2(1, 1), d.w);
+    Photo ph = photos[g_l];
+    vec3 p00 = unproject_texel(ph, i0, d.x);
+    vec3 p10 = unproject_texel(ph, i0 + ivec2(1, 0), d.y);
+    vec3 p01 = unproject_texel(ph, i0 + ivec2(0, 1), d.z);
+    vec3 p11 = unproject_texel(ph, i0 + ivec2(1, 1), d.w);
     vec3 n1 = cross(p10 - p00, p01 - p00);
     vec3 n2 = cross(p11 - p10, p01 - p10);
     vec3 nc = (ok0 ? n1 / max(length(n1), 1e-30) : vec3(0.0)) + (ok1 ? n2 / max(length(n2), 1e-30) : vec3(0.0));
-    vec3 n = photo_dir_to_world(g_ph, nc);
+    vec3 n = photo_dir_to_world(ph, nc);
+    vec3 dir = photo_dir_to_world(ph, g_v);  // the ray's direction in the world
     float len = length(n);
-    n = len > 0.0 ? n / len : -g_dir / g_dlen;
-    g_n = dot(n, g_dir) > 0.0 ? -n : n;
+    n = len > 0.0 ? n / len : -dir / length(dir);
+    g_n = dot(n, dir) > 0.0 ? -n : n;
     return true;
 }
 
@@ -220,13 +232,14 @@ bool quad_valid(ivec2 i0, vec2 f, vec4 d) {
 // whatever phase each is in.
 float lookup(out bool ok) {
     ok = false;
-    vec3 pc = to_photo(g_ph, g_C + g_q * g_dir);
+    vec3 pc = g_o + g_q * g_v;
     if (pc.z <= 1e-6) return 0.0;
     bool test = g_phase >= PH_TEST_POINT;
     ivec2 i0;
     vec2 f;
     vec4 d;
-    if (!depth_quad(g_l, g_ph, photo_uv(g_ph, pc), test ? u_threshold : 1e29, i0, f, d)) return 0.0;
+    vec2 uv = g_fc.xy * pc.xy / pc.z + g_fc.zw;  // photo_uv
+    if (!depth_quad(g_l, g_size, uv, test ? u_threshold : 1e29, i0, f, d)) return 0.0;
     if (test) {
         ok = quad_valid(i0, f, d);
         return 0.0;
@@ -293,10 +306,26 @@ int interval_failed() {
 #endif
 }
 
-// Starts the search of D_{g_l} from s0 (g_ph read already).
-void search_start(float s0) {
+// Starts the search of D_l along the render camera's ray C + s * dir (world) from s = s0.
+void search_start(int l, vec3 C, vec3 dir, float s0) {
+    Photo ph = photos[l];
+    g_l = l;
+    g_o = to_photo(ph, C);
+    g_v = vec3(dot(ph.r0.xyz, dir), dot(ph.r1.xyz, dir), dot(ph.r2.xyz, dir));
+    g_fc = ph.k;
+    g_size = ph.size.xy;
+    g_dlen = length(dir);
     g_s = s0;
     lookup_at(PH_START, s0);
+}
+
+// The render camera's centre (world) and the ray direction of pixel p: the search's ray C + s * dir.
+vec3 camera_centre() {
+    return -(transpose(u_R) * u_t);
+}
+
+vec3 pixel_dir(ivec2 p) {
+    return transpose(u_R) * camera_ray(vec2(p) + 0.5);
 }
 
 // Takes the pending lookup's result (lookup()): PENDING with the next lookup set, or the search's end
@@ -380,13 +409,11 @@ int advance(float h, bool ok) {
     return search_top();
 }
 
-// One search of D_l along the ray from s0 to its end (g_C, g_dir, g_dlen set): true with g_hit on
-// a valid intersection.
-bool trace(int l, float s0) {
-    g_l = l;
-    g_ph = photos[l];
+// One search of D_l along the ray C + s * dir from s0 to its end: true with g_hit on a valid
+// intersection.
+bool trace(int l, vec3 C, vec3 dir, float s0) {
     g_n = vec3(0.0);
-    search_start(s0);
+    search_start(l, C, dir, s0);
     int r = PENDING;
     while (r == PENDING) {
         bool ok;
@@ -437,14 +464,11 @@ uniform int u_pass;
 
 void main() {
     uint lid = gl_LocalInvocationIndex;
-    mat3 Rt = transpose(u_R);
-    g_C = -(Rt * u_t);
+    vec3 C = camera_centre();
     g_layer = -1;
     for (uint e = gl_WorkGroupID.x; e < hole_cmd.n; e += gl_NumWorkGroups.x) {
         uint pix = hole_items[e];
         ivec2 p = ivec2(int(pix % uint(u_size.x)), int(pix / uint(u_size.x)));
-        g_dir = Rt * camera_ray(vec2(p) + 0.5);
-        g_dlen = length(g_dir);
         if (lid == 0u) s_best = NONE;
         memoryBarrierShared();
         barrier();
@@ -457,7 +481,7 @@ void main() {
             nb = hits[uint(q.y * u_size.x + q.x)];
             if (hit_layer(nb) >= 0 && hit_layer(nb) < u_layers + u_pass && nb.depth > 0.0) {
                 // only the neighbour's own surface: within the discontinuity threshold of its depth
-                found = trace(nb.label, nb.depth) && abs(g_hit - nb.depth) <= u_threshold;
+                found = trace(nb.label, C, pixel_dir(p), nb.depth) && abs(g_hit - nb.depth) <= u_threshold;
             }
         }
         s_iters[lid] = g_iters;
@@ -482,17 +506,111 @@ void main() {
 // by side whatever search or phase each is in. Written as nested loops (layers, steps, refinement)
 // with a lookup in each place, the search was ~20 % slower on an H200 (reports/frame-h200, session
 // 15). Lanes that take further pixels of a block once theirs is done were slower still.
+//
+// A warp lasts as long as its longest search, and a few pixels' searches run to the step cap (the
+// ray passing close to a surface it never meets) while the rest end within a few turns. So
+// (DEFER_TURNS > 0) a pixel still searching after u_defer_turns turns is handed over: its pixel,
+// the layer it searches and the steps before that layer go to the Deferred list, and the
+// DEFERRED program searches that layer again from its start and goes on to the end, every lane
+// taking the next listed pixel as soon as its own is done. The searches are deterministic, so every
+// pixel ends as it would have in one pass; a pixel that finds the list full searches on.
 uint g_npix, g_pix;
+int g_found;   // the layer that gave the hit, -1: none
+int g_iters0;  // g_iters when the layer's search began
+
+// Deferred pixels (DEFERRED reads, the pixel pass appends): the continuation's dispatch-indirect
+// header (x = its workgroups), the items appended (may pass u_defer_capacity: those searched on
+// where they were), the next item to take; then (pixel index, layer | steps before it << 8).
+layout(std430, binding = B_DEFERRED) buffer Deferred {
+    ListHeader defer_cmd;
+    uint defer_next, defer_pad0, defer_pad1, defer_pad2;
+    uvec2 deferred[];
+};
+uniform int u_defer_turns;      // turns after which a pixel is handed over; 0: never
+uniform uint u_defer_capacity;  // items the list holds
 
 // Starts the search of layer g_layer; false when the pixel has no such layer (peeling: every later
 // layer is empty too).
 bool begin_layer() {
+    g_iters0 = g_iters;
     if (g_layer >= u_layers) return false;
     uint bits = layer_depth[uint(g_layer) * g_npix + g_pix];
     if (bits == EMPTY_BITS) return false;
-    g_l = layer_label[uint(g_layer) * g_npix + g_pix];
-    g_ph = photos[g_l];
-    search_start(uintBitsToFloat(bits));
+    int l = layer_label[uint(g_layer) * g_npix + g_pix];
+    ivec2 p = ivec2(int(g_pix % uint(u_size.x)), int(g_pix / uint(u_size.x)));
+    search_start(l, camera_centre(), pixel_dir(p), uintBitsToFloat(bits));
+    return true;
+}
+
+// Starts pixel pix's searches at layer `layer` with `iters` steps before it; false: nothing to search.
+bool begin_pixel(uint pix, int layer, int iters) {
+    g_pix = pix;
+    g_layer = layer;
+    g_iters = iters;
+    g_n = vec3(0.0);
+    g_found = -1;
+    return begin_layer();
+}
+
+// One turn of the pixel's searches: a lookup and its step; false once the pixel is done.
+bool turn() {
+    bool ok;
+    float h = lookup(ok);
+    int r = advance(h, ok);
+    if (r == HIT) g_found = g_layer;
+    if (r != MISS) return r == PENDING;
+    ++g_layer;
+    return begin_layer();
+}
+
+// The pixel's result: its Hit, its normal, and the hole list when no layer gave a surface.
+void end_pixel() {
+    Hit hit = g_found >= 0 ? Hit(g_hit, g_l, -1, layer_iters(g_found, g_iters)) : Hit(0.0, -1, -1, layer_iters(-1, g_iters));
+    hits[g_pix] = hit;
+    write_normal(g_pix, g_found >= 0 ? g_n : vec3(0.0));
+    if (u_fill != 0 && hit.depth <= 0.0 && layer_depth[g_pix] != EMPTY_BITS) push_hole(g_pix);
+}
+
+#if DEFERRED
+// The deferred pixels, each lane taking the next one as soon as its own is done (one atomicAdd call
+// site: on an H200, a counter taken at two places of one loop left pixels unwritten, session 15).
+
+void main() {
+    g_npix = uint(u_size.x * u_size.y);
+    uint n = min(defer_cmd.n, u_defer_capacity);
+    // A lane takes at most MAX_ITEMS pixels (the dispatch has a lane for every two): llvmpipe runs a
+    // workgroup's SIMD rows one after another, so its first rows would take every item, and it
+    // stops a loop after 65535 turns, which left their last pixels unwritten.
+    const uint MAX_ITEMS = 4u;
+    bool busy = false, more = true;
+    for (uint taken = 0u; more;) {
+        if (busy) {
+            busy = turn();
+            if (!busy) end_pixel();
+        } else if (taken == MAX_ITEMS) {
+            more = false;
+        } else {
+            ++taken;
+            uint e = atomicAdd(defer_next, 1u);
+            more = e < n;
+            if (more) {
+                uvec2 item = deferred[e];
+                busy = begin_pixel(item.x, int(item.y & 255u), int(item.y >> 8));
+                if (!busy) end_pixel();  // not reached: a listed pixel was searching that layer
+            }
+        }
+    }
+}
+#else
+// Hands the pixel's search over to the DEFERRED pass (false: the list is full).
+bool defer() {
+    uint i = atomicAdd(defer_cmd.n, 1u);
+    if (i >= u_defer_capacity) return false;
+    deferred[i] = uvec2(g_pix, uint(g_layer) | (uint(g_iters0) << 8));
+    // a lane for every two items: enough lanes to hide the lookups' latency, few enough that a lane
+    // done early takes another (the list's capacity, an eighth of the frame's pixels, keeps the
+    // groups below u_max_groups up to ~67 M pixels a frame)
+    atomicMax(defer_cmd.x, min(i / 128u + 1u, u_max_groups));
     return true;
 }
 
@@ -500,41 +618,22 @@ void raytrace_pixel() {
     ivec2 p = ivec2(gl_GlobalInvocationID.xy);
     if (p.x >= u_size.x || p.y >= u_size.y) return;
     g_npix = uint(u_size.x * u_size.y);
-    g_pix = uint(p.y * u_size.x + p.x);
-    mat3 Rt = transpose(u_R);  // camera -> world
-    g_C = -(Rt * u_t);
-    g_dir = Rt * camera_ray(vec2(p) + 0.5);
-    g_dlen = length(g_dir);
-    g_iters = 0;
-    g_n = vec3(0.0);
-    int found = -1;  // the layer that gave the hit
 #if RAYTRACE
-    g_layer = 0;
-    bool busy = begin_layer();
-    while (busy) {
-        bool ok;
-        float h = lookup(ok);
-        int r = advance(h, ok);
-        if (r == HIT) found = g_layer;
-        if (r == MISS) {
-            ++g_layer;
-            busy = begin_layer();
-        }
-        busy = busy && r != HIT;
+    bool busy = begin_pixel(uint(p.y * u_size.x + p.x), 0, 0);
+    for (int t = 1; busy; ++t) {
+        busy = turn();
+        if (busy && t == u_defer_turns && defer()) return;
     }
-    Hit hit = found >= 0 ? Hit(g_hit, g_l, -1, layer_iters(found, g_iters)) : Hit(0.0, -1, -1, layer_iters(-1, g_iters));
+    end_pixel();
 #else
     // the ablation: the first layer's splat is the surface
+    g_pix = uint(p.y * u_size.x + p.x);
     uint bits0 = layer_depth[g_pix];
-    if (bits0 != EMPTY_BITS) {
-        found = 0;
-        g_n = -g_dir / g_dlen;
-    }
-    Hit hit = found >= 0 ? Hit(uintBitsToFloat(bits0), layer_label[g_pix], -1, layer_iters(0, 0)) : Hit(0.0, -1, -1, layer_iters(-1, 0));
+    bool found = bits0 != EMPTY_BITS;
+    vec3 dir = pixel_dir(p);
+    hits[g_pix] = found ? Hit(uintBitsToFloat(bits0), layer_label[g_pix], -1, layer_iters(0, 0)) : Hit(0.0, -1, -1, layer_iters(-1, 0));
+    write_normal(g_pix, found ? -dir / length(dir) : vec3(0.0));
 #endif
-    hits[g_pix] = hit;
-    write_normal(g_pix, found >= 0 ? g_n : vec3(0.0));
-    if (RAYTRACE != 0 && u_fill != 0 && hit.depth <= 0.0 && layer_depth[g_pix] != EMPTY_BITS) push_hole(g_pix);
 }
 
 void main() {
@@ -546,6 +645,7 @@ void main() {
     flush_steps();
 #endif
 }
+#endif
 #endif
 
 #endif
