@@ -32,9 +32,7 @@
 // unit normals of the triangles that pass the test (the paper: of both triangles).
 //
 // Hole filling walks a list of the holes the pixel pass leaves (HoleList), a workgroup per hole and
-// a thread per neighbour (see FILL below). The few searches still running after a number of turns
-// are handed to a second pass (DEFERRED, see raytrace_pixel), so that they hold no warp of mostly
-// finished pixels.
+// a thread per neighbour (see FILL below).
 //
 // RAYTRACE 0 (ablation, the paper's Fig. 8a "coarse splats"): no search; the first layer's splat is
 // the surface (its depth and label; the normal faces the camera).
@@ -50,18 +48,12 @@
 #ifndef FILL
 #define FILL 0
 #endif
-#ifndef DEFERRED
-#define DEFERRED 0  // the pass over the pixels the pixel pass handed over (see raytrace_pixel)
-#endif
 
 // The pixel pass: 8 x 8 pixels a workgroup; the fill pass: one hole a workgroup, its LIST_THREADS
-// neighbours searched side by side; the deferred pass: 64 lanes a workgroup, a pixel at a time each
+// neighbours searched side by side
 #if FILL
 #define LIST_THREADS 8
 layout(local_size_x = LIST_THREADS) in;
-#elif DEFERRED
-#define LIST_THREADS 1
-layout(local_size_x = 64) in;
 #else
 #define LIST_THREADS 1
 layout(local_size_x = 8, local_size_y = 8) in;
@@ -505,112 +497,19 @@ void main() {
 // whose every turn does one lookup (advance() takes its result), so the lanes of a warp fetch side
 // by side whatever search or phase each is in. Written as nested loops (layers, steps, refinement)
 // with a lookup in each place, the search was ~20 % slower on an H200 (reports/frame-h200, session
-// 15). Lanes that take further pixels of a block once theirs is done were slower still.
-//
-// A warp lasts as long as its longest search, and a few pixels' searches run to the step cap (the
-// ray passing close to a surface it never meets) while the rest end within a few turns. So
-// (DEFER_TURNS > 0) a pixel still searching after u_defer_turns turns is handed over: its pixel,
-// the layer it searches and the steps before that layer go to the Deferred list, and the
-// DEFERRED program searches that layer again from its start and goes on to the end, every lane
-// taking the next listed pixel as soon as its own is done. The searches are deterministic, so every
-// pixel ends as it would have in one pass; a pixel that finds the list full searches on.
+// 15). Lanes that take further pixels of a block once theirs is done were slower still; handing the
+// searches still running after 8-32 turns to a second pass gained nothing at 3840x2160 and lost
+// 0.1 ms at 1280x720, where that pass's chains of lookups came after the first pass (session 16).
 uint g_npix, g_pix;
-int g_found;   // the layer that gave the hit, -1: none
-int g_iters0;  // g_iters when the layer's search began
-
-// Deferred pixels (DEFERRED reads, the pixel pass appends): the continuation's dispatch-indirect
-// header (x = its workgroups), the items appended (may pass u_defer_capacity: those searched on
-// where they were), the next item to take; then (pixel index, layer | steps before it << 8).
-layout(std430, binding = B_DEFERRED) buffer Deferred {
-    ListHeader defer_cmd;
-    uint defer_next, defer_pad0, defer_pad1, defer_pad2;
-    uvec2 deferred[];
-};
-uniform int u_defer_turns;      // turns after which a pixel is handed over; 0: never
-uniform uint u_defer_capacity;  // items the list holds
 
 // Starts the search of layer g_layer; false when the pixel has no such layer (peeling: every later
 // layer is empty too).
 bool begin_layer() {
-    g_iters0 = g_iters;
     if (g_layer >= u_layers) return false;
     uint bits = layer_depth[uint(g_layer) * g_npix + g_pix];
     if (bits == EMPTY_BITS) return false;
     int l = layer_label[uint(g_layer) * g_npix + g_pix];
-    ivec2 p = ivec2(int(g_pix % uint(u_size.x)), int(g_pix / uint(u_size.x)));
-    search_start(l, camera_centre(), pixel_dir(p), uintBitsToFloat(bits));
-    return true;
-}
-
-// Starts pixel pix's searches at layer `layer` with `iters` steps before it; false: nothing to search.
-bool begin_pixel(uint pix, int layer, int iters) {
-    g_pix = pix;
-    g_layer = layer;
-    g_iters = iters;
-    g_n = vec3(0.0);
-    g_found = -1;
-    return begin_layer();
-}
-
-// One turn of the pixel's searches: a lookup and its step; false once the pixel is done.
-bool turn() {
-    bool ok;
-    float h = lookup(ok);
-    int r = advance(h, ok);
-    if (r == HIT) g_found = g_layer;
-    if (r != MISS) return r == PENDING;
-    ++g_layer;
-    return begin_layer();
-}
-
-// The pixel's result: its Hit, its normal, and the hole list when no layer gave a surface.
-void end_pixel() {
-    Hit hit = g_found >= 0 ? Hit(g_hit, g_l, -1, layer_iters(g_found, g_iters)) : Hit(0.0, -1, -1, layer_iters(-1, g_iters));
-    hits[g_pix] = hit;
-    write_normal(g_pix, g_found >= 0 ? g_n : vec3(0.0));
-    if (u_fill != 0 && hit.depth <= 0.0 && layer_depth[g_pix] != EMPTY_BITS) push_hole(g_pix);
-}
-
-#if DEFERRED
-// The deferred pixels, each lane taking the next one as soon as its own is done (one atomicAdd call
-// site: on an H200, a counter taken at two places of one loop left pixels unwritten, session 15).
-
-void main() {
-    g_npix = uint(u_size.x * u_size.y);
-    uint n = min(defer_cmd.n, u_defer_capacity);
-    // A lane takes at most MAX_ITEMS pixels (the dispatch has a lane for every two): llvmpipe runs a
-    // workgroup's SIMD rows one after another, so its first rows would take every item, and it
-    // stops a loop after 65535 turns, which left their last pixels unwritten.
-    const uint MAX_ITEMS = 4u;
-    bool busy = false, more = true;
-    for (uint taken = 0u; more;) {
-        if (busy) {
-            busy = turn();
-            if (!busy) end_pixel();
-        } else if (taken == MAX_ITEMS) {
-            more = false;
-        } else {
-            ++taken;
-            uint e = atomicAdd(defer_next, 1u);
-            more = e < n;
-            if (more) {
-                uvec2 item = deferred[e];
-                busy = begin_pixel(item.x, int(item.y & 255u), int(item.y >> 8));
-                if (!busy) end_pixel();  // not reached: a listed pixel was searching that layer
-            }
-        }
-    }
-}
-#else
-// Hands the pixel's search over to the DEFERRED pass (false: the list is full).
-bool defer() {
-    uint i = atomicAdd(defer_cmd.n, 1u);
-    if (i >= u_defer_capacity) return false;
-    deferred[i] = uvec2(g_pix, uint(g_layer) | (uint(g_iters0) << 8));
-    // a lane for every two items: enough lanes to hide the lookups' latency, few enough that a lane
-    // done early takes another (the list's capacity, an eighth of the frame's pixels, keeps the
-    // groups below u_max_groups up to ~67 M pixels a frame)
-    atomicMax(defer_cmd.x, min(i / 128u + 1u, u_max_groups));
+    search_start(l, camera_centre(), pixel_dir(ivec2(gl_GlobalInvocationID.xy)), uintBitsToFloat(bits));
     return true;
 }
 
@@ -618,22 +517,38 @@ void raytrace_pixel() {
     ivec2 p = ivec2(gl_GlobalInvocationID.xy);
     if (p.x >= u_size.x || p.y >= u_size.y) return;
     g_npix = uint(u_size.x * u_size.y);
+    g_pix = uint(p.y * u_size.x + p.x);
+    g_iters = 0;
+    g_n = vec3(0.0);
+    int found = -1;  // the layer that gave the hit
 #if RAYTRACE
-    bool busy = begin_pixel(uint(p.y * u_size.x + p.x), 0, 0);
-    for (int t = 1; busy; ++t) {
-        busy = turn();
-        if (busy && t == u_defer_turns && defer()) return;
+    g_layer = 0;
+    bool busy = begin_layer();
+    while (busy) {
+        bool ok;
+        float h = lookup(ok);
+        int r = advance(h, ok);
+        if (r == HIT) found = g_layer;
+        if (r == MISS) {
+            ++g_layer;
+            busy = begin_layer();
+        }
+        busy = busy && r != HIT;
     }
-    end_pixel();
+    Hit hit = found >= 0 ? Hit(g_hit, g_l, -1, layer_iters(found, g_iters)) : Hit(0.0, -1, -1, layer_iters(-1, g_iters));
 #else
     // the ablation: the first layer's splat is the surface
-    g_pix = uint(p.y * u_size.x + p.x);
     uint bits0 = layer_depth[g_pix];
-    bool found = bits0 != EMPTY_BITS;
-    vec3 dir = pixel_dir(p);
-    hits[g_pix] = found ? Hit(uintBitsToFloat(bits0), layer_label[g_pix], -1, layer_iters(0, 0)) : Hit(0.0, -1, -1, layer_iters(-1, 0));
-    write_normal(g_pix, found ? -dir / length(dir) : vec3(0.0));
+    if (bits0 != EMPTY_BITS) {
+        found = 0;
+        vec3 dir = pixel_dir(p);
+        g_n = -dir / length(dir);
+    }
+    Hit hit = found >= 0 ? Hit(uintBitsToFloat(bits0), layer_label[g_pix], -1, layer_iters(0, 0)) : Hit(0.0, -1, -1, layer_iters(-1, 0));
 #endif
+    hits[g_pix] = hit;
+    write_normal(g_pix, found >= 0 ? g_n : vec3(0.0));
+    if (RAYTRACE != 0 && u_fill != 0 && hit.depth <= 0.0 && layer_depth[g_pix] != EMPTY_BITS) push_hole(g_pix);
 }
 
 void main() {
@@ -645,7 +560,6 @@ void main() {
     flush_steps();
 #endif
 }
-#endif
 #endif
 
 #endif

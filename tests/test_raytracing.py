@@ -121,30 +121,6 @@ def test_hole_filling_from_neighbours(ctx, bundle):
         short.release()
 
 
-def test_deferred_searches_end_as_in_one_pass(ctx, bundle):
-    """``defer_turns``: the searches still running after that many turns are handed to a second
-    pass that searches their layer again from its start. The searches are deterministic, so every
-    output of the frame equals the one-pass frame's, bit for bit: with the default, with one turn
-    (most pixels handed over, more than the list holds: the rest search on in the first pass) and
-    with the fill passes reading the deferred pixels' hits."""
-    from dmrt.runtime.renderer import RenderConfig, Renderer
-
-    sync = {"async_photos": False, "max_uploads_per_frame": 0, "layers": 3}
-    one_pass = Renderer(bundle, RenderConfig(defer_turns=0, **sync), ctx)
-    cam = novel_camera(bundle.cameras[6], bundle.cameras[7]).resized(480)
-    want = one_pass.render(cam)
-    one_pass.release()
-    assert want["iterations"].max() > 16  # some searches do run past the default's turns
-    for turns in (16, 1):
-        deferring = Renderer(bundle, RenderConfig(defer_turns=turns, **sync), ctx)
-        try:
-            got = deferring.render(cam)
-            for key in ("depth", "label_raw", "layer_used", "iterations", "color"):
-                np.testing.assert_array_equal(got[key], want[key], err_msg=f"defer_turns={turns}: {key}")
-        finally:
-            deferring.release()
-
-
 def test_secant_search_loses_fewer_pixels_than_the_papers(ctx, bundle):
     """The secant search (default) finds the surface wherever the paper's adaptive search does,
     give or take rounding, and more pixels overall."""

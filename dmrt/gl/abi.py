@@ -55,9 +55,6 @@ B_PHOTO_GAINS = 28  # n_photos vec4: each photo's RGB colour gain (bundle.json p
 # y, z, items), then a pixel index per hole
 B_HOLES = 29        # the holes a fill pass walks
 B_HOLES_NEXT = 30   # the holes a pass leaves to the next fill pass
-# the search's pixels handed to its deferred pass (shaders/dmrt_raytrace.glsl): the header (groups x, y, z,
-# items appended, next item to take, 3 spare words), then (pixel index, layer | steps before it << 8)
-B_DEFERRED = 31
 # the leveling's gains solve on the GPU (shaders/dmrt_leveling_solve.glsl), its scratch buffers
 B_LEVEL_EDGES = 32  # n_photos x n_photos uvec2: row a lists photo a's seam neighbours (index, weight bits)
 B_LEVEL_P = 33      # n_photos vec4: the conjugate-gradient search direction, where shared memory is too small

@@ -59,17 +59,6 @@ from dmrt.runtime.shading import FrameShading, camera_uniforms, hit_depth_at
 from dmrt.runtime.tiles import DEFAULT_BATCH, DEFAULT_TOP
 from dmrt.runtime.visibility import ProxySplats, VisibilityStage
 
-DEFAULT_DEFER_TURNS = 16
-# the deferred pixels' list: its header (dispatch-indirect groups x, y, z, items, next item, 3 spare
-# words), then room for an eighth of the frame's pixels (a few % are deferred; a pixel that finds
-# the list full searches on in the pixel pass)
-_EMPTY_DEFERRED = EMPTY_DISPATCH + bytes(16)
-
-
-def _deferred_capacity(npix: int) -> int:
-    return npix // 8 + 64
-
-
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 STAGES = ("visibility", "raytracing", "labeling", "image_management", "texturing", "leveling")
 
@@ -106,12 +95,6 @@ class RenderConfig:
     # fill 8 pixels fewer of 11854 (holes 0.23119 -> 0.23128 %), depth error mean 104.000 -> 103.999
     # mm; 16 steps: 18 fewer. H100, every search capped at 32 (run 1): the two passes 0.235 -> 0.154
     # ms at 1280x720, 0.323 -> 0.236 ms at 3840x2160.
-    # A warp lasts as long as its slowest lane's search (shaders/dmrt_raytrace.glsl, raytrace_pixel):
-    # the few searches still running after this many turns (lookups) go to a second pass in which
-    # every lane takes the next one as soon as it is done. The same results either way.
-    defer_turns: int = option(DEFAULT_DEFER_TURNS, "turns (depth-map lookups) of a pixel's search after which it is "
-                                                   "handed to a second pass that runs the long searches side by "
-                                                   "side; 0 = never; the same results either way", minimum=0)
     fill_max_steps: int = option(32, "addition to the paper: iterative-search steps of a hole-filling pass's "
                                      "searches (their own cap: a pass takes as long as its longest search)", minimum=1)
     # tiles is the fastest path, with every layer equal to compute peeling's (paper preset, 5 layers,
@@ -259,8 +242,8 @@ class Renderer:
         # normals, and leaving their code out of the others' programs (NORMALS 0, not just u_normals 0)
         # made the search 15 % faster at 3840x2160 on the H100 (6 % at 1280x720; reports/frame-h200)
         self._search_programs = {
-            readback: tuple(load_program(self.ctx, "dmrt_raytrace", {**defines, **variant, "NORMALS": int(readback)})
-                            for variant in ({}, {"FILL": 1}, {"DEFERRED": 1}))
+            readback: tuple(load_program(self.ctx, "dmrt_raytrace", {**defines, "FILL": fill, "NORMALS": int(readback)})
+                            for fill in (0, 1))
             for readback in (False, True)}
         self._max_groups = max_groups(self.ctx)
         self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
@@ -354,9 +337,7 @@ class Renderer:
                   "u_threshold": float(cfg.discontinuity_threshold), "u_depthmaps": 0,
                   "u_max_groups": self._max_groups, "u_normals": int(readback), **cam_uniforms}
         holes = (b["holes_a"], b["holes_b"])
-        raytrace, fill, deferred = self._search_programs[readback]
-        # the step statistics would count a deferred layer's steps twice
-        defer_turns = 0 if self.step_stats is not None else cfg.defer_turns
+        raytrace, fill = self._search_programs[readback]
         with timer.section("raytracing:search"):
             if self.step_stats is not None:
                 fill_u32(ctx, self.step_stats, 0, 4 * cfg.layers * STEP_BINS)
@@ -370,16 +351,9 @@ class Renderer:
             b["normals"].bind_to_storage_buffer(abi.B_NORMALS)
             self.photos.bind_to_storage_buffer(abi.B_PHOTOS)
             self.depthmaps.use(0)
-            b["deferred"].write(_EMPTY_DEFERRED)
-            b["deferred"].bind_to_storage_buffer(abi.B_DEFERRED)
-            defer = {"u_defer_turns": defer_turns, "u_defer_capacity": self._defer_capacity}
-            set_uniforms(raytrace, u_fill=int(fill_passes > 0), **search, **defer)
+            set_uniforms(raytrace, u_fill=int(fill_passes > 0), **search)
             raytrace.run(*grid)
             ctx.memory_barrier(_BARRIER)
-            if defer_turns:
-                set_uniforms(deferred, u_fill=int(fill_passes > 0), **search, **defer)
-                deferred.run_indirect(b["deferred"])
-                ctx.memory_barrier(_BARRIER)
         with timer.section("raytracing:hole_fill"):
             for fill_pass in range(fill_passes):
                 current, following = holes[fill_pass % 2], holes[(fill_pass + 1) % 2]
@@ -501,9 +475,7 @@ class Renderer:
             # the fill passes' lists of holes: a 16-byte header, then at most one pixel index per pixel
             "holes_a": self.ctx.buffer(reserve=16 + 4 * npix),
             "holes_b": self.ctx.buffer(reserve=16 + 4 * npix),
-            "deferred": self.ctx.buffer(reserve=len(_EMPTY_DEFERRED) + 8 * _deferred_capacity(npix)),
         }
-        self._defer_capacity = _deferred_capacity(npix)
         self._size = (w, h)
         self.gpu_bytes["layers"] = 8 * k * npix
         if self.config.method == "kbuffer":
