@@ -151,25 +151,36 @@ const float CONVERGED = 1e-5;  // |h| / camera z below which the search has land
 float g_dlen;           // length of the ray's direction (camera_ray: camera z grows by 1 a unit)
 int g_l;                // the label whose depth map is searched
 // The ray in photo l's camera, pc(s) = g_o + s * g_v, its intrinsics and its depth map's size,
-// set once a search (set_ray): a lookup then costs three FMAs for the point, and the state holds
-// 12 words of the photo instead of the 18 its rows, intrinsics and size take.
+// set once a search (search_start): a lookup then costs three FMAs for the point, and the state
+// holds 12 words of the photo instead of the 18 its rows, intrinsics and size take. (The search is
+// bound by the warps an SM holds, which its registers decide: H200, 3840x2160, the search took
+// 1.310 ms with the photo and the world ray in the state, 1.098 ms without; session 16.)
 vec3 g_o, g_v;
 vec4 g_fc;              // fx, fy, cx, cy (texels)
 vec2 g_size;            // the depth map's width, height (texels)
 int g_layer;            // the layer searched (-1: a fill search), for the statistics
 int g_iters;            // search steps so far (the paper's c_total)
-// the pending lookup: what it is for (PH_*) and where (s along the ray)
+// the pending lookup: what it is for (PH_*) and where (s along the ray); once advance() returns
+// HIT, g_q is the hit (its test was the last lookup)
 int g_phase;
 float g_q;
-// the search: the current point and its h, the previous ones (the secant's), the step's point
-float g_s, g_f, g_sp, g_fp, g_sn, g_fn, g_step;
+// the search: the current point and its h, the previous ones (the secant's), the step's point, the
+// step (held in g_fn's word: a step's length is not read once its point's h is known)
+float g_s, g_f, g_sp, g_fp, g_sn, g_fn;
+#define g_step g_fn
 bool g_restart;         // the next step is the paper's (no previous sample for a secant)
 int g_i, g_k, g_resumes;  // step index, halvings of this step, resumptions
-// the refinement: the interval, the Illinois side kept last, the step index
-float g_sa, g_fa, g_sb, g_fb;
-int g_side, g_b;
-// the result: s of the hit, its unit world normal (NORMALS and u_normals; else 0)
-float g_hit;
+// the refinement: the interval [a, b] (s and h at each end), the Illinois side kept last, the step
+// index. Its ends are held in the words of the current and the previous sample, which nothing
+// reads from the enclosure to the refinement's end (a search that resumes goes on from
+// (g_sn, g_fn) with the paper's step): 4 words of state fewer.
+#define g_sa g_s
+#define g_fa g_f
+#define g_sb g_sp
+#define g_fb g_fp
+int g_side;
+#define g_b g_k  // the halvings of a step end where the refinement starts
+// the hit's unit world normal (NORMALS and u_normals; else 0)
 vec3 g_n;
 
 const int PH_START = 0;       // h at the layer's splat depth
@@ -248,7 +259,6 @@ int search_top() {
     if (g_i >= u_max_steps) return MISS;
     g_iters++;
     if (abs(g_f) <= CONVERGED * g_s) {  // on the surface: no interval to refine
-        g_hit = g_s;
         return lookup_at(PH_TEST_POINT, g_s);
     }
     float step = g_f / g_dlen;
@@ -280,8 +290,7 @@ int refine_top() {
 #else
     if (g_b < u_binary_steps) return lookup_at(PH_REFINE, 0.5 * (g_sa + g_sb));
 #endif
-    g_hit = (g_fa == g_fb) ? 0.5 * (g_sa + g_sb) : g_sa + (g_sb - g_sa) * g_fa / (g_fa - g_fb);
-    return lookup_at(PH_TEST_HIT, g_hit);
+    return lookup_at(PH_TEST_HIT, (g_fa == g_fb) ? 0.5 * (g_sa + g_sb) : g_sa + (g_sb - g_sa) * g_fa / (g_fa - g_fb));
 }
 
 // An enclosed interval gave no valid hit: the paper's search ends; with SECANT (a sign change
@@ -321,7 +330,7 @@ vec3 pixel_dir(ivec2 p) {
 }
 
 // Takes the pending lookup's result (lookup()): PENDING with the next lookup set, or the search's end
-// (HIT: g_hit, g_n; MISS).
+// (HIT: at g_q, normal g_n; MISS).
 int advance(float h, bool ok) {
     if (g_phase == PH_START) {
         if (!ok) return MISS;
@@ -350,21 +359,16 @@ int advance(float h, bool ok) {
         g_fn = h;
         if ((h > 0.0) == (g_f > 0.0)) return search_next();
         // enclosed: refine [s, sn]
-        g_sa = g_s; g_fa = g_f;
-        g_sb = g_sn; g_fb = h;
+        g_sb = g_sn; g_fb = h;  // a: (g_s, g_f) already
         g_side = 0;
         g_b = 0;
-        g_hit = g_sa;
-        return g_sa == g_sb ? lookup_at(PH_TEST_HIT, g_hit) : refine_top();
+        return g_sa == g_sb ? lookup_at(PH_TEST_HIT, g_sa) : refine_top();
     }
     if (g_phase == PH_REFINE) {
         if (!ok) return interval_failed();  // a probe on empty texels
         float sm = g_q, fm = h;
 #if ILLINOIS
-        if (abs(fm) <= 1e-6 * sm) {
-            g_hit = sm;
-            return lookup_at(PH_TEST_HIT, sm);
-        }
+        if (abs(fm) <= 1e-6 * sm) return lookup_at(PH_TEST_HIT, sm);
         if ((fm > 0.0) == (g_fb > 0.0)) {
             g_sb = sm; g_fb = fm;
             if (g_side == -1) g_fa *= 0.5;
@@ -401,7 +405,7 @@ int advance(float h, bool ok) {
     return search_top();
 }
 
-// One search of D_l along the ray C + s * dir from s0 to its end: true with g_hit on a valid
+// One search of D_l along the ray C + s * dir from s0 to its end: true with g_q on a valid
 // intersection.
 bool trace(int l, vec3 C, vec3 dir, float s0) {
     g_n = vec3(0.0);
@@ -473,7 +477,7 @@ void main() {
             nb = hits[uint(q.y * u_size.x + q.x)];
             if (hit_layer(nb) >= 0 && hit_layer(nb) < u_layers + u_pass && nb.depth > 0.0) {
                 // only the neighbour's own surface: within the discontinuity threshold of its depth
-                found = trace(nb.label, C, pixel_dir(p), nb.depth) && abs(g_hit - nb.depth) <= u_threshold;
+                found = trace(nb.label, C, pixel_dir(p), nb.depth) && abs(g_q - nb.depth) <= u_threshold;
             }
         }
         s_iters[lid] = g_iters;
@@ -482,7 +486,7 @@ void main() {
         barrier();
         uint best = s_best;
         if (best == lid) {
-            hits[pix] = Hit(g_hit, nb.label, -1, layer_iters(u_layers + u_pass, iters_through(best, hit_iters(hits[pix]))));
+            hits[pix] = Hit(g_q, nb.label, -1, layer_iters(u_layers + u_pass, iters_through(best, hit_iters(hits[pix]))));
             write_normal(pix, g_n);
         } else if (best == NONE && lid == 0u) {
             hits[pix].layer_iters = layer_iters(-1, iters_through(best, hit_iters(hits[pix])));
@@ -500,15 +504,16 @@ void main() {
 // 15). Lanes that take further pixels of a block once theirs is done were slower still; handing the
 // searches still running after 8-32 turns to a second pass gained nothing at 3840x2160 and lost
 // 0.1 ms at 1280x720, where that pass's chains of lookups came after the first pass (session 16).
-uint g_npix, g_pix;
+uint g_pix;
 
 // Starts the search of layer g_layer; false when the pixel has no such layer (peeling: every later
 // layer is empty too).
 bool begin_layer() {
     if (g_layer >= u_layers) return false;
-    uint bits = layer_depth[uint(g_layer) * g_npix + g_pix];
+    uint at = uint(g_layer) * uint(u_size.x * u_size.y) + g_pix;
+    uint bits = layer_depth[at];
     if (bits == EMPTY_BITS) return false;
-    int l = layer_label[uint(g_layer) * g_npix + g_pix];
+    int l = layer_label[at];
     search_start(l, camera_centre(), pixel_dir(ivec2(gl_GlobalInvocationID.xy)), uintBitsToFloat(bits));
     return true;
 }
@@ -516,7 +521,6 @@ bool begin_layer() {
 void raytrace_pixel() {
     ivec2 p = ivec2(gl_GlobalInvocationID.xy);
     if (p.x >= u_size.x || p.y >= u_size.y) return;
-    g_npix = uint(u_size.x * u_size.y);
     g_pix = uint(p.y * u_size.x + p.x);
     g_iters = 0;
     g_n = vec3(0.0);
@@ -535,7 +539,7 @@ void raytrace_pixel() {
         }
         busy = busy && r != HIT;
     }
-    Hit hit = found >= 0 ? Hit(g_hit, g_l, -1, layer_iters(found, g_iters)) : Hit(0.0, -1, -1, layer_iters(-1, g_iters));
+    Hit hit = found >= 0 ? Hit(g_q, g_l, -1, layer_iters(found, g_iters)) : Hit(0.0, -1, -1, layer_iters(-1, g_iters));
 #else
     // the ablation: the first layer's splat is the surface
     uint bits0 = layer_depth[g_pix];
