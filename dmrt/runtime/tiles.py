@@ -49,7 +49,7 @@ from dmrt.runtime.status import RING, FrameStatus
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 ENTRY_BYTES = 8  # a disc index and its box in the tile per disc-tile overlap (dmrt_tiles_bin.glsl)
 LAG = RING - 1  # check="lagged" reads the record of the frame this many frames back
-MASK_DISCS = 128  # the raster's hit masks cover a tile's first 128 discs (dmrt_tiles_common.glsl: or 256)
+MASK_DISCS = 256  # the raster's hit masks cover a tile's first 256 discs (dmrt_tiles_common.glsl: or 128)
 # The raster's defaults, chosen by timing (TileVisibility's batch says how; RenderConfig.tile_batch
 # and tile_hits set them for another GPU)
 DEFAULT_BATCH = 288
