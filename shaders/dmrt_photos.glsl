@@ -77,8 +77,10 @@ bool depth_quad(int l, vec2 size, vec2 uv, float max_span, out ivec2 i0, out vec
     if (span <= max_span) return true;
     ivec2 s = ivec2(f.x < SNAP ? -1 : (f.x > 1.0 - SNAP ? 1 : 0), f.y < SNAP ? -1 : (f.y > 1.0 - SNAP ? 1 : 0));
     if (s == ivec2(0)) return inside;
+    // The quad kept is fetched again at the end rather than held through the tries: on this rare
+    // path one more fetch costs less than the registers of two quads held live, which every
+    // lookup of the raytracing program would pay (its occupancy is bound by them).
     int best = -1;
-    vec4 best_d = d;
     for (int k = 0; k < 3; ++k) {
         vec4 d2;
         ivec2 o = snap_try(s, k);
@@ -86,17 +88,15 @@ bool depth_quad(int l, vec2 size, vec2 uv, float max_span, out ivec2 i0, out vec
         float span2 = quad_span(d2);
         if (span2 < span && (span2 <= max_span || span >= 1e30)) {
             best = k;
-            best_d = d2;
             span = span2;
             if (span2 <= max_span) break;
         }
     }
-    if (best < 0) return inside;
+    if (best < 0) return fetch_quad(l, size, i0, d);  // the first quad (inside as before)
     ivec2 o = snap_try(s, best);
     i0 += o;
     f = clamp(f - vec2(o), 0.0, 1.0);
-    d = best_d;
-    return true;
+    return fetch_quad(l, size, i0, d);
 }
 
 // Photo-camera point of depth-map texel (col, row) holding depth z.

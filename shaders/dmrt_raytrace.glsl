@@ -504,24 +504,30 @@ void main() {
 // 15). Lanes that take further pixels of a block once theirs is done were slower still; handing the
 // searches still running after 8-32 turns to a second pass gained nothing at 3840x2160 and lost
 // 0.1 ms at 1280x720, where that pass's chains of lookups came after the first pass (session 16).
-uint g_pix;
+// This invocation's pixel, its index (a function, not a word of state: see g_o)
+ivec2 this_pixel() {
+    return ivec2(gl_GlobalInvocationID.xy);
+}
+
+uint pixel_index() {
+    return uint(gl_GlobalInvocationID.y) * uint(u_size.x) + uint(gl_GlobalInvocationID.x);
+}
 
 // Starts the search of layer g_layer; false when the pixel has no such layer (peeling: every later
 // layer is empty too).
 bool begin_layer() {
     if (g_layer >= u_layers) return false;
-    uint at = uint(g_layer) * uint(u_size.x * u_size.y) + g_pix;
+    uint at = uint(g_layer) * uint(u_size.x * u_size.y) + pixel_index();
     uint bits = layer_depth[at];
     if (bits == EMPTY_BITS) return false;
     int l = layer_label[at];
-    search_start(l, camera_centre(), pixel_dir(ivec2(gl_GlobalInvocationID.xy)), uintBitsToFloat(bits));
+    search_start(l, camera_centre(), pixel_dir(this_pixel()), uintBitsToFloat(bits));
     return true;
 }
 
 void raytrace_pixel() {
-    ivec2 p = ivec2(gl_GlobalInvocationID.xy);
+    ivec2 p = this_pixel();
     if (p.x >= u_size.x || p.y >= u_size.y) return;
-    g_pix = uint(p.y * u_size.x + p.x);
     g_iters = 0;
     g_n = vec3(0.0);
     int found = -1;  // the layer that gave the hit
@@ -540,19 +546,21 @@ void raytrace_pixel() {
         busy = busy && r != HIT;
     }
     Hit hit = found >= 0 ? Hit(g_q, g_l, -1, layer_iters(found, g_iters)) : Hit(0.0, -1, -1, layer_iters(-1, g_iters));
+    uint pix = pixel_index();
 #else
     // the ablation: the first layer's splat is the surface
-    uint bits0 = layer_depth[g_pix];
+    uint pix = pixel_index();
+    uint bits0 = layer_depth[pix];
     if (bits0 != EMPTY_BITS) {
         found = 0;
         vec3 dir = pixel_dir(p);
         g_n = -dir / length(dir);
     }
-    Hit hit = found >= 0 ? Hit(uintBitsToFloat(bits0), layer_label[g_pix], -1, layer_iters(0, 0)) : Hit(0.0, -1, -1, layer_iters(-1, 0));
+    Hit hit = found >= 0 ? Hit(uintBitsToFloat(bits0), layer_label[pix], -1, layer_iters(0, 0)) : Hit(0.0, -1, -1, layer_iters(-1, 0));
 #endif
-    hits[g_pix] = hit;
-    write_normal(g_pix, found >= 0 ? g_n : vec3(0.0));
-    if (RAYTRACE != 0 && u_fill != 0 && hit.depth <= 0.0 && layer_depth[g_pix] != EMPTY_BITS) push_hole(g_pix);
+    hits[pix] = hit;
+    write_normal(pix, found >= 0 ? g_n : vec3(0.0));
+    if (RAYTRACE != 0 && u_fill != 0 && hit.depth <= 0.0 && layer_depth[pix] != EMPTY_BITS) push_hole(pix);
 }
 
 void main() {
