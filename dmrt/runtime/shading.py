@@ -35,6 +35,9 @@ from dmrt.runtime.status import FrameStatus
 from dmrt.runtime.texturing import ImageCache, gains_buffer_data, texture_frame
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
+# pixels of a column each thread of the histogram pass counts (shaders/dmrt_label_histogram.glsl): its
+# loads come one after another, so shorter runs mean more threads in flight
+HISTOGRAM_RUN = 16
 
 
 def photo_params(cameras, origin, depth_sizes, low_sizes) -> np.ndarray:
@@ -121,7 +124,7 @@ class FrameShading:
         self.gains = ctx.buffer(gains_buffer_data(self.photo_gains, n).tobytes())
         # the label histogram: the photo choice and the leveling's gains solve read it on the GPU
         self._counts_gpu = ctx.buffer(reserve=4 * n)
-        self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": 64})
+        self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": HISTOGRAM_RUN})
         self._choice = load_program(ctx, "dmrt_photo_choice", {"N_PHOTOS": n})
         self.status = FrameStatus(ctx, self.images.n_slots)
         self.sync_photos = not config.async_photos
@@ -166,7 +169,7 @@ class FrameShading:
             hits.bind_to_storage_buffer(abi.B_HITS)
             self._counts_gpu.bind_to_storage_buffer(abi.B_COUNTS)
             set_uniforms(self._histogram, u_size=(w, h))
-            self._histogram.run(groups(w, 64), groups(h, 64))
+            self._histogram.run(groups(w, 64), groups(h, HISTOGRAM_RUN))
             ctx.memory_barrier(_BARRIER)
             if self.images.n_slots:  # into the next frame's status record
                 self.status.record(-1).bind_to_storage_buffer(abi.B_FRAME_STATUS)
