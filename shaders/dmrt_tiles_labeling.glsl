@@ -11,10 +11,19 @@
 // the very test made here; the first batch then visits only those discs (a few of the tile's tens
 // to hundreds), and only discs past them are tested.
 //
-// Output as dmrt_label_finalize.glsl reads it: PACKED_LABELS 1 -> Key uvec2 (label, distance bits),
-// else Key uint distance bits and Label int label; EMPTY_BITS / EMPTY_LABEL where no disc covers.
+// Output: FINALIZE 1 -> each pixel's final label in its Hit record (dmrt_final_label.glsl: the pass
+// of dmrt_label_finalize.glsl done here, without writing the labels and reading them back); else
+// as dmrt_label_finalize.glsl reads it: PACKED_LABELS 1 -> Key uvec2 (label, distance bits), else
+// Key uint distance bits and Label int label; EMPTY_BITS / EMPTY_LABEL where no disc covers.
 #include "dmrt_tiles_common.glsl"
 #include "dmrt_frame.glsl"
+#ifndef FINALIZE
+#define FINALIZE 0
+#endif
+#if FINALIZE
+#include "dmrt_photos.glsl"
+#include "dmrt_final_label.glsl"
+#endif
 
 #if defined COMPUTE_SHADER
 
@@ -30,7 +39,8 @@ layout(local_size_x = TILE, local_size_y = TILE) in;
 
 layout(std430, binding = B_TILE_ENTRIES) readonly buffer Entries { uvec2 entries[]; };
 layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
-#if PACKED_LABELS
+#if FINALIZE
+#elif PACKED_LABELS
 layout(std430, binding = B_KEY) writeonly buffer Key { uvec2 key[]; };
 #else
 layout(std430, binding = B_KEY) writeonly buffer Key { uint key[]; };
@@ -129,7 +139,9 @@ void main() {
         barrier();
     }
     if (!inside) return;
-#if PACKED_LABELS
+#if FINALIZE
+    hits[pix].final_label = final_label(hits[pix], g_best_label, px);
+#elif PACKED_LABELS
     key[pix] = uvec2(uint(g_best_label), g_best);
 #else
     key[pix] = g_best;

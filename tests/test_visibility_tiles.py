@@ -295,7 +295,8 @@ def test_renderer_frames_match_compute(ctx, bundle):
 
 def test_tile_labeling_packed_layout(ctx, bundle):
     """The tiles labeling pass writes the 64-bit (label, distance bits) keys of the NVIDIA path the
-    same as the portable pair of buffers (dmrt_label_finalize.glsl reads either)."""
+    same as the portable pair of buffers (dmrt_label_finalize.glsl reads either; the renderer's
+    own frames take the final labels from the pass directly)."""
     from dmrt.runtime.renderer import RenderConfig, Renderer
 
     r = Renderer(bundle, RenderConfig(method="tiles", layers=3, async_photos=False), ctx)
@@ -304,12 +305,13 @@ def test_tile_labeling_packed_layout(ctx, bundle):
         r.render(cam)
         b = r._buffers
         npix = cam.width * cam.height
-        bits = np.frombuffer(b["key"].read(), np.uint32)[:npix].copy()
-        label = np.frombuffer(b["vlabel"].read(), np.int32)[:npix].copy()
-        assert (label >= 0).mean() > 0.5
         local = cam.relative_to(r.origin)
         uniforms = {"u_R": local.R.T.ravel(), "u_t": local.t, "u_K": (local.fx, local.fy, local.cx, local.cy),
                     "u_size": (cam.width, cam.height)}
+        r.visibility.tiles.label_pass(uniforms, b["hits"], b["key"], b["vlabel"], packed=False)
+        bits = np.frombuffer(b["key"].read(), np.uint32)[:npix].copy()
+        label = np.frombuffer(b["vlabel"].read(), np.int32)[:npix].copy()
+        assert (label >= 0).mean() > 0.5
         r.visibility.tiles.label_pass(uniforms, b["hits"], b["key"], b["vlabel"], packed=True)
         packed = np.frombuffer(b["key"].read(), np.uint32)[:2 * npix].reshape(npix, 2)
         np.testing.assert_array_equal(packed[:, 0].view(np.int32), label)

@@ -365,10 +365,18 @@ class Renderer:
                 fill.run_indirect(current)
                 ctx.memory_barrier(_BARRIER)
 
+        # the final labels' label check (shaders/dmrt_final_label.glsl)
+        check = {"u_label_check": int(cfg.label_check), "u_visibility_tol": float(cfg.label_check_tolerance),
+                 "u_depthmaps": 0}
+        self.photos.bind_to_storage_buffer(abi.B_PHOTOS)
+        self.depthmaps.use(0)
+        tiles = self.visibility.tiles
+        # the labeling pass on the visibility stage's tile lists (no splatting) leaves the final
+        # labels itself: no labels written and read back by a finalize pass
+        finalized = cfg.labeling and tiles is not None
         with timer.section("labeling"):
-            tiles = self.visibility.tiles
-            if cfg.labeling and tiles is not None:  # the visibility stage's tile lists: no splatting
-                tiles.label_pass(cam_uniforms, b["hits"], b["key"], b["vlabel"], self.int64)
+            if finalized:
+                tiles.label_pass(cam_uniforms, b["hits"], finalize=check)
             else:
                 fill_u32(ctx, b["key"], EMPTY_BITS, 2 * npix if self.int64 else npix)
                 if not self.int64:
@@ -384,19 +392,16 @@ class Renderer:
 
         # image management: the final labels here, then the histogram pass and the uploads (timed on
         # the GPU); the readback between them waits for the frame so far and is CPU time
-        with timer.section("image_management:label_finalize"):
-            b["key"].bind_to_storage_buffer(abi.B_KEY)
-            b["vlabel"].bind_to_storage_buffer(abi.B_VLABEL)
-            b["hits"].bind_to_storage_buffer(abi.B_HITS)
-            self.photos.bind_to_storage_buffer(abi.B_PHOTOS)
-            self.depthmaps.use(0)
-            set_uniforms(self._finalize, u_use_labeling=int(cfg.labeling), u_label_check=int(cfg.label_check),
-                         u_visibility_tol=float(cfg.label_check_tolerance), u_depthmaps=0, **cam_uniforms)
-            self._finalize.run(*grid)
-            ctx.memory_barrier(_BARRIER)
+        if not finalized:
+            with timer.section("image_management:label_finalize"):
+                b["key"].bind_to_storage_buffer(abi.B_KEY)
+                b["vlabel"].bind_to_storage_buffer(abi.B_VLABEL)
+                b["hits"].bind_to_storage_buffer(abi.B_HITS)
+                set_uniforms(self._finalize, u_use_labeling=int(cfg.labeling), **check, **cam_uniforms)
+                self._finalize.run(*grid)
+                ctx.memory_barrier(_BARRIER)
         frame, hits = self.shading.finish(b["hits"], b["colors"], b["normals"], self.depthmaps, cam_uniforms, STAGES,
                                           "rendering a DMRT frame", readback)
-        tiles = self.visibility.tiles
         if tiles is not None and tiles.end_frame():
             return None
         if readback:

@@ -287,7 +287,8 @@ class TileVisibility:
         self._raster.run(*self._grid)
         self.ctx.memory_barrier(_BARRIER)
 
-    def label_pass(self, uniforms: dict, hits, key, vlabel, packed: bool) -> None:
+    def label_pass(self, uniforms: dict, hits, key=None, vlabel=None, packed: bool = False,
+                   finalize: dict | None = None) -> None:
         """The labeling pass on this frame's tile lists (``shaders/dmrt_tiles_labeling.glsl``): the
         labels of ``dmrt_labeling.glsl`` without splatting the proxies again.
 
@@ -298,14 +299,21 @@ class TileVisibility:
         key, vlabel : moderngl.Buffer, written for every pixel in the layout
             ``dmrt_label_finalize.glsl`` reads: ``packed`` - ``key`` (h x w) uvec2 (label, distance
             bits); else ``key`` (h x w) uint distance bits and ``vlabel`` (h x w) int label.
+        finalize : dict, optional
+            The label check's uniforms (``u_label_check``, ``u_visibility_tol``, ``u_depthmaps``):
+            then the pass writes each pixel's final label into its ``Hit`` record itself, as
+            ``dmrt_label_finalize.glsl`` would from ``key`` (not written), with the photos and the
+            depth maps bound by the caller.
         """
-        program = load_program(self.ctx, "dmrt_tiles_labeling", {**self._defines, "PACKED_LABELS": int(packed)})
+        program = load_program(self.ctx, "dmrt_tiles_labeling", {**self._defines, "PACKED_LABELS": int(packed),
+                                                                 "FINALIZE": int(finalize is not None)})
         self._bind(proxies=self.splats.buffer, entries=self.entries, offsets=self.offsets, masks=self.masks)
         hits.bind_to_storage_buffer(abi.B_HITS)
-        key.bind_to_storage_buffer(abi.B_KEY)
-        if not packed:
-            vlabel.bind_to_storage_buffer(abi.B_VLABEL)
-        set_uniforms(program, u_capacity=self.capacity, u_tiles=self._grid, **uniforms)
+        if finalize is None:
+            key.bind_to_storage_buffer(abi.B_KEY)
+            if not packed:
+                vlabel.bind_to_storage_buffer(abi.B_VLABEL)
+        set_uniforms(program, u_capacity=self.capacity, u_tiles=self._grid, **uniforms, **(finalize or {}))
         program.run(*self._grid)
         self.ctx.memory_barrier(_BARRIER)
 
