@@ -14,9 +14,6 @@
 //            are dropped (the host grows the buffer from the frame's total, dmrt_tiles_scan.glsl).
 // Both walks recompute the disc's box (cheaper than storing it): the same box, so the same tiles.
 // The raster and labeling passes read it from the entry instead of computing it for every tile.
-// Neighbouring proxies (neighbouring threads) fall in the same tiles, so the lanes of a subgroup
-// that count into one tile at once share one atomic (add_to_tile: GL_ARB_shader_ballot, where the
-// driver has it); one atomic per lane on one counter serialises in the memory system.
 //
 // Buffers (binding: layout):
 //   B_PROXIES       n x 8 floats (dmrt_tiles_common.glsl)
@@ -24,19 +21,9 @@
 //   B_TILE_ENTRIES  uvec2[capacity]: proxy index, box_bits in the tile; tile after tile
 //   B_TILE_COUNTS   uint[tiles]: discs per tile
 //   B_TILE_OFFSETS  uint[tiles + 1]: exclusive prefix sum of Counts (SCATTER 1 only)
-#extension GL_ARB_shader_ballot : enable
-#extension GL_ARB_gpu_shader_int64 : enable
 #include "dmrt_tiles_common.glsl"
 
 #if defined COMPUTE_SHADER
-
-#ifndef SUBGROUP_ATOMICS
-#if defined(GL_ARB_shader_ballot) && defined(GL_ARB_gpu_shader_int64)
-#define SUBGROUP_ATOMICS 1
-#else
-#define SUBGROUP_ATOMICS 0
-#endif
-#endif
 
 #ifndef SCATTER
 #define SCATTER 0
@@ -59,42 +46,14 @@ uniform uint u_capacity;  // entries the buffer holds
 
 uniform uint u_count;  // number of proxies
 
-// atomicAdd(counts[tile], 1u) (SCATTER 0) or atomicAdd(counts[tile], ~0u), a decrement (SCATTER 1):
-// the counter's value before this lane's step, as if the lanes had stepped one after another. The
-// lanes of a subgroup that step the same counter at once take one atomic: the first active lane's
-// tile is served each turn, the peers' leader adding their number, each peer its rank among them.
-uint add_to_tile(uint tile) {
-#if SUBGROUP_ATOMICS
-    uint before = 0u;
-    bool waiting = true;
-    while (waiting) {
-        if (tile == readFirstInvocationARB(tile)) {
-            uvec2 peers = unpackUint2x32(ballotARB(true));
-            uvec2 lower = unpackUint2x32(gl_SubGroupLtMaskARB) & peers;
-            uint n = uint(bitCount(peers.x) + bitCount(peers.y));
-            uint rank = uint(bitCount(lower.x) + bitCount(lower.y));
-            uint leader = peers.x != 0u ? uint(findLSB(peers.x)) : 32u + uint(findLSB(peers.y));
-            uint base = 0u;
-            if (rank == 0u) base = atomicAdd(counts[tile], SCATTER != 0 ? 0u - n : n);
-            base = readInvocationARB(base, leader);
-            before = SCATTER != 0 ? base - rank : base + rank;
-            waiting = false;
-        }
-    }
-    return before;
-#else
-    return atomicAdd(counts[tile], SCATTER != 0 ? ~0u : 1u);
-#endif
-}
-
 // Disc k, whose pixel box is `box`, in tile (tx, ty).
 void bin_into(int tx, int ty, uint k, ivec4 box) {
     uint tile = uint(ty * u_tiles.x + tx);
 #if SCATTER
-    uint pos = offsets[tile] + add_to_tile(tile) - 1u;  // the decrement's slot
+    uint pos = offsets[tile] + atomicAdd(counts[tile], ~0u) - 1u;  // decrement: adding 2^32 - 1
     if (pos < u_capacity) entries[pos] = uvec2(k, box_bits(box, ivec2(tx, ty) * TILE));
 #else
-    add_to_tile(tile);
+    atomicAdd(counts[tile], 1u);
 #endif
 }
 
