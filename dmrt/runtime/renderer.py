@@ -372,10 +372,12 @@ class Renderer:
         self.depthmaps.use(0)
         tiles = self.visibility.tiles
         # the labeling pass on the visibility stage's tile lists (no splatting) leaves the final
-        # labels itself: no labels written and read back by a finalize pass
+        # labels and their histogram itself: no labels written and read back by a finalize pass,
+        # no histogram pass
         finalized = cfg.labeling and tiles is not None
         with timer.section("labeling"):
-            if finalized:
+            if finalized:  # and the label histogram
+                self.shading.begin_counts()
                 tiles.label_pass(cam_uniforms, b["hits"], finalize=check)
             else:
                 fill_u32(ctx, b["key"], EMPTY_BITS, 2 * npix if self.int64 else npix)
@@ -401,7 +403,7 @@ class Renderer:
                 self._finalize.run(*grid)
                 ctx.memory_barrier(_BARRIER)
         frame, hits = self.shading.finish(b["hits"], b["colors"], b["normals"], self.depthmaps, cam_uniforms, STAGES,
-                                          "rendering a DMRT frame", readback)
+                                          "rendering a DMRT frame", readback, counted=finalized)
         if tiles is not None and tiles.end_frame():
             return None
         if readback:
