@@ -12,9 +12,7 @@
 // to hundreds), and only discs past them are tested.
 //
 // Output: FINALIZE 1 -> each pixel's final label in its Hit record (dmrt_final_label.glsl: the pass
-// of dmrt_label_finalize.glsl done here, without writing the labels and reading them back), and
-// the frame's label histogram added up in Counts (dmrt_label_histogram.glsl's, without its pass);
-// else
+// of dmrt_label_finalize.glsl done here, without writing the labels and reading them back); else
 // as dmrt_label_finalize.glsl reads it: PACKED_LABELS 1 -> Key uvec2 (label, distance bits), else
 // Key uint distance bits and Label int label; EMPTY_BITS / EMPTY_LABEL where no disc covers.
 #include "dmrt_tiles_common.glsl"
@@ -51,28 +49,6 @@ layout(std430, binding = B_VLABEL) writeonly buffer Label { int vlabel[]; };
 
 #if HIT_MASKS
 layout(std430, binding = B_TILE_MASKS) readonly buffer Masks { uvec4 masks[]; };
-#endif
-
-#if FINALIZE
-// The label histogram (zeroed by the host): a tile's pixels show a few labels, so the workgroup
-// sums them in COUNT_SLOTS shared (label, count) slots, claimed first come, and adds each slot to
-// Counts once; a pixel that finds every slot taken by other labels adds itself. One atomicAdd per
-// pixel on Counts would serialise on its few counters (60 ms a 1280x720 frame on an H200: see
-// dmrt_label_histogram.glsl).
-layout(std430, binding = B_COUNTS) buffer Counts { uint counts[]; };
-#define COUNT_SLOTS 4
-shared uint s_slot_label[COUNT_SLOTS];  // ~0u: free
-shared uint s_slot_count[COUNT_SLOTS];
-
-// Count label l >= 0. Unrolled (no loop): a shared-memory slot claimed by compare-and-swap, in order.
-#define TRY_SLOT(i) if (slot == COUNT_SLOTS) { uint was = atomicCompSwap(s_slot_label[i], ~0u, l); \
-                                              if (was == ~0u || was == l) slot = i; }
-void count_label(uint l) {
-    int slot = COUNT_SLOTS;
-    TRY_SLOT(0) TRY_SLOT(1) TRY_SLOT(2) TRY_SLOT(3)
-    if (slot < COUNT_SLOTS) atomicAdd(s_slot_count[slot], 1u);
-    else atomicAdd(counts[l], 1u);
-}
 #endif
 
 uniform uint u_capacity;  // entries the list holds (a slice past it was lost: see tiles.py)
@@ -122,13 +98,6 @@ void main() {
     g_q = z * ray;
     g_best = EMPTY_BITS;
     g_best_label = EMPTY_LABEL;
-#if FINALIZE
-    if (lid < uint(COUNT_SLOTS)) {
-        s_slot_label[lid] = ~0u;
-        s_slot_count[lid] = 0u;
-    }
-    barrier();
-#endif
     uint start = offsets[tile];
     uint end = min(offsets[tile + 1u], u_capacity);
     // the raster's condition for holding the list in shared memory, on the same (cut) length
@@ -169,23 +138,14 @@ void main() {
         }
         barrier();
     }
-#if FINALIZE
-    if (inside) {
-        int label = final_label(hits[pix], g_best_label, px);
-        hits[pix].final_label = label;
-        if (label >= 0) count_label(uint(label));
-    }
-    memoryBarrierShared();
-    barrier();
-    if (lid < uint(COUNT_SLOTS) && s_slot_count[lid] > 0u) atomicAdd(counts[s_slot_label[lid]], s_slot_count[lid]);
-#else
     if (!inside) return;
-#if PACKED_LABELS
+#if FINALIZE
+    hits[pix].final_label = final_label(hits[pix], g_best_label, px);
+#elif PACKED_LABELS
     key[pix] = uvec2(uint(g_best_label), g_best);
 #else
     key[pix] = g_best;
     vlabel[pix] = g_best_label;
-#endif
 #endif
 }
 

@@ -372,12 +372,10 @@ class Renderer:
         self.depthmaps.use(0)
         tiles = self.visibility.tiles
         # the labeling pass on the visibility stage's tile lists (no splatting) leaves the final
-        # labels and their histogram itself: no labels written and read back by a finalize pass,
-        # no histogram pass
+        # labels itself: no labels written and read back by a finalize pass
         finalized = cfg.labeling and tiles is not None
         with timer.section("labeling"):
-            if finalized:  # and the label histogram
-                self.shading.begin_counts()
+            if finalized:
                 tiles.label_pass(cam_uniforms, b["hits"], finalize=check)
             else:
                 fill_u32(ctx, b["key"], EMPTY_BITS, 2 * npix if self.int64 else npix)
@@ -403,7 +401,7 @@ class Renderer:
                 self._finalize.run(*grid)
                 ctx.memory_barrier(_BARRIER)
         frame, hits = self.shading.finish(b["hits"], b["colors"], b["normals"], self.depthmaps, cam_uniforms, STAGES,
-                                          "rendering a DMRT frame", readback, counted=finalized)
+                                          "rendering a DMRT frame", readback)
         if tiles is not None and tiles.end_frame():
             return None
         if readback:

@@ -144,18 +144,10 @@ class FrameShading:
         """Start a frame: its status record (:meth:`dmrt.runtime.status.FrameStatus.begin`)."""
         return self.status.begin()
 
-    def begin_counts(self) -> None:
-        """Zero the label histogram and bind it (``B_COUNTS``) for a pass that counts the final
-        labels itself (the tiles labeling pass); :meth:`finish` then takes ``counted=True``."""
-        fill_u32(self.ctx, self._counts_gpu, 0, self._counts_gpu.size // 4)
-        self.ctx.memory_barrier(_BARRIER)
-        self._counts_gpu.bind_to_storage_buffer(abi.B_COUNTS)
-
     def finish(self, hits, colors, normals, depthmaps, cam_uniforms: dict, stages, what: str,
-               readback: bool, counted: bool = False) -> tuple[dict, np.ndarray | None]:
+               readback: bool) -> tuple[dict, np.ndarray | None]:
         """Shade the frame whose ``Hit`` records are in ``hits`` (and, with ``readback``, normals in
-        ``normals``: h x w x 3 float32) and return it; ``counted``: the label histogram was added up
-        already (:meth:`begin_counts`), else the histogram pass counts the final labels here.
+        ``normals``: h x w x 3 float32) and return it.
 
         Returns
         -------
@@ -172,14 +164,13 @@ class FrameShading:
         w, h = cam_uniforms["u_size"]
         n_photos = self._counts_gpu.size // 4
         with timer.section("image_management:histogram"):
-            if not counted:
-                fill_u32(ctx, self._counts_gpu, 0, n_photos)
-                ctx.memory_barrier(_BARRIER)
-                hits.bind_to_storage_buffer(abi.B_HITS)
-                self._counts_gpu.bind_to_storage_buffer(abi.B_COUNTS)
-                set_uniforms(self._histogram, u_size=(w, h))
-                self._histogram.run(groups(w, 64), groups(h, HISTOGRAM_RUN))
-                ctx.memory_barrier(_BARRIER)
+            fill_u32(ctx, self._counts_gpu, 0, n_photos)
+            ctx.memory_barrier(_BARRIER)
+            hits.bind_to_storage_buffer(abi.B_HITS)
+            self._counts_gpu.bind_to_storage_buffer(abi.B_COUNTS)
+            set_uniforms(self._histogram, u_size=(w, h))
+            self._histogram.run(groups(w, 64), groups(h, HISTOGRAM_RUN))
+            ctx.memory_barrier(_BARRIER)
             if self.images.n_slots:  # into the next frame's status record
                 self.status.record(-1).bind_to_storage_buffer(abi.B_FRAME_STATUS)
                 set_uniforms(self._choice, u_slots=self.images.n_slots)

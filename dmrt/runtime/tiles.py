@@ -302,9 +302,8 @@ class TileVisibility:
         finalize : dict, optional
             The label check's uniforms (``u_label_check``, ``u_visibility_tol``, ``u_depthmaps``):
             then the pass writes each pixel's final label into its ``Hit`` record itself, as
-            ``dmrt_label_finalize.glsl`` would from ``key`` (not written), and adds the final
-            labels to the histogram, with the photos, the depth maps and the zeroed histogram
-            (``FrameShading.begin_counts``) bound by the caller.
+            ``dmrt_label_finalize.glsl`` would from ``key`` (not written), with the photos and the
+            depth maps bound by the caller.
         """
         program = load_program(self.ctx, "dmrt_tiles_labeling", {**self._defines, "PACKED_LABELS": int(packed),
                                                                  "FINALIZE": int(finalize is not None)})
