@@ -504,6 +504,7 @@ void main() {
 // 15). Lanes that take further pixels of a block once theirs is done were slower still; handing the
 // searches still running after 8-32 turns to a second pass gained nothing at 3840x2160 and lost
 // 0.1 ms at 1280x720, where that pass's chains of lookups came after the first pass (session 16).
+
 // This invocation's pixel, its index (a function, not a word of state: see g_o)
 ivec2 this_pixel() {
     return ivec2(gl_GlobalInvocationID.xy);

@@ -390,8 +390,9 @@ class Renderer:
                         self.splats.run("dmrt_labeling", {"RESOLVE": resolve}, cam_uniforms,
                                         {abi.B_KEY: b["key"], abi.B_VLABEL: b["vlabel"], abi.B_HITS: b["hits"]})
 
-        # image management: the final labels here, then the histogram pass and the uploads (timed on
-        # the GPU); the readback between them waits for the frame so far and is CPU time
+        # image management: the final labels here (unless the labeling pass left them), then the
+        # histogram pass and the uploads (timed on the GPU); the readback between them waits for the
+        # frame so far and is CPU time
         if not finalized:
             with timer.section("image_management:label_finalize"):
                 b["key"].bind_to_storage_buffer(abi.B_KEY)
