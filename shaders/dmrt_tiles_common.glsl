@@ -8,24 +8,20 @@
 #define TILE 16
 #endif
 
-// The raster's first walk notes, per pixel, which of its tile's first MASK_DISCS (128 or 256) discs
-// hit it (a bit each, four or eight words); with TILE 16 the labeling pass's first batch of TILE^2
-// discs begins with those, so it reads the bits (B_TILE_MASKS) instead of testing them again.
-#ifndef MASK_DISCS
+// The raster's first walk notes, per pixel, which of its tile's first MASK_DISCS discs hit it (a bit
+// each, eight words); with TILE 16 the labeling pass's first batch of TILE^2 discs is exactly those,
+// so it reads the bits (B_TILE_MASKS) instead of testing the discs again. (Masks of 128 discs, four
+// registers fewer, did not speed the raster up: reports/frame-h200, session 16.)
 #define MASK_DISCS 256
-#endif
-#if MASK_DISCS != 128 && MASK_DISCS != 256
-#error "MASK_DISCS must be 128 or 256"
-#endif
 
 // The masks' second half (discs 128-255) is written and read only for a list longer than 128 discs:
 // the first half holds every hit of a shorter one (half the masks' bytes at 3840x2160, where a tile
 // holds ~63 discs). `count`: the list's length as cut to the buffer.
 bool masks_second_half(uint count) {
-    return MASK_DISCS > 128 && count > 128u;
+    return count > uint(MASK_DISCS / 2);
 }
 #ifndef HIT_MASKS  // the stage turns them off for a renderer without the labeling pass
-#define HIT_MASKS (TILE * TILE == 256)
+#define HIT_MASKS (TILE * TILE == MASK_DISCS)
 #endif
 
 // The pixel of this invocation within its tile. WARP_BLOCKS (TILE a multiple of 8): each run of 32

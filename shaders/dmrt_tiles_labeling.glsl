@@ -7,9 +7,9 @@
 // invocation keeps its pixel's nearest (distance bits, label) in registers. A disc covers a pixel
 // by the same test (splat_depth_at), so the labels equal dmrt_labeling.glsl's to the bit.
 // HIT_MASKS (TILE 16): in a tile whose list the raster held in shared memory (at most BATCH discs),
-// the raster's first walk left each pixel the bits of which of the first MASK_DISCS discs hit it,
-// the very test made here; the first batch then visits only those discs (a few of the tile's tens
-// to hundreds), and only discs past them are tested.
+// the raster's first walk left each pixel the bits of which of the first 256 discs hit it, the very
+// test made here; the first batch then visits only those discs (a few of the tile's tens to
+// hundreds), and only discs past the 256th are tested.
 //
 // Output: FINALIZE 1 -> each pixel's final label in its Hit record (dmrt_final_label.glsl: the pass
 // of dmrt_label_finalize.glsl done here, without writing the labels and reading them back); else
@@ -110,7 +110,7 @@ void main() {
             uvec2 e = entries[base + lid];
             Splat s = load_proxy(e.x, label);
             s_cl[lid] = vec4(s.pc, intBitsToFloat(label));
-            if (!by_masks || lid >= uint(MASK_DISCS)) {
+            if (!by_masks) {
                 s_nr[lid] = vec4(s.nc, s.r);
                 s_box[lid] = e.y;
             }
@@ -125,11 +125,10 @@ void main() {
                 uvec4 hi = masks[2u * pix + 1u];
                 visit(hi.x, 128u); visit(hi.y, 160u); visit(hi.z, 192u); visit(hi.w, 224u);
             }
-        }
+        } else
 #endif
         if (z > 0.0) {
-            // the discs no mask names
-            for (uint j = by_masks ? uint(MASK_DISCS) : 0u; j < n; ++j) {
+            for (uint j = 0u; j < n; ++j) {
                 if (!in_box(bits, s_box[j])) continue;
                 vec4 nr = s_nr[j];
                 if (splat_depth_ray(Splat(s_cl[j].xyz, nr.xyz, nr.w), ray, ray_len) <= 0.0) continue;

@@ -79,13 +79,10 @@ float g_ray_len;          // length(g_ray)
 uint g_prev_d, g_prev_l;  // the last layer's depth bits and label (label ~0u before the first)
 uint g_best_d, g_best_l;  // the nearest hit that passes the filter so far
 uint g_count;             // discs in the tile's list
-// The hit masks of discs 0-127 and (MASK_DISCS 256) 128-255, one word of 32 discs a component.
-// Written as vectors filled component by component with constant indices: an array indexed by a
-// loop counter may be kept in local memory (dmrt_photos.glsl's snap_try says more).
-uvec4 g_lo;
-#if MASK_DISCS > 128
-uvec4 g_hi;
-#endif
+// The hit masks of discs 0-127 and 128-255, one word of 32 discs a component. Written as vectors
+// filled component by component with constant indices: an array indexed by a loop counter may be
+// kept in local memory (dmrt_photos.glsl's snap_try says more).
+uvec4 g_lo, g_hi;
 // The TOP nearest hits so far, ascending (depth bits, label); EMPTY_BITS = none. Vectors with
 // constant indices, as the masks.
 uvec4 g_top_d0, g_top_l0, g_top_d1, g_top_l1, g_top_d2, g_top_l2, g_top_d3, g_top_l3;
@@ -296,14 +293,10 @@ void main() {
     if (cached) {
         if (inside) {
             g_lo = uvec4(first_word(0u), first_word(32u), first_word(64u), first_word(96u));
-#if MASK_DISCS > 128
             g_hi = uvec4(first_word(128u), first_word(160u), first_word(192u), first_word(224u));
-#endif
 #if HIT_MASKS
             masks[2u * g_pix] = g_lo;  // for the labeling pass (dmrt_tiles_labeling.glsl)
-#if MASK_DISCS > 128
             if (masks_second_half(count)) masks[2u * g_pix + 1u] = g_hi;
-#endif
 #endif
             walk(min(count, uint(MASK_DISCS)), count);
         }
@@ -331,9 +324,7 @@ void main() {
         if (cached) {
             if (searching) {
                 g_lo = uvec4(again(g_lo.x, 0u), again(g_lo.y, 32u), again(g_lo.z, 64u), again(g_lo.w, 96u));
-#if MASK_DISCS > 128
                 g_hi = uvec4(again(g_hi.x, 128u), again(g_hi.y, 160u), again(g_hi.z, 192u), again(g_hi.w, 224u));
-#endif
                 walk(min(count, uint(MASK_DISCS)), count);
             }
         } else {
@@ -350,8 +341,9 @@ void main() {
 
     if (inside) {
         for (uint i = g_found; i < uint(u_layers); ++i) {
-            layer_depth[i * uint(u_size.x * u_size.y) + g_pix] = EMPTY_BITS;
-            layer_label[i * uint(u_size.x * u_size.y) + g_pix] = EMPTY_LABEL;
+            uint at = i * uint(u_size.x * u_size.y) + g_pix;
+            layer_depth[at] = EMPTY_BITS;
+            layer_label[at] = EMPTY_LABEL;
         }
     }
 }

@@ -49,7 +49,7 @@ from dmrt.runtime.status import RING, FrameStatus
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 ENTRY_BYTES = 8  # a disc index and its box in the tile per disc-tile overlap (dmrt_tiles_bin.glsl)
 LAG = RING - 1  # check="lagged" reads the record of the frame this many frames back
-MASK_DISCS = 256  # the raster's hit masks cover a tile's first 256 discs (dmrt_tiles_common.glsl: or 128)
+MASK_DISCS = 256  # the raster's hit masks cover a tile's first 256 discs (dmrt_tiles_common.glsl)
 # The raster's defaults, chosen by timing (TileVisibility's batch says how; RenderConfig.tile_batch
 # and tile_hits set them for another GPU)
 DEFAULT_BATCH = 288
@@ -117,9 +117,8 @@ class TileVisibility:
             raise ValueError(f"check must be 'frame' or 'lagged', not {check!r}")
         self.ctx, self.splats = ctx, splats
         self.tile, self.check, self.batch, self.top = int(tile), check, int(batch), int(top)
-        self.hit_masks = bool(hit_masks) and self.tile == 16  # the labeling pass's batch: the masks' 256 discs
+        self.hit_masks = bool(hit_masks) and self.tile * self.tile == MASK_DISCS
         self._defines = {"TILE": self.tile, "BATCH": int(batch), "HIT_MASKS": int(self.hit_masks),
-                         "MASK_DISCS": MASK_DISCS,
                          "WARP_BLOCKS": int(bool(warp_blocks))}
         self._bin = {(scatter, large): load_program(ctx, "dmrt_tiles_bin", {**self._defines, "SCATTER": scatter,
                                                                             "LARGE": large,
