@@ -303,19 +303,21 @@ def test_tile_labeling_packed_layout(ctx, bundle):
     try:
         cam = bundle.cameras[3].resized(W)
         r.render(cam)
-        b = r._buffers
         npix = cam.width * cam.height
+        key, vlabel = ctx.buffer(reserve=8 * npix), ctx.buffer(reserve=4 * npix)
         local = cam.relative_to(r.origin)
         uniforms = {"u_R": local.R.T.ravel(), "u_t": local.t, "u_K": (local.fx, local.fy, local.cx, local.cy),
                     "u_size": (cam.width, cam.height)}
-        r.visibility.tiles.label_pass(uniforms, b["hits"], b["key"], b["vlabel"], packed=False)
-        bits = np.frombuffer(b["key"].read(), np.uint32)[:npix].copy()
-        label = np.frombuffer(b["vlabel"].read(), np.int32)[:npix].copy()
+        r.visibility.tiles.label_pass(uniforms, r._buffers["hits"], key, vlabel, packed=False)
+        bits = np.frombuffer(key.read(), np.uint32)[:npix].copy()
+        label = np.frombuffer(vlabel.read(), np.int32)[:npix].copy()
         assert (label >= 0).mean() > 0.5
-        r.visibility.tiles.label_pass(uniforms, b["hits"], b["key"], b["vlabel"], packed=True)
-        packed = np.frombuffer(b["key"].read(), np.uint32)[:2 * npix].reshape(npix, 2)
+        r.visibility.tiles.label_pass(uniforms, r._buffers["hits"], key, vlabel, packed=True)
+        packed = np.frombuffer(key.read(), np.uint32)[:2 * npix].reshape(npix, 2)
         np.testing.assert_array_equal(packed[:, 0].view(np.int32), label)
         np.testing.assert_array_equal(packed[:, 1], bits)
+        key.release()
+        vlabel.release()
     finally:
         r.release()
 

@@ -245,6 +245,9 @@ class Renderer:
             readback: tuple(load_program(self.ctx, "dmrt_raytrace", {**defines, "FILL": fill, "NORMALS": int(readback)})
                             for fill in (0, 1))
             for readback in (False, True)}
+        # the labeling pass on the tiles path's lists leaves the final labels itself (no labels written
+        # and read back by a finalize pass, so no buffers for them)
+        self._labels_finalized = self.config.labeling and self.visibility.tiles is not None
         self._max_groups = max_groups(self.ctx)
         self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
         self.step_stats = self.ctx.buffer(reserve=16 * self.config.layers * STEP_BINS) if self.config.statistics else None
@@ -371,9 +374,7 @@ class Renderer:
         self.photos.bind_to_storage_buffer(abi.B_PHOTOS)
         self.depthmaps.use(0)
         tiles = self.visibility.tiles
-        # the labeling pass on the visibility stage's tile lists (no splatting) leaves the final
-        # labels itself: no labels written and read back by a finalize pass
-        finalized = cfg.labeling and tiles is not None
+        finalized = self._labels_finalized  # by the labeling pass on the tile lists (no splatting)
         with timer.section("labeling"):
             if finalized:
                 tiles.label_pass(cam_uniforms, b["hits"], finalize=check)
@@ -475,18 +476,19 @@ class Renderer:
             "layer_label": self.ctx.buffer(reserve=4 * k * npix),
             "hits": self.ctx.buffer(reserve=HIT_DTYPE.itemsize * npix),
             "normals": self.ctx.buffer(reserve=12 * npix),
-            "key": self.ctx.buffer(reserve=8 * npix),  # 64-bit keys on the int64 path
-            "vlabel": self.ctx.buffer(reserve=4 * npix),
             "colors": self.ctx.buffer(reserve=4 * npix),
             # the fill passes' lists of holes: a 16-byte header, then at most one pixel index per pixel
             "holes_a": self.ctx.buffer(reserve=16 + 4 * npix),
             "holes_b": self.ctx.buffer(reserve=16 + 4 * npix),
         }
+        if not self._labels_finalized:  # the labeling pass's labels, for the finalize pass
+            self._buffers["key"] = self.ctx.buffer(reserve=8 * npix)  # 64-bit keys on the int64 path
+            self._buffers["vlabel"] = self.ctx.buffer(reserve=4 * npix)
         self._size = (w, h)
         self.gpu_bytes["layers"] = 8 * k * npix
         if self.config.method == "kbuffer":
             self.gpu_bytes["kbuffer"] = 4 * npix * (self.config.kbuffer_slots or 6 * k + 2)
-        self.gpu_bytes["frame"] = (HIT_DTYPE.itemsize + 12 + 12 + 8) * npix
+        self.gpu_bytes["frame"] = sum(buf.size for name, buf in self._buffers.items() if not name.startswith("layer_"))
 
     def _release_frame(self) -> None:
         for buf in self._buffers.values():
