@@ -77,13 +77,12 @@ void consider(uint j) {
 // The raster sorted a masked tile's discs by their nearest possible depth (centre z - radius), so
 // once a disc's lies farther behind q than the nearest distance so far, every later disc's centre
 // does too (|c - q| >= c.z - q.z >= near z - q.z): the rest cannot win, not even a tie. The margin
-// (relative 1e-4) covers the raster's order, by depths rounded down by up to 2^-14 = 6.1e-5
-// relative (dmrt_tiles_raster.glsl, sort_key), and the float rounding of the terms (~1e-7).
+// covers the float rounding of the three terms (relative 1e-5, far above float32's 6e-8).
 bool g_done;
 bool beyond(uint j) {
     float near = s_cl[j].z - s_nr[j].w;
-    float gap = near - g_q.z - 1e-4 * (abs(near) + abs(g_q.z));
-    return g_best != EMPTY_BITS && gap > uintBitsToFloat(g_best);
+    float gap = near - g_q.z - 1e-5 * (abs(near) + abs(g_q.z));
+    return g_best != EMPTY_BITS && gap > uintBitsToFloat(g_best) * (1.0 + 1e-5);
 }
 
 // The discs of a mask word (32 discs from `base`) that hit the pixel, in the raster's order.

@@ -101,7 +101,7 @@ void load_batch(uint first, uint n) {
 }
 
 #if HIT_MASKS
-// The batch in order of the discs' nearest possible depth (centre z - radius; sort_key),
+// The batch in order of the discs' nearest possible depth (centre z - radius; ties by position),
 // with the tile's slice of Entries rewritten in that order, which the masks' bits follow: the
 // labeling pass then meets each pixel's hits front to back and stops at the first disc that lies
 // too far behind its point to be the nearest (dmrt_tiles_labeling.glsl, beyond). The layers do
@@ -109,27 +109,17 @@ void load_batch(uint first, uint n) {
 // session 17). Each invocation ranks SLOTS discs; call it from uniform control flow (it holds
 // barriers).
 #define SLOTS ((BATCH + THREADS - 1) / THREADS)
-#if BATCH > 1024
-#error "BATCH must be at most 1024 (sort_key)"
-#endif
-#define INDEX_MASK (BATCH <= 256 ? 255u : BATCH <= 512 ? 511u : 1023u)
-shared uvec4 s_key[(BATCH + 3) / 4];  // sort_key of each disc, 4 a vector
-
-// Disc i's nearest possible depth as an unsigned int in the floats' order, its low bits replaced by
-// i: unique keys (a rank is one compare a disc), in the order of the depths rounded down by at most
-// 2^-14 relative, which the labeling pass's margin covers.
-uint sort_key(uint i) {
-    vec2 zr = s_pr[i].zw;
-    uint b = floatBitsToUint(zr.x - zr.y);
-    uint o = (b & 0x80000000u) != 0u ? ~b : b | 0x80000000u;
-    return (o & ~INDEX_MASK) | i;
+float near_z(uint j) {
+    vec2 zr = s_pr[j].zw;
+    return zr.x - zr.y;
 }
 
-uint rank_in_batch(uint key, uint n) {
+uint rank_in_batch(uint i, uint n) {
+    float key = near_z(i);
     uint r = 0u;
-    for (uint q = 0u; q < (n + 3u) / 4u; ++q) {
-        uvec4 less = uvec4(lessThan(s_key[q], uvec4(key)));
-        r += less.x + less.y + less.z + less.w;
+    for (uint j = 0u; j < n; ++j) {
+        float k = near_z(j);
+        r += uint(k < key || (k == key && j < i));
     }
     return r;
 }
@@ -137,14 +127,10 @@ uint rank_in_batch(uint key, uint n) {
 void sort_batch(uint off, uint n) {
     uint rank[SLOTS], index[SLOTS], box[SLOTS];
     vec4 pr[SLOTS], nl[SLOTS];
-    for (uint i = gl_LocalInvocationIndex; i < ((n + 3u) & ~3u); i += uint(THREADS))
-        s_key[i >> 2u][i & 3u] = i < n ? sort_key(i) : ~0u;  // padding: after every disc
-    memoryBarrierShared();
-    barrier();
     for (int k = 0; k < SLOTS; ++k) {
         uint i = gl_LocalInvocationIndex + uint(k * THREADS);
         uint at = min(i, n - 1u);
-        rank[k] = i < n ? rank_in_batch(s_key[i >> 2u][i & 3u], n) : ~0u;
+        rank[k] = i < n ? rank_in_batch(i, n) : ~0u;
         pr[k] = s_pr[at];
         nl[k] = s_nl[at];
         box[k] = s_box[at];
