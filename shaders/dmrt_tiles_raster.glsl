@@ -100,15 +100,16 @@ void load_batch(uint first, uint n) {
     }
 }
 
-#if HIT_MASKS
 // The batch in order of the discs' nearest possible depth (centre z - radius; ties by position),
-// with the tile's slice of Entries rewritten in that order, which the masks' bits follow: the
-// labeling pass then meets each pixel's hits front to back and stops at the first disc that lies
-// too far behind its point to be the nearest (dmrt_tiles_labeling.glsl, beyond). The layers do
-// not depend on the order (see the top of the file); nor did the raster's time (reports/frame-h200,
-// session 17). Each invocation ranks SLOTS discs; call it from uniform control flow (it holds
-// barriers).
-#define SLOTS ((BATCH + THREADS - 1) / THREADS)
+// so that the first walk meets each pixel's hits roughly front to back: a hit then mostly lands at
+// the end of the sorted nearest hits (keep_nearest skips the blocks in front of it) or behind them
+// (one compare), where hits in the binning's arbitrary order shift the whole list. The layers do
+// not depend on the order (see the top of the file). With HIT_MASKS the tile's slice of Entries is
+// rewritten in this order, which the masks' bits and the labeling pass follow. Each invocation
+// ranks up to two discs; call it from uniform control flow (it holds barriers).
+#if BATCH > 2 * THREADS
+#error "BATCH must be at most twice the workgroup's invocations (sort_batch)"
+#endif
 float near_z(uint j) {
     vec2 zr = s_pr[j].zw;
     return zr.x - zr.y;
@@ -125,31 +126,32 @@ uint rank_in_batch(uint i, uint n) {
 }
 
 void sort_batch(uint off, uint n) {
-    uint rank[SLOTS], index[SLOTS], box[SLOTS];
-    vec4 pr[SLOTS], nl[SLOTS];
-    for (int k = 0; k < SLOTS; ++k) {
-        uint i = gl_LocalInvocationIndex + uint(k * THREADS);
-        uint at = min(i, n - 1u);
-        rank[k] = i < n ? rank_in_batch(i, n) : ~0u;
-        pr[k] = s_pr[at];
-        nl[k] = s_nl[at];
-        box[k] = s_box[at];
-        index[k] = entries[off + at].x;
-    }
+    uint i0 = gl_LocalInvocationIndex, i1 = i0 + uint(THREADS);
+    uint r0 = i0 < n ? rank_in_batch(i0, n) : 0u;
+    uint r1 = i1 < n ? rank_in_batch(i1, n) : 0u;
+    vec4 pr0 = s_pr[min(i0, n - 1u)], nl0 = s_nl[min(i0, n - 1u)];
+    vec4 pr1 = s_pr[min(i1, n - 1u)], nl1 = s_nl[min(i1, n - 1u)];
+    uint box0 = s_box[min(i0, n - 1u)], box1 = s_box[min(i1, n - 1u)];
+#if HIT_MASKS
+    uint k0 = entries[off + min(i0, n - 1u)].x, k1 = entries[off + min(i1, n - 1u)].x;
+#endif
     memoryBarrier();
     barrier();  // every disc read before any is moved
-    for (int k = 0; k < SLOTS; ++k) {
-        uint r = rank[k];
-        if (r == ~0u) continue;
-        s_pr[r] = pr[k];
-        s_nl[r] = nl[k];
-        s_box[r] = box[k];
-        entries[off + r] = uvec2(index[k], box[k]);
+    if (i0 < n) {
+        s_pr[r0] = pr0; s_nl[r0] = nl0; s_box[r0] = box0;
+#if HIT_MASKS
+        entries[off + r0] = uvec2(k0, box0);
+#endif
     }
-    memoryBarrier();
+    if (i1 < n) {
+        s_pr[r1] = pr1; s_nl[r1] = nl1; s_box[r1] = box1;
+#if HIT_MASKS
+        entries[off + r1] = uvec2(k1, box1);
+#endif
+    }
+    memoryBarrierShared();
     barrier();
 }
-#endif
 
 // Depth bits of disc j's hit at the pixel, 0 for none.
 uint hit_bits(uint j) {
@@ -338,9 +340,7 @@ void main() {
     if (cached) load_batch(off, count);
     memoryBarrierShared();
     barrier();
-#if HIT_MASKS
     if (cached && count > 0u) sort_batch(off, count);
-#endif
 
     // the first walk: every disc, the pixel's nearest hits kept sorted
     g_first = true;

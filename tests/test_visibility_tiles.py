@@ -209,49 +209,6 @@ def test_equal_depths_take_the_smaller_label(ctx):
             obj.release()
 
 
-def test_labeling_stops_only_where_no_disc_can_win(ctx):
-    """The tiles labeling pass walks a pixel's discs in the raster's order of nearest depth and stops
-    where the rest lie too far behind its point q to be the nearest (dmrt_tiles_labeling.glsl,
-    beyond). Every fourth pixel of a 32 x 32 frame has four tiny discs (r = 1 mm) centred on its
-    ray: one 0.1 m in front of q (label 0), one 0.1 m - delta behind (label 1, delta 3-10 mm: the
-    nearest), and two 1 m away (labels 2, 3); 256 discs a tile (held in shared memory and sorted,
-    all through the hit masks), in random order. A stop even 1 cm early would take label 0. Truth:
-    label 1 on those pixels, as splatting every disc again."""
-    from dmrt.runtime.tiles import TileVisibility
-    from dmrt.runtime.visibility import ProxySplats, VisibilityStage
-
-    rng = np.random.default_rng(3)
-    cam = Camera("rays", 32, 32, 64.0, 64.0, 16.0, 16.0, np.eye(3), np.zeros(3))
-    v, u = np.mgrid[0:32, 0:32]
-    lit = ((u + v) % 4 == 0).ravel()
-    ray = np.stack([(u + 0.5 - cam.cx) / cam.fx, (v + 0.5 - cam.cy) / cam.fy, np.ones(u.shape)], -1).reshape(-1, 3)[lit]
-    zq = rng.uniform(3.0, 6.0, len(ray))
-    offsets = np.stack([np.full(len(ray), -0.1), 0.1 - rng.uniform(0.003, 0.01, len(ray)),
-                        np.full(len(ray), -1.0), np.full(len(ray), 1.0)], 1)  # (pixels, 4) metres along z
-    pos = (ray[:, None, :] * (zq[:, None] + offsets)[..., None]).reshape(-1, 3)
-    order = rng.permutation(len(pos))
-    proxy = {"positions": pos[order].astype(np.float32),
-             "normals": np.tile([0.0, 0.0, -1.0], (len(pos), 1)).astype(np.float32),
-             "radii": np.full(len(pos), 1e-3, np.float32),
-             "labels": np.tile(np.arange(4, dtype=np.int32), len(ray))[order]}
-    splats = ProxySplats(ctx, proxy)
-    peel = VisibilityStage(ctx, splats, "compute")
-    tiles = TileVisibility(ctx, splats)
-    try:
-        splats.begin_frame()
-        _assert_equal(_layers(ctx, peel, cam, 4), _layers(ctx, tiles, cam, 4), 4, "discs on the rays")
-        assert tiles.stats()["entries"] == len(pos)  # a tile each
-        depth = np.zeros(32 * 32, np.float32)
-        depth[lit] = zq
-        depth = depth.reshape(32, 32)
-        label = _tile_labels(ctx, tiles, splats, cam, depth)
-        np.testing.assert_array_equal(label, _tile_labels(ctx, None, splats, cam, depth))
-        assert (label[depth > 0] == 1).all()
-    finally:
-        for obj in (tiles, peel, splats):
-            obj.release()
-
-
 def _tile_labels(ctx, tiles, splats, cam: Camera, depth: np.ndarray) -> np.ndarray:
     """(h, w) labels of the labeling pass for raytraced camera z ``depth`` (0 = none): on ``tiles``'
     lists of the last frame (dmrt_tiles_labeling.glsl), or with None by splatting the proxies
