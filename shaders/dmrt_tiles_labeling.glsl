@@ -74,25 +74,12 @@ void consider(uint j) {
     }
 }
 
-// The raster sorted a masked tile's discs by their nearest possible depth (centre z - radius), so
-// once a disc's lies farther behind q than the nearest distance so far, every later disc's centre
-// does too (|c - q| >= c.z - q.z >= near z - q.z): the rest cannot win, not even a tie. The margin
-// covers the float rounding of the three terms (relative 1e-5, far above float32's 6e-8).
-bool g_done;
-bool beyond(uint j) {
-    float near = s_cl[j].z - s_nr[j].w;
-    float gap = near - g_q.z - 1e-5 * (abs(near) + abs(g_q.z));
-    return g_best != EMPTY_BITS && gap > uintBitsToFloat(g_best) * (1.0 + 1e-5);
-}
-
-// The discs of a mask word (32 discs from `base`) that hit the pixel, in the raster's order.
+// The discs of a mask word (32 discs from `base`) that hit the pixel.
 void visit(uint word, uint base) {
-    while (word != 0u && !g_done) {
+    while (word != 0u) {
         int b = findLSB(word);
         word &= word - 1u;
-        uint j = base + uint(b);
-        g_done = beyond(j);
-        if (!g_done) consider(j);
+        consider(base + uint(b));
     }
 }
 
@@ -111,7 +98,6 @@ void main() {
     g_q = z * ray;
     g_best = EMPTY_BITS;
     g_best_label = EMPTY_LABEL;
-    g_done = false;
     uint start = offsets[tile];
     uint end = min(offsets[tile + 1u], u_capacity);
     // the raster's condition for holding the list in shared memory, on the same (cut) length
@@ -124,8 +110,10 @@ void main() {
             uvec2 e = entries[base + lid];
             Splat s = load_proxy(e.x, label);
             s_cl[lid] = vec4(s.pc, intBitsToFloat(label));
-            s_nr[lid] = vec4(s.nc, s.r);
-            if (!by_masks) s_box[lid] = e.y;
+            if (!by_masks) {
+                s_nr[lid] = vec4(s.nc, s.r);
+                s_box[lid] = e.y;
+            }
         }
         barrier();
         uint n = min(uint(THREADS), end - base);
