@@ -58,7 +58,7 @@ layout(local_size_x = TILE, local_size_y = TILE) in;
 
 layout(std430, binding = B_LAYER_DEPTH) writeonly buffer LayerDepth { uint layer_depth[]; };
 layout(std430, binding = B_LAYER_LABEL) writeonly buffer LayerLabel { int layer_label[]; };
-layout(std430, binding = B_TILE_ENTRIES) buffer Entries { uvec2 entries[]; };  // written: sort_batch
+layout(std430, binding = B_TILE_ENTRIES) readonly buffer Entries { uvec2 entries[]; };
 layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
 #if HIT_MASKS
 layout(std430, binding = B_TILE_MASKS) writeonly buffer Masks { uvec4 masks[]; };  // 2 per pixel: g_lo, g_hi
@@ -98,59 +98,6 @@ void load_batch(uint first, uint n) {
         s_nl[i] = vec4(s.nc, intBitsToFloat(label));
         s_box[i] = e.y;
     }
-}
-
-// The batch in order of the discs' nearest possible depth (centre z - radius; ties by position),
-// so that the first walk meets each pixel's hits roughly front to back: a hit then mostly lands at
-// the end of the sorted nearest hits (keep_nearest skips the blocks in front of it) or behind them
-// (one compare), where hits in the binning's arbitrary order shift the whole list. The layers do
-// not depend on the order (see the top of the file). With HIT_MASKS the tile's slice of Entries is
-// rewritten in this order, which the masks' bits and the labeling pass follow. Each invocation
-// ranks up to two discs; call it from uniform control flow (it holds barriers).
-#if BATCH > 2 * THREADS
-#error "BATCH must be at most twice the workgroup's invocations (sort_batch)"
-#endif
-float near_z(uint j) {
-    vec2 zr = s_pr[j].zw;
-    return zr.x - zr.y;
-}
-
-uint rank_in_batch(uint i, uint n) {
-    float key = near_z(i);
-    uint r = 0u;
-    for (uint j = 0u; j < n; ++j) {
-        float k = near_z(j);
-        r += uint(k < key || (k == key && j < i));
-    }
-    return r;
-}
-
-void sort_batch(uint off, uint n) {
-    uint i0 = gl_LocalInvocationIndex, i1 = i0 + uint(THREADS);
-    uint r0 = i0 < n ? rank_in_batch(i0, n) : 0u;
-    uint r1 = i1 < n ? rank_in_batch(i1, n) : 0u;
-    vec4 pr0 = s_pr[min(i0, n - 1u)], nl0 = s_nl[min(i0, n - 1u)];
-    vec4 pr1 = s_pr[min(i1, n - 1u)], nl1 = s_nl[min(i1, n - 1u)];
-    uint box0 = s_box[min(i0, n - 1u)], box1 = s_box[min(i1, n - 1u)];
-#if HIT_MASKS
-    uint k0 = entries[off + min(i0, n - 1u)].x, k1 = entries[off + min(i1, n - 1u)].x;
-#endif
-    memoryBarrier();
-    barrier();  // every disc read before any is moved
-    if (i0 < n) {
-        s_pr[r0] = pr0; s_nl[r0] = nl0; s_box[r0] = box0;
-#if HIT_MASKS
-        entries[off + r0] = uvec2(k0, box0);
-#endif
-    }
-    if (i1 < n) {
-        s_pr[r1] = pr1; s_nl[r1] = nl1; s_box[r1] = box1;
-#if HIT_MASKS
-        entries[off + r1] = uvec2(k1, box1);
-#endif
-    }
-    memoryBarrierShared();
-    barrier();
 }
 
 // Depth bits of disc j's hit at the pixel, 0 for none.
@@ -340,7 +287,6 @@ void main() {
     if (cached) load_batch(off, count);
     memoryBarrierShared();
     barrier();
-    if (cached && count > 0u) sort_batch(off, count);
 
     // the first walk: every disc, the pixel's nearest hits kept sorted
     g_first = true;
