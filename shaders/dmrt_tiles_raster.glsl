@@ -83,14 +83,11 @@ uint g_count;             // discs in the tile's list
 // filled component by component with constant indices: an array indexed by a loop counter may be
 // kept in local memory (dmrt_photos.glsl's snap_try says more).
 uvec4 g_lo, g_hi;
-// The TOP nearest hits so far, ascending by depth bits: each hit's depth bits and its disc's
-// position in the tile's list (its label is looked up where a layer is taken: label_at); EMPTY_BITS
-// = none. Vectors with constant indices, as the masks.
+// The TOP nearest hits so far, ascending (depth bits, label); EMPTY_BITS = none. Vectors with
+// constant indices, as the masks.
 uvec4 g_top_d0, g_top_l0, g_top_d1, g_top_l1, g_top_d2, g_top_l2, g_top_d3, g_top_l3;
 uint g_hits;   // hits of the pixel in the first walk
 bool g_first;  // the first walk (collect the nearest hits) or a later one (the filtered minimum)
-uint g_off;    // the tile's first entry
-uint g_batch;  // the position in the tile's list of the batch in shared memory
 
 void load_batch(uint first, uint n) {
     for (uint i = gl_LocalInvocationIndex; i < n; i += uint(THREADS)) {
@@ -143,7 +140,7 @@ bool g_tie;
 #define FARTHEST_D (TOP > 12 ? g_top_d3.w : TOP > 8 ? g_top_d2.w : TOP > 4 ? g_top_d1.w : g_top_d0.w)
 
 void keep_nearest(uint d, uint j) {
-    uint l = g_batch + j;
+    uint l = floatBitsToUint(s_nl[j].w);
     ++g_hits;
     if (d >= FARTHEST_D) {
         g_tie = g_tie || d == FARTHEST_D;  // the list is full (an empty entry matches no hit)
@@ -230,16 +227,8 @@ void write_layer(uint d, uint l) {
     ++g_found;
 }
 
-// The label of the disc at position p of the tile's list: from shared memory where the list is held
-// there, else from the proxies.
-uint label_at(uint p) {
-    if (g_count <= uint(BATCH)) return floatBitsToUint(s_nl[p].w);
-    return floatBitsToUint(proxies[uint(PROXY_FLOATS) * entries[g_off + p].x + 7u]);
-}
-
 // The peeling rule over the sorted nearest hits, in order (see the top of the file).
-#define TAKE(D, P) if (g_found < uint(u_layers) && D != EMPTY_BITS && D > g_prev_d) { \
-    uint l = label_at(P); if (l != g_prev_l) write_layer(D, l); }
+#define TAKE(D, L) if (g_found < uint(u_layers) && D != EMPTY_BITS && D > g_prev_d && L != g_prev_l) write_layer(D, L);
 
 #define TAKES(D, L) TAKE(D.x, L.x) TAKE(D.y, L.y) TAKE(D.z, L.z) TAKE(D.w, L.w)
 
@@ -256,31 +245,6 @@ void layers_from_nearest() {
 #endif
 }
 
-// After the peeling rule took what it could from the nearest hits of a pixel that still lacks
-// layers (and has no equal depths among them), none of them can be a later layer: the next one is
-// the nearest hit behind the farthest kept (those in between failed the rule by their label), and
-// each after it lies further back. Their bits leave the masks, so that the later walks do not test
-// those discs again only to drop them (most of a pixel's hits).
-void forget(uint p) {
-    uint w = p >> 5u, bit = 1u << (p & 31u);
-    g_lo &= ~(uvec4(equal(uvec4(w), uvec4(0u, 1u, 2u, 3u))) * bit);
-    g_hi &= ~(uvec4(equal(uvec4(w), uvec4(4u, 5u, 6u, 7u))) * bit);
-}
-#define FORGET(P) if (P < uint(MASK_DISCS)) forget(P);
-#define FORGETS(P) FORGET(P.x) FORGET(P.y) FORGET(P.z) FORGET(P.w)
-void forget_nearest() {
-    FORGETS(g_top_l0)
-#if TOP > 4
-    FORGETS(g_top_l1)
-#endif
-#if TOP > 8
-    FORGETS(g_top_l2)
-#endif
-#if TOP > 12
-    FORGETS(g_top_l3)
-#endif
-}
-
 // A list longer than BATCH: walked BATCH discs at a time, each batch loaded into shared memory by
 // the whole workgroup (call it from uniform control flow: it holds barriers); `walking`: this
 // invocation tests the discs.
@@ -290,7 +254,6 @@ void walk_batches(uint off, uint count, bool walking) {
         memoryBarrierShared();
         barrier();  // the batch before is no longer read
         load_batch(off + sb, nb);
-        g_batch = sb;
         memoryBarrierShared();
         barrier();
         if (walking) walk(0u, nb);
@@ -319,8 +282,6 @@ void main() {
     uint count = offsets[tile + 1u] - off;
     count = min(count, u_capacity - min(off, u_capacity));  // entries past the buffer were dropped
     g_count = count;
-    g_off = off;
-    g_batch = 0u;
     bool cached = count <= uint(BATCH);
     if (lid < 3u) s_found[lid] = 0u;
     if (cached) load_batch(off, count);
@@ -348,7 +309,6 @@ void main() {
     // a pixel whose hits did not all fit in the sorted prefix and which lacks layers walks again,
     // and one with equal depths among its nearest hits for every layer
     bool searching = inside && g_found < uint(u_layers) && (g_hits > uint(TOP) || g_tie);
-    if (searching && cached && !g_tie) forget_nearest();
 
     // then a walk per missing layer, over the pixels that need one, while any does; flag slot
     // i % 3 says "some pixel needs walk i + 1". A slot is reset (by invocation 0, before the
