@@ -25,10 +25,8 @@
 //    first MASK_DISCS (256) discs hit the pixel (a bit mask in eight registers); these walks
 //    test only those (findLSB), dropping the hits at or in front of the last layer (they can never
 //    pass a filter again). Most tiles hold fewer discs (paper preset: ~180 a tile at 1280x720, ~63
-//    at 3840x2160), so a pixel then visits only its own hits. These pixels are first packed onto
-//    the workgroup's first invocations (later_walks_packed), which walk without barriers; a list
-//    walked in batches keeps every pixel in place and the workgroup walks while any of its pixels
-//    needs another walk (a shared flag per walk).
+//    at 3840x2160), so a pixel then visits only its own hits. The workgroup stops when none of its
+//    pixels needs another walk (a shared flag per walk).
 // Every layer of every pixel is written once (empty ones as EMPTY_BITS / EMPTY_LABEL), so the layer
 // buffers need no clearing.
 //
@@ -262,90 +260,6 @@ void walk_batches(uint off, uint count, bool walking) {
     }
 }
 
-// The empty layers after the pixel's last one.
-void write_empty_layers() {
-    for (uint i = g_found; i < uint(u_layers); ++i) {
-        uint at = i * uint(u_size.x * u_size.y) + g_pix;
-        layer_depth[at] = EMPTY_BITS;
-        layer_label[at] = EMPTY_LABEL;
-    }
-}
-
-// The later walks of a pixel whose list is held in shared memory: one per missing layer, each the
-// smallest (depth bits, label) behind the last layer with another label among the discs that hit
-// it (the masks) and those past the masks' 256.
-void walk_until_done() {
-    bool searching = true;
-    while (searching) {
-        g_best_d = EMPTY_BITS;
-        g_best_l = EMPTY_BITS;
-        g_lo = uvec4(again(g_lo.x, 0u), again(g_lo.y, 32u), again(g_lo.z, 64u), again(g_lo.w, 96u));
-        g_hi = uvec4(again(g_hi.x, 128u), again(g_hi.y, 160u), again(g_hi.z, 192u), again(g_hi.w, 224u));
-        walk(min(g_count, uint(MASK_DISCS)), g_count);
-        if (g_best_d != EMPTY_BITS) write_layer(g_best_d, g_best_l);
-        searching = g_best_d != EMPTY_BITS && g_found < uint(u_layers);
-    }
-}
-
-// Cached list: the pixels that walk again are packed onto the workgroup's first invocations (their
-// state through shared memory), each of which then walks its pixel to the end with no barrier. In
-// place, a warp with one such pixel among its 32 spends each walk's instructions for that one lane
-// (later walks took a third of this pass at 3840x2160 on the H200, half at 1280x720, with most
-// lanes idle: reports/frame-h200, session 17).
-shared uint s_packed;          // pixels packed
-shared uvec4 s_state[THREADS]; // pixel index, last layer's depth bits and label, layers found
-shared uvec4 s_lo[THREADS], s_hi[THREADS];  // their hit masks
-void later_walks_packed(bool searching) {
-    uint lid = gl_LocalInvocationIndex;
-    if (searching) {
-        uint i = atomicAdd(s_packed, 1u);
-        s_state[i] = uvec4(g_pix, g_prev_d, g_prev_l, g_found);
-        s_lo[i] = g_lo;
-        s_hi[i] = g_hi;
-    }
-    memoryBarrierShared();
-    barrier();
-    if (lid >= s_packed) return;
-    uvec4 st = s_state[lid];
-    g_pix = st.x;
-    g_prev_d = st.y;
-    g_prev_l = st.z;
-    g_found = st.w;
-    g_lo = s_lo[lid];
-    g_hi = s_hi[lid];
-    ivec2 p = ivec2(g_pix % uint(u_size.x), g_pix / uint(u_size.x));
-    g_px = pixel_bits(p - ivec2(gl_WorkGroupID.xy) * TILE);
-    g_ray = splat_ray(vec2(p) + 0.5);
-    g_ray_len = length(g_ray);
-    walk_until_done();
-    write_empty_layers();
-}
-
-// A list walked in batches: a walk per missing layer, over the pixels that need one, while any
-// does, the batches loaded by the whole workgroup (barriers); flag slot i % 3 says "some pixel
-// needs walk i + 1". A slot is reset (by invocation 0, before the barrier of walk i) two walks
-// after it was last read, before barriers every invocation has passed since, and set again only
-// after that barrier.
-void later_walks_batched(uint off, uint count, bool searching) {
-    uint lid = gl_LocalInvocationIndex;
-    uint slot = 0u;
-    if (searching) s_found[0] = 1u;
-    memoryBarrierShared();
-    barrier();
-    for (uint i = 1u; s_found[slot] != 0u; ++i) {
-        g_best_d = EMPTY_BITS;
-        g_best_l = EMPTY_BITS;
-        walk_batches(off, count, searching);
-        if (searching && g_best_d != EMPTY_BITS) write_layer(g_best_d, g_best_l);
-        searching = searching && g_best_d != EMPTY_BITS && g_found < uint(u_layers);
-        slot = i % 3u;
-        if (searching) s_found[slot] = 1u;
-        if (lid == 0u) s_found[(i + 1u) % 3u] = 0u;
-        memoryBarrierShared();
-        barrier();
-    }
-}
-
 void main() {
     uint lid = gl_LocalInvocationIndex;
     uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
@@ -370,7 +284,6 @@ void main() {
     g_count = count;
     bool cached = count <= uint(BATCH);
     if (lid < 3u) s_found[lid] = 0u;
-    if (lid == 0u) s_packed = 0u;
     if (cached) load_batch(off, count);
     memoryBarrierShared();
     barrier();
@@ -397,12 +310,41 @@ void main() {
     // and one with equal depths among its nearest hits for every layer
     bool searching = inside && g_found < uint(u_layers) && (g_hits > uint(TOP) || g_tie);
 
-    if (cached) {
-        if (inside && !searching) write_empty_layers();
-        later_walks_packed(searching);  // the others' pixels
-    } else {
-        later_walks_batched(off, count, searching);
-        if (inside) write_empty_layers();
+    // then a walk per missing layer, over the pixels that need one, while any does; flag slot
+    // i % 3 says "some pixel needs walk i + 1". A slot is reset (by invocation 0, before the
+    // barrier of walk i) two walks after it was last read, before barriers every invocation has
+    // passed since, and set again only after that barrier.
+    uint slot = 0u;
+    if (searching) s_found[0] = 1u;
+    memoryBarrierShared();
+    barrier();
+    for (uint i = 1u; s_found[slot] != 0u; ++i) {
+        g_best_d = EMPTY_BITS;
+        g_best_l = EMPTY_BITS;
+        if (cached) {
+            if (searching) {
+                g_lo = uvec4(again(g_lo.x, 0u), again(g_lo.y, 32u), again(g_lo.z, 64u), again(g_lo.w, 96u));
+                g_hi = uvec4(again(g_hi.x, 128u), again(g_hi.y, 160u), again(g_hi.z, 192u), again(g_hi.w, 224u));
+                walk(min(count, uint(MASK_DISCS)), count);
+            }
+        } else {
+            walk_batches(off, count, searching);
+        }
+        if (searching && g_best_d != EMPTY_BITS) write_layer(g_best_d, g_best_l);
+        searching = searching && g_best_d != EMPTY_BITS && g_found < uint(u_layers);
+        slot = i % 3u;
+        if (searching) s_found[slot] = 1u;
+        if (lid == 0u) s_found[(i + 1u) % 3u] = 0u;
+        memoryBarrierShared();
+        barrier();
+    }
+
+    if (inside) {
+        for (uint i = g_found; i < uint(u_layers); ++i) {
+            uint at = i * uint(u_size.x * u_size.y) + g_pix;
+            layer_depth[at] = EMPTY_BITS;
+            layer_label[at] = EMPTY_LABEL;
+        }
     }
 }
 
