@@ -75,13 +75,6 @@ shared vec4 s_nl[BATCH];     // unit normal, label (uint bits)
 // those (findLSB) instead of testing every disc's box (which took ~0.4 of this pass's 1.68 ms at
 // 3840x2160 on the H200, ~63 discs a tile: reports/frame-h200, session 17).
 #define WORDS ((BATCH + 31) / 32)
-// A list of more discs than this is walked disc by disc only where they hold the pixel, a shorter
-// one disc by disc (H200, session 17: the tile raster 0.50 -> 0.35 ms at 1280x720, ~180 discs a
-// tile, but 1.72 -> 1.78 ms at 3840x2160, ~63 discs a tile, where the lanes of a warp share
-// most discs).
-#ifndef SPARSE_WALK
-#define SPARSE_WALK 128
-#endif
 shared uint s_cols[WORDS * TILE];
 shared uint s_rows[WORDS * TILE];
 shared uint s_found[3];      // "some pixel found this layer", one per walk, rotating
@@ -202,29 +195,20 @@ bool ties_in_nearest() {
 
 // Test discs [from, to) of the batch in shared memory; the bits of the hits, from bit 0 for disc
 // `from` (meaningful for up to 32 discs).
-// A hit of disc j found by walk(): its bit in the walk's mask, then the nearest hits (first walk)
-// or the filtered minimum (later walks).
-void visit(uint j, uint from, inout uint mask) {
-    uint d = hit_bits(j);
-    if (d == 0u) return;
-    mask |= 1u << ((j - from) & 31u);
-    if (g_first) keep_nearest(d, j);
-    else consider(d, j);
-}
-
 uint walk(uint from, uint to) {
     uint mask = 0u;
     for (uint w = from >> 5u; w << 5u < to; ++w) {
         uint m = s_cols[w * uint(TILE) + g_col] & s_rows[w * uint(TILE) + g_row];
         uint lo = max(from, w << 5u) - (w << 5u), hi = min(to - (w << 5u), 32u);
-        if (g_count > uint(SPARSE_WALK)) {
-            // each invocation its own discs: fewer turns, but the lanes of a warp load different discs
-            m &= (hi >= 32u ? ~0u : (1u << hi) - 1u) & ~((1u << lo) - 1u);
-            for (; m != 0u; m &= m - 1u) visit((w << 5u) + uint(findLSB(m)), from, mask);
-        } else {
-            // every disc in turn, the warp's lanes on the same one (one load for all)
-            for (uint b = lo; b < hi; ++b)
-                if (((m >> b) & 1u) != 0u) visit((w << 5u) + b, from, mask);
+        m &= (hi >= 32u ? ~0u : (1u << hi) - 1u) & ~((1u << lo) - 1u);
+        while (m != 0u) {
+            uint j = (w << 5u) + uint(findLSB(m));
+            m &= m - 1u;
+            uint d = hit_bits(j);
+            if (d == 0u) continue;
+            mask |= 1u << ((j - from) & 31u);
+            if (g_first) keep_nearest(d, j);
+            else consider(d, j);
         }
     }
     return mask;
