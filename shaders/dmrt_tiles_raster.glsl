@@ -11,15 +11,16 @@
 //
 // The walk's cost is in the loads and the tests, so:
 // 1. A list of up to BATCH discs is loaded into shared memory once (camera-space centre, normal,
-//    radius, label; the pixel boxes as bit masks by column and row, s_cols / s_rows) and serves
-//    every walk; a longer one is walked BATCH discs at a time, loaded again for each walk.
-// 2. The first walk tests the discs whose box holds the pixel (a bit mask a 32 discs), and each
-//    invocation keeps its TOP nearest hits sorted by depth in registers. The layers are the peeling rule applied to
-//    the pixel's hits in that order (a hit is the next layer if it lies behind the last one with
-//    another label; one that fails can never pass later, as every later layer lies at or behind
-//    it), so the sorted prefix yields the pixel's first layers exactly: all k of them when the rule
-//    finds k in it (most pixels: the labels of the maps that see a surface interleave in depth), or
-//    all there are when the pixel has at most TOP hits; with no two of equal depth among them.
+//    radius, label, pixel box) and serves every walk; a longer one is walked BATCH discs at a
+//    time, loaded again for each walk.
+// 2. The first walk tests the discs whose box holds the pixel (SPARSE_WALK says how), and each
+//    invocation keeps its TOP nearest hits sorted by depth in registers. The layers are the
+//    peeling rule applied to the pixel's hits in that order (a hit is the next layer if it lies
+//    behind the last one with another label; one that fails can never pass later, as every later
+//    layer lies at or behind it), so the sorted prefix yields the pixel's first layers exactly:
+//    all k of them when the rule finds k in it (most pixels: the labels of the maps that see a
+//    surface interleave in depth), or all there are when the pixel has at most TOP hits; with no
+//    two of equal depth among them.
 // 3. Only the other pixels walk again, once per missing layer, each keeping the smallest
 //    (depth bits, label) that passes the filter. The first walk also noted which of the tile's
 //    first MASK_DISCS (256) discs hit the pixel (a bit mask in eight registers); these walks
@@ -69,18 +70,33 @@ uniform int u_layers;     // k
 
 shared vec4 s_pr[BATCH];     // camera-space centre (m), radius (m)
 shared vec4 s_nl[BATCH];     // unit normal, label (uint bits)
-// The discs' pixel boxes by word of 32 discs: s_cols[w * TILE + x] has bit i set when the box of
-// disc 32 w + i spans the tile's column x, s_rows likewise for rows (from box_bits). A pixel's
-// discs of a word are then the AND of its column's and its row's words, and a walk visits only
-// those (findLSB) instead of testing every disc's box (which took ~0.4 of this pass's 1.68 ms at
-// 3840x2160 on the H200, ~63 discs a tile: reports/frame-h200, session 17).
+// How a walk finds the discs whose pixel box holds the pixel (the program is built both ways; the
+// stage picks one a frame from how many discs its tiles hold, TileVisibility's walk):
+// SPARSE_WALK 0: every disc in turn, its box tested (the warp's lanes on the same disc: one load
+//   for all); SPARSE_WALK 1: the boxes as bit masks by word of 32 discs, s_cols[w * TILE + x]
+//   with bit i set when the box of disc 32 w + i spans the tile's column x, s_rows likewise for
+//   rows (from box_bits); a pixel's discs of a word are the AND of its column's and its row's
+//   words, and each lane visits only its own (findLSB). H200 (reports/frame-h200, session 17):
+//   with ~180 discs a tile (1280x720) the raster took 0.35 ms sparse against 0.50 in turn (the
+//   box tests alone were ~0.4 of 1.68 ms at 3840x2160); with ~63 (3840x2160) 1.78 against 1.72.
+#ifndef SPARSE_WALK
+#define SPARSE_WALK 0
+#endif
+#if SPARSE_WALK
 #define WORDS ((BATCH + 31) / 32)
 shared uint s_cols[WORDS * TILE];
 shared uint s_rows[WORDS * TILE];
+#else
+shared uint s_box[BATCH];    // pixel box in the tile (box_bits)
+#endif
 shared uint s_found[3];      // "some pixel found this layer", one per walk, rotating
 
 // per-invocation state
+#if SPARSE_WALK
 uint g_col, g_row;        // the pixel's column and row in the tile
+#else
+uint g_px;                // the pixel's bits in the tile (pixel_bits)
+#endif
 vec3 g_ray;               // its ray through the pixel centre (splat_ray)
 float g_ray_len;          // length(g_ray)
 uint g_prev_d, g_prev_l;  // the last layer's depth bits and label (label ~0u before the first)
@@ -97,23 +113,29 @@ uint g_hits;   // hits of the pixel in the first walk
 bool g_first;  // the first walk (collect the nearest hits) or a later one (the filtered minimum)
 
 // Load discs [first, first + n) of the list into shared memory (call it from uniform control flow
-// after a barrier that ends every read of the batch before: it holds one).
+// after a barrier that ends every read of the batch before: with SPARSE_WALK it holds one).
 void load_batch(uint first, uint n) {
+#if SPARSE_WALK
     for (uint i = gl_LocalInvocationIndex; i < uint(WORDS * TILE); i += uint(THREADS)) {
         s_cols[i] = 0u;
         s_rows[i] = 0u;
     }
     memoryBarrierShared();
     barrier();
+#endif
     for (uint i = gl_LocalInvocationIndex; i < n; i += uint(THREADS)) {
         int label;
         uvec2 e = entries[first + i];
         Splat s = load_proxy(e.x, label);
         s_pr[i] = vec4(s.pc, s.r);
         s_nl[i] = vec4(s.nc, intBitsToFloat(label));
+#if SPARSE_WALK
         uint at = (i >> 5u) * uint(TILE), bit = 1u << (i & 31u);
         for (uint cols = e.y & 0xFFFFu; cols != 0u; cols &= cols - 1u) atomicOr(s_cols[at + uint(findLSB(cols))], bit);
         for (uint rows = e.y >> 16u; rows != 0u; rows &= rows - 1u) atomicOr(s_rows[at + uint(findLSB(rows))], bit);
+#else
+        s_box[i] = e.y;
+#endif
     }
 }
 
@@ -197,6 +219,7 @@ bool ties_in_nearest() {
 // `from` (meaningful for up to 32 discs).
 uint walk(uint from, uint to) {
     uint mask = 0u;
+#if SPARSE_WALK
     for (uint w = from >> 5u; w << 5u < to; ++w) {
         uint m = s_cols[w * uint(TILE) + g_col] & s_rows[w * uint(TILE) + g_row];
         uint lo = max(from, w << 5u) - (w << 5u), hi = min(to - (w << 5u), 32u);
@@ -211,6 +234,21 @@ uint walk(uint from, uint to) {
             else consider(d, j);
         }
     }
+#else
+    // each disc's pixel box is read one iteration ahead: the load's latency overlaps the tests (H100:
+    // 2-5 % off this pass, reports/frame-h200, session 13)
+    uint next = s_box[min(from, uint(BATCH - 1))];
+    for (uint j = from; j < to; ++j) {
+        uint b = next;
+        next = s_box[min(j + 1u, uint(BATCH - 1))];
+        if (!in_box(g_px, b)) continue;
+        uint d = hit_bits(j);
+        if (d == 0u) continue;
+        mask |= 1u << ((j - from) & 31u);
+        if (g_first) keep_nearest(d, j);
+        else consider(d, j);
+    }
+#endif
     return mask;
 }
 
@@ -285,8 +323,12 @@ void main() {
     ivec2 p = ivec2(gl_WorkGroupID.xy) * TILE + local;
     bool inside = p.x < u_size.x && p.y < u_size.y;
     g_pix = inside ? uint(p.y * u_size.x + p.x) : 0u;
+#if SPARSE_WALK
     g_col = uint(local.x);
     g_row = uint(local.y);
+#else
+    g_px = pixel_bits(local);
+#endif
     g_ray = splat_ray(vec2(p) + 0.5);  // the pixel centre, as in every splat path
     g_ray_len = length(g_ray);
     g_prev_d = 0u;

@@ -102,18 +102,21 @@ def test_tiles_match_peeling(ctx, bundle, splats):
         tiles.release()
 
 
-@pytest.mark.parametrize("tile, batch, top, blocks", [(8, 256, 16, False), (16, 512, 4, False), (16, 64, 8, False),
-                                                     (16, 512, 16, False), (8, 256, 8, True)])
-def test_other_tile_settings_match_peeling(ctx, bundle, splats, tile, batch, top, blocks):
+@pytest.mark.parametrize("tile, batch, top, blocks, walk", [
+    (8, 256, 16, False, "linear"), (16, 512, 4, False, "linear"), (16, 64, 8, False, "linear"),
+    (16, 512, 16, False, "linear"), (8, 256, 8, True, "linear"), (16, 288, 12, True, "sparse"),
+    (8, 256, 4, False, "sparse"), (16, 64, 8, True, "sparse")])
+def test_other_tile_settings_match_peeling(ctx, bundle, splats, tile, batch, top, blocks, walk):
     """8 x 8 tiles (64 invocations a workgroup, no hit masks: they need 256 pixels a tile), fewer
-    nearest hits kept (more pixels walk again), short batches and warps of two pixel rows instead of
-    8 x 4 blocks: 5 layers equal peeling's at the photo and novel cameras (the settings bench_visibility
+    nearest hits kept (more pixels walk again), short batches, warps of two pixel rows instead of
+    8 x 4 blocks, and either walk (every disc in turn, or only those whose box holds the pixel): 5
+    layers equal peeling's at the photo and novel cameras (the settings bench_visibility
     --tile-sweep times)."""
     from dmrt.runtime.tiles import TileVisibility
     from dmrt.runtime.visibility import VisibilityStage
 
     peel = VisibilityStage(ctx, splats, "compute")
-    tiles = TileVisibility(ctx, splats, tile=tile, batch=batch, top=top, warp_blocks=blocks)
+    tiles = TileVisibility(ctx, splats, tile=tile, batch=batch, top=top, warp_blocks=blocks, walk=walk)
     try:
         assert tiles.hit_masks == (tile == 16)
         for cam in _views(bundle):
@@ -182,6 +185,32 @@ def test_long_tile_lists(ctx, discs, batch):
                                           _tile_labels(ctx, None, splats, moved, first))
     finally:
         for obj in (tiles, peel, splats):
+            obj.release()
+
+
+def test_auto_walk_turns_sparse_on_long_lists(ctx):
+    """walk="auto": the first frame walks every disc in turn (no list length known yet), the next
+    one, after a list of 1300 discs over 12 tiles (108 a tile, above SPARSE_MIN), only the discs
+    whose box holds the pixel; a view with no disc in front turns it back. Every frame's layers
+    equal peeling's, with batches of 768 and 288 discs."""
+    from dmrt.runtime.tiles import SPARSE_MIN, TileVisibility
+    from dmrt.runtime.visibility import ProxySplats, VisibilityStage
+
+    cam, proxy = _crowded_tile(1300)
+    assert 1300 > SPARSE_MIN * 12
+    splats = ProxySplats(ctx, proxy)
+    peel = VisibilityStage(ctx, splats, "compute")
+    stages = [TileVisibility(ctx, splats, batch=batch) for batch in (768, 288)]
+    away = Camera("away", 64, 48, 64.0, 64.0, 32.0, 24.0, np.diag([-1.0, 1.0, -1.0]), np.zeros(3))
+    try:
+        for stage in stages:
+            for frame, (view, sparse) in enumerate([(cam, False), (cam, True), (away, True), (cam, False)]):
+                splats.begin_frame()
+                assert stage._sparse() == sparse, f"batch {stage.batch}, frame {frame}"
+                _assert_equal(_layers(ctx, peel, view, 5), _layers(ctx, stage, view, 5), 5,
+                              f"batch {stage.batch}, frame {frame}, sparse {sparse}")
+    finally:
+        for obj in (*stages, peel, splats):
             obj.release()
 
 

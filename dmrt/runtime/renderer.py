@@ -120,6 +120,11 @@ class RenderConfig:
     tile_hits: int = option(DEFAULT_TOP, "tiles: nearest hits each pixel keeps sorted in registers, 4, 8, 12 or 16 "
                                          "(a pixel whose layers are not all among them walks its list again); the "
                                          "same layers either way", minimum=4, maximum=16)
+    tile_walk: Literal["auto", "linear", "sparse"] = option(
+        "auto", "tiles: how the raster finds a pixel's discs: linear (every disc of the tile in turn, its box "
+                "tested: fastest for short lists), sparse (only the discs whose box holds the pixel: for long "
+                "ones) or auto (sparse for a frame whose tiles held more than 100 discs on average the last "
+                "time the list length was read); the same layers")
     kbuffer_slots: int = option(0, "k-buffer fragments kept per pixel; 0 = 6 per layer + 2 (>= 99.9 % of the "
                                    "peeled layers' pixels); a pixel with more fragments in front of its k-th layer "
                                    "loses its deepest layers", minimum=0)
@@ -234,7 +239,8 @@ class Renderer:
         self.visibility = VisibilityStage(self.ctx, self.splats, self.config.method, self.int64,
                                           self.config.kbuffer_slots or 6 * self.config.layers + 2, n,
                                           self.config.tile_check, self.shading.status, hit_masks=self.config.labeling,
-                                          tile_batch=self.config.tile_batch, tile_top=self.config.tile_hits)
+                                          tile_batch=self.config.tile_batch, tile_top=self.config.tile_hits,
+                                          tile_walk=self.config.tile_walk)
         defines = {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
                    "SECANT": int(self.config.search == "secant"), "RAYTRACE": int(self.config.raytrace),
                    "STATISTICS": int(self.config.statistics), "ILLINOIS": int(self.config.refine == "illinois")}
