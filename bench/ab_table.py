@@ -8,7 +8,7 @@ to back), the render call's median (CPU), the stages' parts (GPU ms), and the me
 surface fraction, which equal trees must share (a change meant to keep the frames must not move
 them). The first tree is the reference of the ``GPU / first`` column. Where a tree has tile sweeps
 (``bench/ab_run.sh`` with ``SWEEP``: ``sweep-<width>/visibility-*.json``), also a table per frame
-size of the tile raster's ms per setting (``T:B:K[:r]``) and tree, with the layers' agreement with
+size of the tile raster's ms per setting (``T:B:K[:r][:s|:l]``) and tree, with the layers' agreement with
 the sweep's first setting where it is not 1.
 """
 
@@ -43,7 +43,8 @@ def load_sweeps(results: Path, names) -> dict[tuple[int, int], dict[str, dict[st
         for f in sorted((results / name).glob("sweep-*/visibility-*.json")):
             d = json.loads(f.read_text())
             for e in d["tile_sweep"]:
-                key = f"{e['tile']}:{e['batch']}:{e['top']}" + ("" if e["warp_blocks"] else ":r")
+                key = (f"{e['tile']}:{e['batch']}:{e['top']}" + ("" if e["warp_blocks"] else ":r")
+                       + {"sparse": ":s", "linear": ":l"}.get(e.get("walk", "auto"), ""))
                 out.setdefault(tuple(d["frame_size"]), {}).setdefault(key, {})[name] = e
     return out
 
@@ -104,7 +105,7 @@ def main(argv=None) -> None:
         print(f"\n{w}x{h}, ms (GPU: the sustained pass's timer queries; sustained: wall per frame)\n")
         print(table(runs, (w, h)))
     for (w, h), settings in load_sweeps(args.results, list(runs)).items():
-        print(f"\n{w}x{h}, the tile raster alone, ms per setting T:B:K[:r] (bench_visibility --tile-sweep)\n")
+        print(f"\n{w}x{h}, the tile raster alone, ms per setting T:B:K[:r][:s|:l] (bench_visibility --tile-sweep)\n")
         print(sweep_table(settings, list(runs)))
 
 

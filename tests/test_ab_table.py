@@ -42,12 +42,29 @@ def test_tile_sweeps_per_size_and_setting(tmp_path, capsys):
         if name == "new":
             entries.append({"tile": 16, "batch": 288, "top": 12, "warp_blocks": False, "tile_raster_ms": 1.8,
                             "layers_equal_to_first": 0.5})
+            entries.append({"tile": 16, "batch": 288, "top": 12, "warp_blocks": True, "walk": "sparse",
+                            "tile_raster_ms": 1.7, "layers_equal_to_first": 1.0})
         (tmp_path / name / "sweep-3840" / "visibility-b.json").write_text(
             json.dumps({"frame_size": [3840, 2160], "tile_sweep": entries}))
     main([str(tmp_path)])
     out = capsys.readouterr().out
     assert "| 16:384:16 | 2.600 | 2.000 |" in out
     assert "| 16:288:12:r | - | 1.800 (layers 0.500000) |" in out
+    assert "| 16:288:12:s | - | 1.700 |" in out
+
+
+def test_tile_sweep_settings_parse():
+    """bench_visibility --tile-sweep settings: warps of rows with ':r', the raster's walk with ':s' or
+    ':l'; anything else is refused."""
+    from bench.bench_visibility import parse_tile_setting
+
+    assert parse_tile_setting("16:288:12") == (16, 288, 12, True, "auto")
+    assert parse_tile_setting("16:288:12:r:s") == (16, 288, 12, False, "sparse")
+    assert parse_tile_setting("8:256:8:l") == (8, 256, 8, True, "linear")
+    assert parse_tile_setting("12:256:8") == (12, 256, 8, False, "auto")  # no 8x4 blocks in 12 px
+    for bad in ("16:288", "16:288:12:x", "16:288:12:s:r", "16:288:12:s:l", "40:288:12", "16:288:5"):
+        with pytest.raises(ValueError):
+            parse_tile_setting(bad)
 
 
 def test_missing_tree_is_one_line_and_status_2(tmp_path, capsys):
