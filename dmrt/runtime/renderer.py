@@ -56,7 +56,7 @@ from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups, max_groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.runtime.shading import FrameShading, camera_uniforms, hit_depth_at
-from dmrt.runtime.tiles import DEFAULT_BATCH, DEFAULT_TOP
+from dmrt.runtime.tiles import DEFAULT_BATCH, DEFAULT_TOP, SPARSE_MIN
 from dmrt.runtime.visibility import ProxySplats, VisibilityStage
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
@@ -123,8 +123,8 @@ class RenderConfig:
     tile_walk: Literal["auto", "linear", "sparse"] = option(
         "auto", "tiles: how the raster finds a pixel's discs: linear (every disc of the tile in turn, its box "
                 "tested: fastest for short lists), sparse (only the discs whose box holds the pixel: for long "
-                "ones) or auto (sparse for a frame whose tiles held more than 100 discs on average the last "
-                "time the list length was read); the same layers")
+                f"ones) or auto (sparse for a frame whose tiles held more than {SPARSE_MIN} discs on average the "
+                "last time the list length was read); the same layers")
     kbuffer_slots: int = option(0, "k-buffer fragments kept per pixel; 0 = 6 per layer + 2 (>= 99.9 % of the "
                                    "peeled layers' pixels); a pixel with more fragments in front of its k-th layer "
                                    "loses its deepest layers", minimum=0)
