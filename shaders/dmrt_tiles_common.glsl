@@ -41,26 +41,6 @@ ivec2 tile_local_pixel() {
     return ivec2(gl_LocalInvocationID.xy);
 #endif
 }
-
-// Bits lo..hi (hi < 31).
-uint span_bits(uint lo, uint hi) {
-    return ((2u << hi) - 1u) & ~((1u << lo) - 1u);
-}
-
-// The tile's columns and rows (box_bits' layout) that invocations [32 g, 32 g + 32) hold. A box
-// that misses them misses every pixel of those invocations: they are a rectangle (an 8 x 4 block,
-// whole rows) or, when a run of 32 ends inside a row, lie within these columns and rows.
-uint warp_bits(uint g) {
-#if WARP_BLOCKS && TILE % 8 == 0
-    uint x0 = (g % uint(TILE / 8)) * 8u, y0 = (g / uint(TILE / 8)) * 4u;
-    return (0xFFu << x0) | (0xFu << (16u + y0));
-#else
-    uint first = 32u * g, last = min(first + 31u, uint(TILE * TILE - 1));
-    uint y0 = first / uint(TILE), y1 = last / uint(TILE);
-    uint x0 = y0 == y1 ? first % uint(TILE) : 0u, x1 = y0 == y1 ? last % uint(TILE) : uint(TILE - 1);
-    return span_bits(x0, x1) | (span_bits(y0, y1) << 16u);
-#endif
-}
 #endif
 
 // A disc's pixel box (splat_pixel_box) where it meets a tile, in one word of shared memory: bit x

@@ -71,27 +71,22 @@ uniform int u_layers;     // k
 shared vec4 s_pr[BATCH];     // camera-space centre (m), radius (m)
 shared vec4 s_nl[BATCH];     // unit normal, label (uint bits)
 // How a walk finds the discs whose pixel box holds the pixel (the program is built both ways; the
-// stage picks one a frame from how many discs its tiles hold, TileVisibility's walk). The discs
-// of a batch come in words of 32:
-// SPARSE_WALK 0: each run of 32 invocations (a warp) visits, in turn, the discs whose box meets
-//   its pixels (s_warp[g * WORDS + w] bit i: disc 32 w + i meets those of run g, warp_bits), and
-//   each lane tests the box (s_box): the lanes stay on the same disc, one load serves them all;
-// SPARSE_WALK 1: each lane visits only the discs whose box holds its own pixel: s_cols[w * TILE + x]
+// stage picks one a frame from how many discs its tiles hold, TileVisibility's walk):
+// SPARSE_WALK 0: every disc in turn, its box tested (the warp's lanes on the same disc: one load
+//   for all); SPARSE_WALK 1: the boxes as bit masks by word of 32 discs, s_cols[w * TILE + x]
 //   with bit i set when the box of disc 32 w + i spans the tile's column x, s_rows likewise for
-//   rows (from box_bits), a pixel's discs of a word the AND of its column's and its row's words.
-// H200 (reports/frame-h200, session 17): with ~180 discs a tile (1280x720) the raster took 0.35 ms
-// sparse against 0.50 with every disc in turn (the box tests alone were ~0.4 of 1.68 ms at
-// 3840x2160); with ~63 (3840x2160) 1.78 against 1.72.
+//   rows (from box_bits); a pixel's discs of a word are the AND of its column's and its row's
+//   words, and each lane visits only its own (findLSB). H200 (reports/frame-h200, session 17):
+//   with ~180 discs a tile (1280x720) the raster took 0.35 ms sparse against 0.50 in turn (the
+//   box tests alone were ~0.4 of 1.68 ms at 3840x2160); with ~63 (3840x2160) 1.78 against 1.72.
 #ifndef SPARSE_WALK
 #define SPARSE_WALK 0
 #endif
-#define WORDS ((BATCH + 31) / 32)
 #if SPARSE_WALK
+#define WORDS ((BATCH + 31) / 32)
 shared uint s_cols[WORDS * TILE];
 shared uint s_rows[WORDS * TILE];
 #else
-#define WARPS ((THREADS + 31) / 32)
-shared uint s_warp[WORDS * WARPS];
 shared uint s_box[BATCH];    // pixel box in the tile (box_bits)
 #endif
 shared uint s_found[3];      // "some pixel found this layer", one per walk, rotating
@@ -101,7 +96,6 @@ shared uint s_found[3];      // "some pixel found this layer", one per walk, rot
 uint g_col, g_row;        // the pixel's column and row in the tile
 #else
 uint g_px;                // the pixel's bits in the tile (pixel_bits)
-uint g_warp;              // its run of 32 invocations
 #endif
 vec3 g_ray;               // its ray through the pixel centre (splat_ray)
 float g_ray_len;          // length(g_ray)
@@ -119,35 +113,28 @@ uint g_hits;   // hits of the pixel in the first walk
 bool g_first;  // the first walk (collect the nearest hits) or a later one (the filtered minimum)
 
 // Load discs [first, first + n) of the list into shared memory (call it from uniform control flow
-// after a barrier that ends every read of the batch before: it holds one).
+// after a barrier that ends every read of the batch before: with SPARSE_WALK it holds one).
 void load_batch(uint first, uint n) {
 #if SPARSE_WALK
     for (uint i = gl_LocalInvocationIndex; i < uint(WORDS * TILE); i += uint(THREADS)) {
         s_cols[i] = 0u;
         s_rows[i] = 0u;
     }
-#else
-    for (uint i = gl_LocalInvocationIndex; i < uint(WORDS * WARPS); i += uint(THREADS)) s_warp[i] = 0u;
-#endif
     memoryBarrierShared();
     barrier();
+#endif
     for (uint i = gl_LocalInvocationIndex; i < n; i += uint(THREADS)) {
         int label;
         uvec2 e = entries[first + i];
         Splat s = load_proxy(e.x, label);
         s_pr[i] = vec4(s.pc, s.r);
         s_nl[i] = vec4(s.nc, intBitsToFloat(label));
-        uint bit = 1u << (i & 31u);
 #if SPARSE_WALK
-        uint at = (i >> 5u) * uint(TILE);
+        uint at = (i >> 5u) * uint(TILE), bit = 1u << (i & 31u);
         for (uint cols = e.y & 0xFFFFu; cols != 0u; cols &= cols - 1u) atomicOr(s_cols[at + uint(findLSB(cols))], bit);
         for (uint rows = e.y >> 16u; rows != 0u; rows &= rows - 1u) atomicOr(s_rows[at + uint(findLSB(rows))], bit);
 #else
         s_box[i] = e.y;
-        for (uint g = 0u; g < uint(WARPS); ++g) {
-            uint m = e.y & warp_bits(g);
-            if ((m & 0xFFFFu) != 0u && (m >> 16u) != 0u) atomicOr(s_warp[g * uint(WORDS) + (i >> 5u)], bit);
-        }
 #endif
     }
 }
@@ -232,20 +219,14 @@ bool ties_in_nearest() {
 // `from` (meaningful for up to 32 discs).
 uint walk(uint from, uint to) {
     uint mask = 0u;
-    for (uint w = from >> 5u; w << 5u < to; ++w) {
 #if SPARSE_WALK
+    for (uint w = from >> 5u; w << 5u < to; ++w) {
         uint m = s_cols[w * uint(TILE) + g_col] & s_rows[w * uint(TILE) + g_row];
-#else
-        uint m = s_warp[g_warp * uint(WORDS) + w];
-#endif
         uint lo = max(from, w << 5u) - (w << 5u), hi = min(to - (w << 5u), 32u);
         m &= (hi >= 32u ? ~0u : (1u << hi) - 1u) & ~((1u << lo) - 1u);
         while (m != 0u) {
             uint j = (w << 5u) + uint(findLSB(m));
             m &= m - 1u;
-#if !SPARSE_WALK
-            if (!in_box(g_px, s_box[j])) continue;
-#endif
             uint d = hit_bits(j);
             if (d == 0u) continue;
             mask |= 1u << ((j - from) & 31u);
@@ -253,6 +234,21 @@ uint walk(uint from, uint to) {
             else consider(d, j);
         }
     }
+#else
+    // each disc's pixel box is read one iteration ahead: the load's latency overlaps the tests (H100:
+    // 2-5 % off this pass, reports/frame-h200, session 13)
+    uint next = s_box[min(from, uint(BATCH - 1))];
+    for (uint j = from; j < to; ++j) {
+        uint b = next;
+        next = s_box[min(j + 1u, uint(BATCH - 1))];
+        if (!in_box(g_px, b)) continue;
+        uint d = hit_bits(j);
+        if (d == 0u) continue;
+        mask |= 1u << ((j - from) & 31u);
+        if (g_first) keep_nearest(d, j);
+        else consider(d, j);
+    }
+#endif
     return mask;
 }
 
@@ -332,7 +328,6 @@ void main() {
     g_row = uint(local.y);
 #else
     g_px = pixel_bits(local);
-    g_warp = lid >> 5u;
 #endif
     g_ray = splat_ray(vec2(p) + 0.5);  // the pixel centre, as in every splat path
     g_ray_len = length(g_ray);
