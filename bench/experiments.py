@@ -84,7 +84,8 @@ def _back_to_back(renderer, cameras, seconds: float) -> list[float]:
 def _stage_summary(frames: list[dict]) -> dict:
     """Medians of per-frame timer sections (:meth:`dmrt.gl.GpuTimer.collect`): ``median_ms``
     {stage}, ``median_part_ms`` {``stage:part``}, ``median_total_ms``, ``p95_total_ms``,
-    ``total_ms_per_frame``."""
+    ``total_ms_per_frame``, ``part_ms_per_frame`` {section: list} (which section a slow frame's
+    time went to)."""
     parts = sorted({k for f in frames for k in f})
     stages = sorted({k.split(":", 1)[0] for k in parts})
     per_stage = [{s: sum(v for k, v in f.items() if k.split(":", 1)[0] == s) for s in stages} for f in frames]
@@ -92,7 +93,7 @@ def _stage_summary(frames: list[dict]) -> dict:
     return {"median_ms": {s: float(np.median([f[s] for f in per_stage])) for s in stages},
             "median_part_ms": {k: float(np.median([f.get(k, 0.0) for f in frames])) for k in parts if ":" in k},
             "median_total_ms": float(np.median(totals)), "p95_total_ms": float(np.percentile(totals, 95)),
-            "total_ms_per_frame": totals}
+            "total_ms_per_frame": totals, "part_ms_per_frame": {k: [f.get(k, 0.0) for f in frames] for k in parts}}
 
 
 def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
@@ -126,7 +127,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         ``mean_total_ms`` (the paper's Table 2 averages), ``median_wall_ms``, ``p95_wall_ms``,
         ``frame_size`` (w, h), ``sustained_ms`` (wall ms per frame of the sustained pass),
         ``sustained_timed`` {``wall_ms`` per frame, ``median_ms`` {stage}, ``median_part_ms``
-        {part}, ``median_total_ms``, ``p95_total_ms``, ``total_ms_per_frame``} of the sustained
+        {part}, ``median_total_ms``, ``p95_total_ms``, ``total_ms_per_frame``, ``part_ms_per_frame``} of the sustained
         timed pass, ``status_reads_per_frame`` (status records read back a frame, sustained pass),
         ``sustained_call_ms`` {``median``, ``p95``} (wall ms of each ``render()`` call of the
         sustained pass: what the CPU takes to issue a frame, plus its waits; with
