@@ -83,9 +83,6 @@ uniform float u_threshold;  // metres
 #ifndef MAX_RESUMES
 #define MAX_RESUMES 2
 #endif
-#if MAX_RESUMES > 2
-#error "MAX_RESUMES must be at most 2 (F_RESUMES holds up to 3)"
-#endif
 
 #ifndef STATISTICS
 #define STATISTICS 0
@@ -164,28 +161,16 @@ vec4 g_fc;              // fx, fy, cx, cy (texels)
 vec2 g_size;            // the depth map's width, height (texels)
 int g_layer;            // the layer searched (-1: a fill search), for the statistics
 int g_iters;            // search steps so far (the paper's c_total)
-// the pending lookup: what it is for (F_PHASE) and where (s along the ray); once advance() returns
+// the pending lookup: what it is for (PH_*) and where (s along the ray); once advance() returns
 // HIT, g_q is the hit (its test was the last lookup)
+int g_phase;
 float g_q;
 // the search: the current point and its h, the previous ones (the secant's), the step's point, the
 // step (held in g_fn's word: a step's length is not read once its point's h is known)
 float g_s, g_f, g_sp, g_fp, g_sn, g_fn;
 #define g_step g_fn
-// The search's counters and flags, bit fields of one word (offset, bits): as words of their own
-// they held 5 registers more.
-uint g_ctl;
-#define F_PHASE 0, 3    // the pending lookup's phase (PH_*)
-#define F_RESTART 3, 1  // 1: the next step is the paper's (no previous sample for a secant)
-#define F_RESUMES 4, 2  // resumptions (at most MAX_RESUMES + 1)
-#define F_SIDE 6, 2     // the refinement's end moved last (MOVED_*)
-#define F_K 8, 8        // halvings of this step; from the enclosure on, the refinement's steps
-#define F_I 16, 16      // step index
-int field(int offset, int bits) {
-    return int(bitfieldExtract(g_ctl, offset, bits));
-}
-void set_field(int offset, int bits, int value) {
-    g_ctl = bitfieldInsert(g_ctl, uint(value), offset, bits);
-}
+bool g_restart;         // the next step is the paper's (no previous sample for a secant)
+int g_i, g_k, g_resumes;  // step index, halvings of this step, resumptions
 // the refinement: the interval [a, b] (s and h at each end), the Illinois side kept last, the step
 // index. Its ends are held in the words of the current and the previous sample, which nothing
 // reads from the enclosure to the refinement's end (a search that resumes goes on from
@@ -194,7 +179,8 @@ void set_field(int offset, int bits, int value) {
 #define g_fa g_f
 #define g_sb g_sp
 #define g_fb g_fp
-const int MOVED_B = 0, MOVED_NONE = 1, MOVED_A = 2;
+int g_side;
+#define g_b g_k  // the halvings of a step end where the refinement starts
 // the hit's unit world normal (NORMALS and u_normals; else 0)
 vec3 g_n;
 
@@ -208,7 +194,7 @@ const int PH_TEST_HIT = 5;    // the discontinuity test of a refined hit
 const int PENDING = 0, HIT = 1, MISS = 2;
 
 int lookup_at(int phase, float q) {
-    set_field(F_PHASE, phase);
+    g_phase = phase;
     g_q = q;
     return PENDING;
 }
@@ -252,7 +238,7 @@ float lookup(out bool ok) {
     ok = false;
     vec3 pc = g_o + g_q * g_v;
     if (pc.z <= 1e-6) return 0.0;
-    bool test = field(F_PHASE) >= PH_TEST_POINT;
+    bool test = g_phase >= PH_TEST_POINT;
     ivec2 i0;
     vec2 f;
     vec4 d;
@@ -271,20 +257,20 @@ float lookup(out bool ok) {
 // samples: h is measured along the line to the photo's centre, which converges slowly, or jumps off
 // the surface, when that line and the pixel ray differ by a large angle).
 int search_top() {
-    if (field(F_I) >= u_max_steps) return MISS;
+    if (g_i >= u_max_steps) return MISS;
     g_iters++;
     if (abs(g_f) <= CONVERGED * g_s) {  // on the surface: no interval to refine
         return lookup_at(PH_TEST_POINT, g_s);
     }
     float step = g_f / g_dlen;
 #if SECANT
-    if (field(F_RESTART) == 0 && g_fp != g_f) step = -g_f * (g_s - g_sp) / (g_f - g_fp);
+    if (!g_restart && g_fp != g_f) step = -g_f * (g_s - g_sp) / (g_f - g_fp);
 #endif
-    set_field(F_RESTART, 0);
+    g_restart = false;
     g_step = step;
     g_sn = g_s + step;
     if (g_sn <= 0.0) return MISS;
-    set_field(F_K, 0);
+    g_k = 0;
     return lookup_at(PH_STEP, g_sn);
 }
 
@@ -294,25 +280,18 @@ int search_next() {
     g_fp = g_f;
     g_s = g_sn;
     g_f = g_fn;
-    set_field(F_I, field(F_I) + 1);
+    ++g_i;
     return search_top();
 }
 
 // The refinement's next point (see the header for the two methods), or its hit to test.
 int refine_top() {
 #if ILLINOIS
-    if (field(F_K) < u_binary_steps && g_fa != g_fb) return lookup_at(PH_REFINE, (g_sa * g_fb - g_sb * g_fa) / (g_fb - g_fa));
+    if (g_b < u_binary_steps && g_fa != g_fb) return lookup_at(PH_REFINE, (g_sa * g_fb - g_sb * g_fa) / (g_fb - g_fa));
 #else
-    if (field(F_K) < u_binary_steps) return lookup_at(PH_REFINE, 0.5 * (g_sa + g_sb));
+    if (g_b < u_binary_steps) return lookup_at(PH_REFINE, 0.5 * (g_sa + g_sb));
 #endif
     return lookup_at(PH_TEST_HIT, (g_fa == g_fb) ? 0.5 * (g_sa + g_sb) : g_sa + (g_sb - g_sa) * g_fa / (g_fa - g_fb));
-}
-
-// One more resumption of the search: false past MAX_RESUMES.
-bool resume() {
-    int r = field(F_RESUMES) + 1;
-    set_field(F_RESUMES, r);
-    return r <= MAX_RESUMES;
 }
 
 // An enclosed interval gave no valid hit: the paper's search ends; with SECANT (a sign change
@@ -321,8 +300,8 @@ bool resume() {
 // otherwise spend every step of the budget).
 int interval_failed() {
 #if SECANT
-    if (!resume()) return MISS;
-    set_field(F_RESTART, 1);
+    if (++g_resumes > MAX_RESUMES) return MISS;
+    g_restart = true;
     return search_next();
 #else
     return MISS;
@@ -339,7 +318,6 @@ void search_start(int l, vec3 C, vec3 dir, float s0) {
     g_size = ph.size.xy;
     g_dlen = length(dir);
     g_s = s0;
-    g_ctl = 0u;
     lookup_at(PH_START, s0);
 }
 
@@ -355,64 +333,63 @@ vec3 pixel_dir(ivec2 p) {
 // Takes the pending lookup's result (lookup()): PENDING with the next lookup set, or the search's end
 // (HIT: at g_q, normal g_n; MISS).
 int advance(float h, bool ok) {
-    int phase = field(F_PHASE);
-    if (phase == PH_START) {
+    if (g_phase == PH_START) {
         if (!ok) return MISS;
         g_f = h;
         g_sp = g_s;
         g_fp = h;
-        set_field(F_RESTART, 1);
-        set_field(F_RESUMES, 0);
-        set_field(F_I, 0);
+        g_restart = true;
+        g_resumes = 0;
+        g_i = 0;
         return search_top();
     }
-    if (phase == PH_STEP) {
+    if (g_phase == PH_STEP) {
 #if SECANT
         // a step that lands on an empty or outside texel is halved (a few times) before giving up
-        if (!ok && field(F_K) < 4) {
+        if (!ok && g_k < 4) {
             g_step *= 0.5;
             g_sn = g_s + g_step;
-            set_field(F_K, field(F_K) + 1);
+            ++g_k;
             return lookup_at(PH_STEP, g_sn);
         }
 #endif
 #if STATISTICS
-        if (g_layer >= 0) record_step(g_layer, field(F_I), abs(g_sn - g_s) * g_dlen);
+        if (g_layer >= 0) record_step(g_layer, g_i, abs(g_sn - g_s) * g_dlen);
 #endif
         if (!ok) return MISS;
         g_fn = h;
         if ((h > 0.0) == (g_f > 0.0)) return search_next();
         // enclosed: refine [s, sn]
         g_sb = g_sn; g_fb = h;  // a: (g_s, g_f) already
-        set_field(F_SIDE, MOVED_NONE);
-        set_field(F_K, 0);
+        g_side = 0;
+        g_b = 0;
         return g_sa == g_sb ? lookup_at(PH_TEST_HIT, g_sa) : refine_top();
     }
-    if (phase == PH_REFINE) {
+    if (g_phase == PH_REFINE) {
         if (!ok) return interval_failed();  // a probe on empty texels
         float sm = g_q, fm = h;
 #if ILLINOIS
         if (abs(fm) <= 1e-6 * sm) return lookup_at(PH_TEST_HIT, sm);
         if ((fm > 0.0) == (g_fb > 0.0)) {
             g_sb = sm; g_fb = fm;
-            if (field(F_SIDE) == MOVED_B) g_fa *= 0.5;
-            set_field(F_SIDE, MOVED_B);
+            if (g_side == -1) g_fa *= 0.5;
+            g_side = -1;
         } else {
             g_sa = sm; g_fa = fm;
-            if (field(F_SIDE) == MOVED_A) g_fb *= 0.5;
-            set_field(F_SIDE, MOVED_A);
+            if (g_side == 1) g_fb *= 0.5;
+            g_side = 1;
         }
 #else
         if ((fm > 0.0) == (g_fa > 0.0)) { g_sa = sm; g_fa = fm; } else { g_sb = sm; g_fb = fm; }
 #endif
-        set_field(F_K, field(F_K) + 1);
+        ++g_b;
         return refine_top();
     }
-    if (phase == PH_TEST_HIT) return ok ? HIT : interval_failed();
-    if (phase == PH_TEST_POINT) {
+    if (g_phase == PH_TEST_HIT) return ok ? HIT : interval_failed();
+    if (g_phase == PH_TEST_POINT) {
         if (ok) return HIT;
 #if SECANT
-        if (!resume()) return MISS;
+        if (++g_resumes > MAX_RESUMES) return MISS;
         // nudge past the edge point: a texel beyond it along the ray
         g_sn = g_s * (1.0 + 1e-3);
         return lookup_at(PH_NUDGE, g_sn);
@@ -424,8 +401,8 @@ int advance(float h, bool ok) {
     if (!ok) return MISS;
     g_s = g_sn;
     g_f = h;
-    set_field(F_RESTART, 1);
-    set_field(F_I, field(F_I) + 1);
+    g_restart = true;
+    ++g_i;
     return search_top();
 }
 

@@ -73,10 +73,8 @@ class RenderConfig:
 
     layers: int = option(5, "label layers k (paper: 3-5 give high quality, Fig. 13; 11 for the worst case)",
                          minimum=1)
-    # the search counts its steps in bit fields (dmrt_raytrace.glsl's g_ctl): 16 and 8 bits
-    max_steps: int = option(100, "iterative-search steps per layer (paper: <= 100)", minimum=1, maximum=65535)
-    binary_steps: int = option(20, "refinement steps of a hit at most (paper: 20 bisection steps)", minimum=0,
-                               maximum=255)
+    max_steps: int = option(100, "iterative-search steps per layer (paper: <= 100)", minimum=1)
+    binary_steps: int = option(20, "refinement steps of a hit at most (paper: 20 bisection steps)", minimum=0)
     refine: Literal["illinois", "bisection"] = option(
         "illinois", "refinement of an enclosed hit: illinois (regula falsi with the Illinois fix, stopping at "
                     "1e-6 of the depth: a few fetches) or bisection (the paper: always --binary-steps steps)")
@@ -98,8 +96,7 @@ class RenderConfig:
     # mm; 16 steps: 18 fewer. H100, every search capped at 32 (run 1): the two passes 0.235 -> 0.154
     # ms at 1280x720, 0.323 -> 0.236 ms at 3840x2160.
     fill_max_steps: int = option(32, "addition to the paper: iterative-search steps of a hole-filling pass's "
-                                     "searches (their own cap: a pass takes as long as its longest search)", minimum=1,
-                                 maximum=65535)
+                                     "searches (their own cap: a pass takes as long as its longest search)", minimum=1)
     # tiles is the fastest path, with every layer equal to compute peeling's (paper preset, 5 layers,
     # the visibility stage of frames back to back: 0.82 ms at 720p and 3.59 ms at 4K against 5.29 /
     # 41.9 ms for compute peeling and 10.3 / 83.4 ms for the k-buffer on an H100, session 11 in
