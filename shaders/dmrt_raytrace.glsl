@@ -31,8 +31,8 @@
 // An invalid hit sends the search to the next layer. The pixel's normal is the average of the
 // unit normals of the triangles that pass the test (the paper: of both triangles).
 //
-// Hole filling walks a list of the holes the pixel pass leaves (HoleList), FILL_HOLES holes a workgroup
-// and a thread per neighbour (see FILL below).
+// Hole filling walks a list of the holes the pixel pass leaves (HoleList), a workgroup per hole and
+// a thread per neighbour (see FILL below).
 //
 // RAYTRACE 0 (ablation, the paper's Fig. 8a "coarse splats"): no search; the first layer's splat is
 // the surface (its depth and label; the normal faces the camera).
@@ -49,14 +49,13 @@
 #define FILL 0
 #endif
 
-// The pixel pass: 8 x 8 pixels a workgroup; the fill pass: FILL_HOLES holes a workgroup, each hole's
-// 8 neighbours searched side by side by 8 invocations. (One hole of 8 invocations a workgroup left
-// 3/4 of each warp idle, and an SM holds at most 32 workgroups: 256 of its 2048 invocations.)
-#define FILL_THREADS 32
-#define FILL_HOLES (FILL_THREADS / 8)
+// The pixel pass: 8 x 8 pixels a workgroup; the fill pass: one hole a workgroup, its LIST_THREADS
+// neighbours searched side by side
 #if FILL
-layout(local_size_x = FILL_THREADS) in;
+#define LIST_THREADS 8
+layout(local_size_x = LIST_THREADS) in;
 #else
+#define LIST_THREADS 1
 layout(local_size_x = 8, local_size_y = 8) in;
 #endif
 
@@ -421,9 +420,8 @@ bool trace(int l, vec3 C, vec3 dir, float s0) {
 }
 
 // Work lists (dmrt/runtime/renderer.py): cmd is the dispatch-indirect command of the pass that
-// walks the list, FILL_HOLES items a workgroup: cmd.x = min(ceil(items / FILL_HOLES), u_max_groups),
-// cmd.w = items; a workgroup takes the FILL_HOLES items from FILL_HOLES * gl_WorkGroupID.x, then
-// those FILL_HOLES * gl_NumWorkGroups.x further on, ...
+// walks the list, one workgroup per item: cmd.x = min(items, u_max_groups), cmd.w = items; a
+// workgroup takes items gl_WorkGroupID.x, + gl_NumWorkGroups.x, ...
 struct ListHeader { uint x, y, z, n; };
 // Pixels that a splat covers but no layer gave a surface (FILL pass u_pass walks HoleList, appends
 // the pixels it leaves to NextHoles)
@@ -435,53 +433,47 @@ uniform int u_fill;         // 1: list the holes left for a fill pass (fill_pass
 void push_hole(uint pix) {
     uint i = atomicAdd(next_cmd.n, 1u);
     next_items[i] = pix;
-    // the items come with every index up to the last: the first of each workgroup's sets the count
-    uint group = i / uint(FILL_HOLES);
-    if (i % uint(FILL_HOLES) == 0u && group < u_max_groups) atomicMax(next_cmd.x, group + 1u);
+    if (i < u_max_groups) atomicMax(next_cmd.x, i + 1u);
 }
 
-#if FILL
-// Each hole's 8 invocations: the one that finds the first success (smallest neighbour index j)
-// writes the pixel; iters counts the steps of the neighbours up to that one, as a loop over them in
-// order would.
-const uint NONE = 8u;  // s_best when no candidate succeeded
-shared uint s_best[FILL_HOLES];
-shared int s_iters[8 * FILL_HOLES];
+// One hole per workgroup: the thread that finds the first success (smallest index j) writes the
+// pixel; iters counts the steps of the neighbours up to that one, as a loop over them in order would.
+const uint NONE = uint(LIST_THREADS);  // s_best when no candidate succeeded
+shared uint s_best;
+shared int s_iters[LIST_THREADS];
 
-int iters_through(uint hole, uint best, int iters) {
-    for (uint j = 0u; j < 8u && j <= best; ++j) iters += s_iters[8u * hole + j];
+int iters_through(uint best, int iters) {
+    for (uint j = 0u; j < uint(LIST_THREADS) && j <= best; ++j) iters += s_iters[j];
     return iters;
 }
 
+#if FILL
 // Hole filling (an addition to the paper; RenderConfig.fill_passes): a pixel that a splat covers
 // but whose layers gave no surface searches the depth maps of its 8 neighbours' hits, starting
 // at their depths, and takes a hit within u_threshold of that neighbour's depth (the same
 // surface: a hit further away is another surface the neighbour's photo sees, often wrongly): the
 // first neighbour in row order that gives one. Pass u_pass reads only hits found before it (layer
 // < u_layers + u_pass), so the result does not depend on the order in which threads run; a pixel
-// filled here gets the layer index u_layers + u_pass. Eight invocations per hole, one a
+// filled here gets the layer index u_layers + u_pass. One workgroup per hole, one thread per
 // neighbour: the pass takes as long as one neighbour's search, not eight in a row.
 uniform int u_pass;
 
 void main() {
     uint lid = gl_LocalInvocationIndex;
-    uint hole = lid / 8u, j = lid % 8u;  // this invocation's hole of the workgroup's, its neighbour
     vec3 C = camera_centre();
     g_layer = -1;
-    for (uint first = uint(FILL_HOLES) * gl_WorkGroupID.x; first < hole_cmd.n; first += uint(FILL_HOLES) * gl_NumWorkGroups.x) {
-        uint e = first + hole;
-        bool listed = e < hole_cmd.n;
-        uint pix = listed ? hole_items[e] : 0u;
-        if (j == 0u) s_best[hole] = NONE;
+    for (uint e = gl_WorkGroupID.x; e < hole_cmd.n; e += gl_NumWorkGroups.x) {
+        uint pix = hole_items[e];
+        ivec2 p = ivec2(int(pix % uint(u_size.x)), int(pix / uint(u_size.x)));
+        if (lid == 0u) s_best = NONE;
         memoryBarrierShared();
         barrier();
-        int k = int(j < 4u ? j : j + 1u);  // the 3 x 3 neighbourhood in row order, centre skipped
-        ivec2 p = ivec2(int(pix % uint(u_size.x)), int(pix / uint(u_size.x)));
+        int k = int(lid < 4u ? lid : lid + 1u);  // the 3 x 3 neighbourhood in row order, centre skipped
         ivec2 q = p + ivec2(k % 3 - 1, k / 3 - 1);
         g_iters = 0;
         Hit nb = Hit(0.0, -1, -1, 0u);
         bool found = false;
-        if (listed && all(greaterThanEqual(q, ivec2(0))) && all(lessThan(q, u_size))) {
+        if (all(greaterThanEqual(q, ivec2(0))) && all(lessThan(q, u_size))) {
             nb = hits[uint(q.y * u_size.x + q.x)];
             if (hit_layer(nb) >= 0 && hit_layer(nb) < u_layers + u_pass && nb.depth > 0.0) {
                 // only the neighbour's own surface: within the discontinuity threshold of its depth
@@ -489,15 +481,15 @@ void main() {
             }
         }
         s_iters[lid] = g_iters;
-        if (found) atomicMin(s_best[hole], j);
+        if (found) atomicMin(s_best, lid);
         memoryBarrierShared();
         barrier();
-        uint best = s_best[hole];
-        if (listed && best == j) {
-            hits[pix] = Hit(g_q, nb.label, -1, layer_iters(u_layers + u_pass, iters_through(hole, best, hit_iters(hits[pix]))));
+        uint best = s_best;
+        if (best == lid) {
+            hits[pix] = Hit(g_q, nb.label, -1, layer_iters(u_layers + u_pass, iters_through(best, hit_iters(hits[pix]))));
             write_normal(pix, g_n);
-        } else if (listed && best == NONE && j == 0u) {
-            hits[pix].layer_iters = layer_iters(-1, iters_through(hole, best, hit_iters(hits[pix])));
+        } else if (best == NONE && lid == 0u) {
+            hits[pix].layer_iters = layer_iters(-1, iters_through(best, hit_iters(hits[pix])));
             if (u_fill != 0) push_hole(pix);
         }
         memoryBarrierShared();
