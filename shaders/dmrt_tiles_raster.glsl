@@ -198,21 +198,6 @@ void keep_nearest(uint d, uint j) {
     g_tie = g_tie || (d == FARTHEST_D && d != EMPTY_BITS);  // d: the hit dropped off the end
 }
 
-void clear_nearest() {
-    g_hits = 0u;
-    g_tie = false;
-    g_top_d0 = g_top_l0 = g_top_d1 = g_top_l1 = uvec4(EMPTY_BITS);
-    g_top_d2 = g_top_l2 = g_top_d3 = g_top_l3 = uvec4(EMPTY_BITS);
-}
-
-// A hit of a walk: the first keeps the nearest; a later one keeps the nearest behind the last layer
-// and their filtered minimum.
-void take_hit(uint d, uint j) {
-    if (d <= g_prev_d) return;
-    keep_nearest(d, j);
-    if (!g_first) consider(d, j);
-}
-
 // Two neighbouring kept hits of equal depth (empty entries, all at the end, are not hits).
 #define TIE(a, b) (a == b && b != EMPTY_BITS)
 #define TIES4(D) (TIE(D.x, D.y) || TIE(D.y, D.z) || TIE(D.z, D.w))
@@ -245,7 +230,8 @@ uint walk(uint from, uint to) {
             uint d = hit_bits(j);
             if (d == 0u) continue;
             mask |= 1u << ((j - from) & 31u);
-            take_hit(d, j);
+            if (g_first) keep_nearest(d, j);
+            else consider(d, j);
         }
     }
 #else
@@ -259,7 +245,8 @@ uint walk(uint from, uint to) {
         uint d = hit_bits(j);
         if (d == 0u) continue;
         mask |= 1u << ((j - from) & 31u);
-        take_hit(d, j);
+        if (g_first) keep_nearest(d, j);
+        else consider(d, j);
     }
 #endif
     return mask;
@@ -280,7 +267,7 @@ uint again(uint word, uint base) {
         uint j = base + uint(b);
         uint d = hit_bits(j);
         if (d <= g_prev_d) word &= ~(1u << uint(b));
-        else take_hit(d, j);
+        else consider(d, j);
     }
     return word;
 }
@@ -347,7 +334,10 @@ void main() {
     g_prev_d = 0u;
     g_prev_l = ~0u;
     g_found = 0u;
-    clear_nearest();
+    g_hits = 0u;
+    g_tie = false;
+    g_top_d0 = g_top_l0 = g_top_d1 = g_top_l1 = uvec4(EMPTY_BITS);
+    g_top_d2 = g_top_l2 = g_top_d3 = g_top_l3 = uvec4(EMPTY_BITS);
 
     uint off = offsets[tile];
     uint count = offsets[tile + 1u] - off;
@@ -381,10 +371,7 @@ void main() {
     // and one with equal depths among its nearest hits for every layer
     bool searching = inside && g_found < uint(u_layers) && (g_hits > uint(TOP) || g_tie);
 
-    // then further walks over the pixels that need one, while any does, each keeping the nearest
-    // hits behind the last layer: their sorted prefix gives the next layers as the first walk's
-    // gave the first (with ties among them, or if it gives none, the walk's filtered minimum is
-    // the next layer). Flag slot
+    // then a walk per missing layer, over the pixels that need one, while any does; flag slot
     // i % 3 says "some pixel needs walk i + 1". A slot is reset (by invocation 0, before the
     // barrier of walk i) two walks after it was last read, before barriers every invocation has
     // passed since, and set again only after that barrier.
@@ -395,7 +382,6 @@ void main() {
     for (uint i = 1u; s_found[slot] != 0u; ++i) {
         g_best_d = EMPTY_BITS;
         g_best_l = EMPTY_BITS;
-        clear_nearest();
         if (cached) {
             if (searching) {
                 g_lo = uvec4(again(g_lo.x, 0u), again(g_lo.y, 32u), again(g_lo.z, 64u), again(g_lo.w, 96u));
@@ -405,15 +391,8 @@ void main() {
         } else {
             walk_batches(off, count, searching);
         }
-        uint before = g_found;
-        if (searching) {
-            g_tie = g_tie || ties_in_nearest();
-            if (!g_tie) layers_from_nearest();
-            if (g_found == before && g_best_d != EMPTY_BITS) write_layer(g_best_d, g_best_l);
-        }
-        // none found: there are no more; all hits behind the last layer in the prefix and no ties:
-        // it gave every layer there is
-        searching = searching && g_found > before && g_found < uint(u_layers) && (g_hits > uint(TOP) || g_tie);
+        if (searching && g_best_d != EMPTY_BITS) write_layer(g_best_d, g_best_l);
+        searching = searching && g_best_d != EMPTY_BITS && g_found < uint(u_layers);
         slot = i % 3u;
         if (searching) s_found[slot] = 1u;
         if (lid == 0u) s_found[(i + 1u) % 3u] = 0u;
