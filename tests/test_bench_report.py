@@ -124,6 +124,11 @@ def test_report_numbers_are_the_measured_ones(ci_run):
         st = r["sustained_timed"]
         assert len(st["total_ms_per_frame"]) == len(r["wall_ms_per_frame"])  # the same walkthrough
         assert {"visibility", "raytracing", "texturing"} <= set(st["median_ms"])
+        # each frame's sections, which add up to its total
+        parts = st["part_ms_per_frame"]
+        assert "raytracing:search" in parts and all(len(v) == len(st["total_ms_per_frame"]) for v in parts.values())
+        assert np.allclose([sum(v[i] for v in parts.values()) for i in range(len(st["total_ms_per_frame"]))],
+                           st["total_ms_per_frame"], rtol=1e-6)
     # the raytracing row of the default path's table starts with the 1-layer median of the frames
     # rendered back to back and the paper's 1.2 ms
     assert any(r.startswith(f"| raytracing | {fmt(k1['sustained_timed']['median_ms']['raytracing'])} | 1.2 |")
