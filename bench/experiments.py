@@ -81,6 +81,28 @@ def _back_to_back(renderer, cameras, seconds: float) -> list[float]:
     return calls
 
 
+# The photo cache fills over several walkthroughs: a frame uploads at most max_uploads_per_frame
+# photos, each once its background decode is done. On the paper preset at 1280x720 (192 photos, all
+# of which fit) ~100 photos were still uploaded after the statistics pass, the last ones within the
+# sustained timed pass, where each upload frame read 2-8 ms (reports/frame-h200, sessions 18-19).
+# The timed passes measure the steady state that a viewer reaches once it has looked around.
+WARM_UP_LOOPS = 20
+
+
+def warm_photo_cache(renderer, cameras) -> dict:
+    """Render ``cameras`` (frames left on the GPU) until a whole walkthrough uploads no photo with
+    no decode pending, at most :data:`WARM_UP_LOOPS` times. Returns ``loops`` (walkthroughs
+    rendered) and ``uploads`` (photos uploaded by them)."""
+    first = renderer.images.uploads
+    for loop in range(1, WARM_UP_LOOPS + 1):
+        before = renderer.images.uploads
+        for cam in cameras:
+            renderer.render(cam, readback=False)
+        if renderer.images.uploads == before and not renderer.images.pending:
+            break
+    return {"loops": loop, "uploads": int(renderer.images.uploads - first)}
+
+
 def _stage_summary(frames: list[dict]) -> dict:
     """Medians of per-frame timer sections (:meth:`dmrt.gl.GpuTimer.collect`): ``median_ms``
     {stage}, ``median_part_ms`` {``stage:part``}, ``median_total_ms``, ``p95_total_ms``,
@@ -100,7 +122,8 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
                         on_frame: Callable[[dict], None] | None = None, progress: bool = True,
                         fenced: bool = False) -> dict:
     """Render ``cameras`` in four passes with a fresh renderer: a statistics pass that reads every
-    frame back (and warms up: the photo cache reaches its steady state), the timed pass, whose
+    frame back, then the walkthrough again until the photo cache is steady (:func:`warm_photo_cache`),
+    the timed pass, whose
     frames stay on the GPU as in interactive use (``Renderer.render(readback=False)``) and whose
     stages are timed with GL timer queries, the sustained pass: the same frames back to back
     with no timer query, one wall clock over all of them (repeated for at least
@@ -136,7 +159,8 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         pass and after the sustained one, None without nvidia-smi}, ``fps_min_avg_max``, ``fps_median``,
         per frame ``total_ms_per_frame``, ``stage_ms_per_frame`` {stage: list}, ``wall_ms_per_frame``
         (``render()`` wall clock), ``median_cpu_ms``, ``mean_iterations`` (over the pixels with a
-        surface), ``surface_fraction``, ``photo_uploads``, ``gpu_bytes`` and ``tile_stats`` (the tiles
+        surface), ``surface_fraction``, ``photo_uploads`` (in the timed passes: 0 once the cache is
+        steady), ``warm_up`` {``loops``, ``uploads``} (:func:`warm_photo_cache`), ``gpu_bytes`` and ``tile_stats`` (the tiles
         path's :meth:`~dmrt.runtime.tiles.TileVisibility.stats` of the last frame, else None).
     """
     from tqdm import tqdm
@@ -153,6 +177,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
             iters.append(float(f["iterations"][hit].mean()) if hit.any() else 0.0)
             if on_frame is not None:
                 on_frame(f)
+        warm_up = warm_photo_cache(renderer, cameras)
         uploads0 = renderer.images.uploads
         clocks_before = gpu_clocks()  # the statistics pass just ran back to back: clocks are up
         timings, parts, cpu, wall = [], [], [], []
@@ -204,7 +229,8 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
                 "wall_ms_per_frame": wall, "median_wall_ms": float(np.median(wall)),
                 "median_cpu_ms": {k: float(np.median([c.get(k, 0.0) for c in cpu])) for k in cpu[0]},
                 "mean_iterations": float(np.mean(iters)), "surface_fraction": float(np.mean(surface)),
-                "photo_uploads": int(renderer.images.uploads - uploads0), "gpu_bytes": dict(renderer.gpu_bytes),
+                "photo_uploads": int(renderer.images.uploads - uploads0), "warm_up": warm_up,
+                "gpu_bytes": dict(renderer.gpu_bytes),
                 "tile_stats": tile_stats}
     finally:
         renderer.release()

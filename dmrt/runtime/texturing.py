@@ -60,6 +60,7 @@ class ImageCache:
     slot_of : (n_photos,) int32, the cache slot of each photo, -1 = not resident.
     slots : moderngl.Buffer, ``slot_of`` on the GPU.
     uploads : int, full-resolution uploads so far.
+    pending : int, photos being decoded for an upload.
     """
 
     # bytes a texel of a cache slot: RGBA8, the 4th byte unused. An RGB8 upload is widened by the
@@ -97,6 +98,11 @@ class ImageCache:
         self._pending: dict[int, Future] = {}
         self._decoded: OrderedDict[int, np.ndarray] = OrderedDict()
         self._cpu_budget = max(0.0, cpu_cache_mb) * 2 ** 20
+
+    @property
+    def pending(self) -> int:
+        """Photos whose background decode has started and which are not uploaded yet."""
+        return len(self._pending)
 
     @property
     def nbytes(self) -> dict:
