@@ -44,8 +44,7 @@ def load_sweeps(results: Path, names) -> dict[tuple[int, int], dict[str, dict[st
             d = json.loads(f.read_text())
             for e in d["tile_sweep"]:
                 key = (f"{e['tile']}:{e['batch']}:{e['top']}" + ("" if e["warp_blocks"] else ":r")
-                       + {"sparse": ":s", "linear": ":l"}.get(e.get("walk", "auto"), "")
-                       + (f":a{e['sparse_min']}" if e.get("walk") == "auto" and "sparse_min" in e else ""))
+                       + {"sparse": ":s", "linear": ":l"}.get(e.get("walk", "auto"), ""))
                 out.setdefault(tuple(d["frame_size"]), {}).setdefault(key, {})[name] = e
     return out
 

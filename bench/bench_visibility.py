@@ -44,21 +44,19 @@ def main(argv=None) -> None:
     p.add_argument("--frames", type=int, default=24)
     p.add_argument("--write-normals", action="store_true")
     p.add_argument("--tile-sweep", nargs="*", default=["16:288:12", "16:288:12:r", "16:384:16", "16:256:8"],
-                   metavar="T:B:K[:r][:s|:l|:aN]",
+                   metavar="T:B:K[:r][:s|:l]",
                    help="tiles stage settings timed alone: tile side T, B discs in shared memory, K nearest "
                         "hits kept, ':r' for warps of two pixel rows instead of 8x4 blocks, ':s' / ':l' for the "
-                        "raster's sparse / linear walk instead of auto, ':aN' for auto with tiles of more than N "
-                        "discs walked sparsely (TileVisibility tile, batch, top, warp_blocks, walk, sparse_min); "
-                        "the first is the reference of the layers' comparison")
+                        "raster's sparse / linear walk instead of auto (TileVisibility tile, batch, top, "
+                        "warp_blocks, walk); the first is the reference of the layers' comparison")
     p.add_argument("--no-paths", action="store_true", help="only the --tile-sweep")
     args = p.parse_args(argv)
     try:
         sweep = [parse_tile_setting(spec) for spec in args.tile_sweep]
     except ValueError:
-        p.error(f"--tile-sweep: settings are TILE:BATCH:TOP[:r][:s|:l|:aN] (tile 1-32, batch >= 1, top 4, 8, "
-                f"12 or 16, r: warps of pixel rows; else 8x4 blocks, for a tile a multiple of 8; s / l: the "
-                f"sparse / linear walk, else auto, aN: sparse above N discs a tile), e.g. 16:384:16:s, not "
-                f"{' '.join(args.tile_sweep)}")
+        p.error(f"--tile-sweep: settings are TILE:BATCH:TOP[:r][:s|:l] (tile 1-32, batch >= 1, top 4, 8, 12 "
+                f"or 16, r: warps of pixel rows; else 8x4 blocks, for a tile a multiple of 8; s / l: the sparse "
+                f"/ linear walk, else auto), e.g. 16:384:16:s, not {' '.join(args.tile_sweep)}")
     args.out.mkdir(parents=True, exist_ok=True)
     args.bundle = bundle_path(args, {})
     bundle = read_bundle(args.bundle)
@@ -110,27 +108,20 @@ def main(argv=None) -> None:
     print(f"wrote {out}")
 
 
-def parse_tile_setting(spec: str) -> tuple[int, int, int, bool, str, int]:
-    """``"T:B:K"`` with optional ``:r``, then ``:s``, ``:l`` or ``:aN`` -> (tile, batch, top,
-    warp_blocks, walk, sparse_min); ValueError when malformed. Warps cover 8x4 pixel blocks (the
-    default) where the tile side is a multiple of 8, rows with ``:r``; the raster's walk is
-    ``"auto"`` (tiles of more than ``SPARSE_MIN`` discs sparse, more than N with ``:aN``),
-    ``"sparse"`` with ``:s``, ``"linear"`` with ``:l``."""
-    from dmrt.runtime.tiles import SPARSE_MIN
-
+def parse_tile_setting(spec: str) -> tuple[int, int, int, bool, str]:
+    """``"T:B:K"`` with optional ``:r``, then ``:s`` or ``:l`` -> (tile, batch, top, warp_blocks,
+    walk); ValueError when malformed. Warps cover 8x4 pixel blocks (the default) where the tile side
+    is a multiple of 8, rows with ``:r``; the raster's walk is ``"auto"``, ``"sparse"`` with ``:s``,
+    ``"linear"`` with ``:l``."""
     parts = spec.split(":")
     flags = parts[3:]
-    sparse_min = SPARSE_MIN
-    if flags and flags[-1][:1] == "a" and flags[-1][1:].isdigit():
-        sparse_min = int(flags[-1][1:])
-        flags = flags[:-1] + ["aN"]
-    if len(parts) < 3 or flags not in ([], ["r"], ["s"], ["l"], ["aN"], ["r", "s"], ["r", "l"], ["r", "aN"]):
+    if len(parts) < 3 or flags not in ([], ["r"], ["s"], ["l"], ["r", "s"], ["r", "l"]):
         raise ValueError(spec)
     tile, batch, top = (int(x) for x in parts[:3])
     if not 1 <= tile <= 32 or batch < 1 or top not in (4, 8, 12, 16):
         raise ValueError(spec)
     walk = "sparse" if "s" in flags else "linear" if "l" in flags else "auto"
-    return tile, batch, top, "r" not in flags and tile % 8 == 0, walk, sparse_min
+    return tile, batch, top, "r" not in flags and tile % 8 == 0, walk
 
 
 SWEEP_ROUNDS = 2  # every setting timed this many times, the settings in turn (a clock drift shows)
@@ -138,7 +129,7 @@ SWEEP_ROUNDS = 2  # every setting timed this many times, the settings in turn (a
 
 def tile_sweep(bundle, path, layers: int, settings) -> list[dict]:
     """The tiles stage alone (:class:`dmrt.runtime.tiles.TileVisibility`, hit masks written as in a
-    renderer with the labeling pass) for each (tile, batch, top, warp_blocks, walk, sparse_min) of ``settings`` over
+    renderer with the labeling pass) for each (tile, batch, top, warp_blocks, walk) of ``settings`` over
     the camera ``path``: median GPU ms of ``tile_lists`` and ``tile_raster`` over frames rendered
     back to back (deferred timer queries, the list checked two frames late: no wait between frames,
     so the clocks stay up; SWEEP_ROUNDS rounds over the settings, each round's median kept) and the
@@ -155,8 +146,8 @@ def tile_sweep(bundle, path, layers: int, settings) -> list[dict]:
     splats = ProxySplats(ctx, bundle.proxy)
     depth, label = ctx.buffer(reserve=4 * layers * w * h), ctx.buffer(reserve=4 * layers * w * h)
     timer = GpuTimer(ctx)
-    stages = [TileVisibility(ctx, splats, tile=t, batch=b, top=k, warp_blocks=wb, walk=wk, sparse_min=sm)
-              for t, b, k, wb, wk, sm in settings]
+    stages = [TileVisibility(ctx, splats, tile=t, batch=b, top=k, warp_blocks=wb, walk=wk)
+              for t, b, k, wb, wk in settings]
 
     def render(stage, cam, timed):
         splats.begin_frame()
@@ -180,7 +171,7 @@ def tile_sweep(bundle, path, layers: int, settings) -> list[dict]:
                 times[i].append({name: float(np.median([f.get(f"visibility:{name}", 0.0) for f in frames]))
                                  for name in ("tile_lists", "tile_raster")})
         rows, first = [], None
-        for (tile, batch, top, blocks, walk, sparse_min), stage, t in zip(settings, stages, times):
+        for (tile, batch, top, blocks, walk), stage, t in zip(settings, stages, times):
             stage.check = "frame"
             seen = []
             for cam in path[:: max(1, len(path) // 4)][:4]:  # 4 frames' layers for the comparison
@@ -188,7 +179,6 @@ def tile_sweep(bundle, path, layers: int, settings) -> list[dict]:
                 seen.append((np.frombuffer(depth.read(), np.uint32), np.frombuffer(label.read(), np.int32)))
             first = first or seen
             row = {"tile": tile, "batch": batch, "top": top, "warp_blocks": blocks, "walk": walk,
-                   "sparse_min": sparse_min,
                    **{f"{name}_ms": min(r[name] for r in t) for name in ("tile_lists", "tile_raster")},
                    "rounds_ms": t,
                    "layers_equal_to_first": float(np.mean([np.mean((da == db) & (la == lb))
@@ -196,8 +186,7 @@ def tile_sweep(bundle, path, layers: int, settings) -> list[dict]:
             rows.append(row)
             lists, raster = (" / ".join(f"{r[name]:.3f}" for r in t) for name in ("tile_lists", "tile_raster"))
             warps = "8x4 blocks" if blocks else "rows"
-            walked = f"auto (sparse above {sparse_min} discs)" if walk == "auto" else walk
-            print(f"  tiles {tile}x{tile}, batch {batch}, top {top}, warps of {warps}, walk {walked}: lists "
+            print(f"  tiles {tile}x{tile}, batch {batch}, top {top}, warps of {warps}, walk {walk}: lists "
                   f"{lists} ms, raster {raster} ms (rounds), layers equal to the first "
                   f"{row['layers_equal_to_first']:.6f}", flush=True)
     finally:

@@ -8,13 +8,10 @@
 //   SCATTER 0, LARGE 1: one workgroup per listed large disc, its threads striding over its tiles;
 //   SCATTER 1, LARGE 0/1: the same walk again, writing the proxy index and its box in the tile
 //            (box_bits, which the raster and labeling passes test pixels against) into the tile's
-//            slice of Entries, at Offsets[tile] + the disc's rank in the tile: for a disc of at most
-//            MAX_THREAD_TILES tiles the value its count's atomicAdd returned (kept in Ranks, so
-//            this pass takes no atomic: H200, reports/frame-h200 session 19), for a large disc
-//            Counts[tile] decremented atomically (the large discs were counted last, so they hold
-//            the slice's last ranks). The order within a slice is arbitrary (the raster and labeling
-//            passes take minima, which need no order). Entries at or past u_capacity are dropped
-//            (the host grows the buffer from the frame's total, dmrt_tiles_scan.glsl).
+//            slice of Entries: slot = Offsets[tile] + (Counts[tile] decremented atomically) - 1, so the
+//            counts are back to 0 afterwards and the order within a slice is arbitrary (the raster
+//            and labeling passes take minima, which need no order). Entries at or past u_capacity
+//            are dropped (the host grows the buffer from the frame's total, dmrt_tiles_scan.glsl).
 // Both walks recompute the disc's box (cheaper than storing it): the same box, so the same tiles.
 // The raster and labeling passes read it from the entry instead of computing it for every tile.
 //
@@ -24,7 +21,6 @@
 //   B_TILE_ENTRIES  uvec2[capacity]: proxy index, box_bits in the tile; tile after tile
 //   B_TILE_COUNTS   uint[tiles]: discs per tile
 //   B_TILE_OFFSETS  uint[tiles + 1]: exclusive prefix sum of Counts (SCATTER 1 only)
-//   B_TILE_RANKS    uint[n x MAX_THREAD_TILES]: disc k's rank in the i-th tile of its box (row by row)
 #include "dmrt_tiles_common.glsl"
 
 #if defined COMPUTE_SHADER
@@ -42,7 +38,6 @@
 
 layout(std430, binding = B_LARGE) buffer Large { uint groups_x; uint groups_y; uint groups_z; uint n_large; uint large[]; };
 layout(std430, binding = B_TILE_COUNTS) buffer Counts { uint counts[]; };
-layout(std430, binding = B_TILE_RANKS) buffer Ranks { uint ranks[]; };
 #if SCATTER
 layout(std430, binding = B_TILE_ENTRIES) writeonly buffer Entries { uvec2 entries[]; };
 layout(std430, binding = B_TILE_OFFSETS) readonly buffer Offsets { uint offsets[]; };
@@ -51,17 +46,14 @@ uniform uint u_capacity;  // entries the buffer holds
 
 uniform uint u_count;  // number of proxies
 
-// Disc k, whose pixel box is `box`, in tile (tx, ty); `rank`: where its rank in the tile is kept
-// (~0u: a large disc, none).
-void bin_into(int tx, int ty, uint k, ivec4 box, uint rank) {
+// Disc k, whose pixel box is `box`, in tile (tx, ty).
+void bin_into(int tx, int ty, uint k, ivec4 box) {
     uint tile = uint(ty * u_tiles.x + tx);
 #if SCATTER
-    uint r = rank != ~0u ? ranks[rank] : atomicAdd(counts[tile], ~0u) - 1u;  // decrement: adding 2^32 - 1
-    uint pos = offsets[tile] + r;
+    uint pos = offsets[tile] + atomicAdd(counts[tile], ~0u) - 1u;  // decrement: adding 2^32 - 1
     if (pos < u_capacity) entries[pos] = uvec2(k, box_bits(box, ivec2(tx, ty) * TILE));
 #else
-    uint r = atomicAdd(counts[tile], 1u);
-    if (rank != ~0u) ranks[rank] = r;
+    atomicAdd(counts[tile], 1u);
 #endif
 }
 
@@ -79,7 +71,7 @@ void main() {
         int w = tb.z - tb.x + 1;
         int n = w * (tb.w - tb.y + 1);
         for (int j = int(gl_LocalInvocationID.x); j < n; j += int(gl_WorkGroupSize.x))
-            bin_into(tb.x + j % w, tb.y + j / w, k, box, ~0u);
+            bin_into(tb.x + j % w, tb.y + j / w, k, box);
     }
 }
 
@@ -103,10 +95,9 @@ void main() {
 #endif
             continue;
         }
-        uint rank = k * uint(MAX_THREAD_TILES);
         for (int ty = tb.y; ty <= tb.w; ++ty)
             for (int tx = tb.x; tx <= tb.z; ++tx)
-                bin_into(tx, ty, k, box, rank++);
+                bin_into(tx, ty, k, box);
     }
 }
 

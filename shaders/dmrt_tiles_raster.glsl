@@ -67,15 +67,11 @@ layout(std430, binding = B_TILE_MASKS) writeonly buffer Masks { uvec4 masks[]; }
 
 uniform uint u_capacity;  // entries the buffer holds (a slice past it was cut short)
 uniform int u_layers;     // k
-// The tiles this program walks: those whose list holds u_walk_counts.x to .y discs (the stage runs
-// one program built with each walk over its own tiles, TileVisibility's walk); the others are left
-// to the other program.
-uniform uvec2 u_walk_counts;
 
 shared vec4 s_pr[BATCH];     // camera-space centre (m), radius (m)
 shared vec4 s_nl[BATCH];     // unit normal, label (uint bits)
 // How a walk finds the discs whose pixel box holds the pixel (the program is built both ways; the
-// stage runs each on the tiles it suits, by their list's length, TileVisibility's walk):
+// stage picks one a frame from how many discs its tiles hold, TileVisibility's walk):
 // SPARSE_WALK 0: every disc in turn, its box tested (the warp's lanes on the same disc: one load
 //   for all); SPARSE_WALK 1: the boxes as bit masks by word of 32 discs, s_cols[w * TILE + x]
 //   with bit i set when the box of disc 32 w + i spans the tile's column x, s_rows likewise for
@@ -321,12 +317,8 @@ void walk_batches(uint off, uint count, bool walking) {
 }
 
 void main() {
-    uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
-    uint off = offsets[tile];
-    uint count = offsets[tile + 1u] - off;
-    count = min(count, u_capacity - min(off, u_capacity));  // entries past the buffer were dropped
-    if (count < u_walk_counts.x || count > u_walk_counts.y) return;  // the whole workgroup: another program's tile
     uint lid = gl_LocalInvocationIndex;
+    uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
     ivec2 local = tile_local_pixel();
     ivec2 p = ivec2(gl_WorkGroupID.xy) * TILE + local;
     bool inside = p.x < u_size.x && p.y < u_size.y;
@@ -347,6 +339,9 @@ void main() {
     g_top_d0 = g_top_l0 = g_top_d1 = g_top_l1 = uvec4(EMPTY_BITS);
     g_top_d2 = g_top_l2 = g_top_d3 = g_top_l3 = uvec4(EMPTY_BITS);
 
+    uint off = offsets[tile];
+    uint count = offsets[tile + 1u] - off;
+    count = min(count, u_capacity - min(off, u_capacity));  // entries past the buffer were dropped
     g_count = count;
     bool cached = count <= uint(BATCH);
     if (lid < 3u) s_found[lid] = 0u;

@@ -44,8 +44,6 @@ def test_tile_sweeps_per_size_and_setting(tmp_path, capsys):
                             "layers_equal_to_first": 0.5})
             entries.append({"tile": 16, "batch": 288, "top": 12, "warp_blocks": True, "walk": "sparse",
                             "tile_raster_ms": 1.7, "layers_equal_to_first": 1.0})
-            entries.append({"tile": 16, "batch": 288, "top": 12, "warp_blocks": True, "walk": "auto",
-                            "sparse_min": 64, "tile_raster_ms": 1.6, "layers_equal_to_first": 1.0})
         (tmp_path / name / "sweep-3840" / "visibility-b.json").write_text(
             json.dumps({"frame_size": [3840, 2160], "tile_sweep": entries}))
     main([str(tmp_path)])
@@ -53,7 +51,6 @@ def test_tile_sweeps_per_size_and_setting(tmp_path, capsys):
     assert "| 16:384:16 | 2.600 | 2.000 |" in out
     assert "| 16:288:12:r | - | 1.800 (layers 0.500000) |" in out
     assert "| 16:288:12:s | - | 1.700 |" in out
-    assert "| 16:288:12:a64 | - | 1.600 |" in out
 
 
 def test_tile_sweep_settings_parse():
@@ -61,16 +58,11 @@ def test_tile_sweep_settings_parse():
     ':l'; anything else is refused."""
     from bench.bench_visibility import parse_tile_setting
 
-    from dmrt.runtime.tiles import SPARSE_MIN
-
-    assert parse_tile_setting("16:288:12") == (16, 288, 12, True, "auto", SPARSE_MIN)
-    assert parse_tile_setting("16:288:12:r:s") == (16, 288, 12, False, "sparse", SPARSE_MIN)
-    assert parse_tile_setting("8:256:8:l") == (8, 256, 8, True, "linear", SPARSE_MIN)
-    assert parse_tile_setting("12:256:8") == (12, 256, 8, False, "auto", SPARSE_MIN)  # no 8x4 blocks in 12 px
-    assert parse_tile_setting("16:288:12:a64") == (16, 288, 12, True, "auto", 64)
-    assert parse_tile_setting("16:288:12:r:a0") == (16, 288, 12, False, "auto", 0)
-    for bad in ("16:288", "16:288:12:x", "16:288:12:s:r", "16:288:12:s:l", "40:288:12", "16:288:5",
-                "16:288:12:a", "16:288:12:a-1", "16:288:12:a64:r", "16:288:12:s:a64"):
+    assert parse_tile_setting("16:288:12") == (16, 288, 12, True, "auto")
+    assert parse_tile_setting("16:288:12:r:s") == (16, 288, 12, False, "sparse")
+    assert parse_tile_setting("8:256:8:l") == (8, 256, 8, True, "linear")
+    assert parse_tile_setting("12:256:8") == (12, 256, 8, False, "auto")  # no 8x4 blocks in 12 px
+    for bad in ("16:288", "16:288:12:x", "16:288:12:s:r", "16:288:12:s:l", "40:288:12", "16:288:5"):
         with pytest.raises(ValueError):
             parse_tile_setting(bad)
 

@@ -188,67 +188,29 @@ def test_long_tile_lists(ctx, discs, batch):
             obj.release()
 
 
-@pytest.mark.parametrize("max_thread_tiles", [1, 2])
-def test_large_discs_share_tiles_with_small_ones(ctx, bundle, splats, max_thread_tiles):
-    """Discs over more than max_thread_tiles tiles are binned by a workgroup each, with an atomic in
-    the scatter pass, the others at the ranks their count pass kept: with 1 or 2 tiles a thread,
-    many tiles hold both kinds, and their slices must still get every disc once (the layers equal
-    peeling's)."""
-    from dmrt.runtime.tiles import TileVisibility
-    from dmrt.runtime.visibility import VisibilityStage
-
-    peel = VisibilityStage(ctx, splats, "compute")
-    tiles = TileVisibility(ctx, splats, max_thread_tiles=max_thread_tiles)
-    try:
-        for cam in _views(bundle):
-            splats.begin_frame()
-            ref = _layers(ctx, peel, cam, 5)
-            got = _layers(ctx, tiles, cam, 5)
-            n_large = int(np.frombuffer(tiles.large.read(16), np.uint32)[3])
-            assert 0 < n_large < splats.n // 2, cam.name  # both kinds, in numbers
-            _assert_equal(ref, got, 5, f"{cam.name}, {max_thread_tiles} tiles a thread")
-    finally:
-        peel.release()
-        tiles.release()
-
-
-def test_auto_walk_splits_the_tiles_by_list_length(ctx, bundle, splats):
-    """walk="auto": tiles whose list holds more than sparse_min discs go to the sparse program, the
-    others to the linear one, in two dispatches over the same frame. With sparse_min just under the
-    median length of each view's non-empty lists, both programs walk many tiles, and the 5 layers equal
-    peeling's (a tile walked by neither would keep the new buffers' zeros); likewise a crowded tile of 1300 discs (walked in batches of 288 by the sparse
-    program) beside empty ones (the linear program)."""
+def test_auto_walk_turns_sparse_on_long_lists(ctx):
+    """walk="auto": the first frame walks every disc in turn (no list length known yet), the next
+    one, after a list of 1300 discs over 12 tiles (108 a tile, above SPARSE_MIN), only the discs
+    whose box holds the pixel; a view with no disc in front turns it back. Every frame's layers
+    equal peeling's, with batches of 768 and 288 discs."""
     from dmrt.runtime.tiles import SPARSE_MIN, TileVisibility
     from dmrt.runtime.visibility import ProxySplats, VisibilityStage
 
-    peel = VisibilityStage(ctx, splats, "compute")
-    tiles = TileVisibility(ctx, splats, walk="auto")
-    try:
-        for cam in _views(bundle):
-            splats.begin_frame()
-            ref = _layers(ctx, peel, cam, 5)
-            tiles.sparse_min = 2 ** 31  # every tile linear, to read the lists' lengths
-            _layers(ctx, tiles, cam, 5)
-            counts = np.diff(np.frombuffer(tiles.offsets.read(), np.uint32).astype(np.int64))
-            listed = np.sort(counts[counts > 0])
-            tiles.sparse_min = int(listed[len(listed) // 2]) - 1  # some tile holds one more: the first sparse
-            assert (counts > tiles.sparse_min).sum() >= 3 and ((counts > 0) & (counts <= tiles.sparse_min)).sum() >= 3
-            assert [s for s, _ in tiles.walks()] == [0, 1]
-            _assert_equal(ref, _layers(ctx, tiles, cam, 5), 5, f"{cam.name}, sparse above {tiles.sparse_min} discs")
-    finally:
-        peel.release()
-        tiles.release()
-
     cam, proxy = _crowded_tile(1300)
-    crowd = ProxySplats(ctx, proxy)
-    peel = VisibilityStage(ctx, crowd, "compute")
-    tiles = TileVisibility(ctx, crowd, batch=288)
+    assert 1300 > SPARSE_MIN * 12
+    splats = ProxySplats(ctx, proxy)
+    peel = VisibilityStage(ctx, splats, "compute")
+    stages = [TileVisibility(ctx, splats, batch=batch) for batch in (768, 288)]
+    away = Camera("away", 64, 48, 64.0, 64.0, 32.0, 24.0, np.diag([-1.0, 1.0, -1.0]), np.zeros(3))
     try:
-        crowd.begin_frame()
-        assert 1300 > 288 and tiles.sparse_min == SPARSE_MIN < 1300
-        _assert_equal(_layers(ctx, peel, cam, 5), _layers(ctx, tiles, cam, 5), 5, "1300 discs in one tile")
+        for stage in stages:
+            for frame, (view, sparse) in enumerate([(cam, False), (cam, True), (away, True), (cam, False)]):
+                splats.begin_frame()
+                assert stage._sparse() == sparse, f"batch {stage.batch}, frame {frame}"
+                _assert_equal(_layers(ctx, peel, view, 5), _layers(ctx, stage, view, 5), 5,
+                              f"batch {stage.batch}, frame {frame}, sparse {sparse}")
     finally:
-        for obj in (tiles, peel, crowd):
+        for obj in (*stages, peel, splats):
             obj.release()
 
 

@@ -60,7 +60,6 @@ B_LEVEL_EDGES = 32  # n_photos x n_photos uvec2: row a lists photo a's seam neig
 B_LEVEL_P = 33      # n_photos vec4: the conjugate-gradient search direction, where shared memory is too small
 B_NORMALS = 34      # h x w x 3 float: unit world normals, written only for a frame that is read back
 B_TILE_MASKS = 35   # h x w x 2 uvec4: which of its tile's first 256 discs hit each pixel (tiles raster -> labeling)
-B_TILE_RANKS = 36   # n x MAX_THREAD_TILES uint: each disc's place in each of its tiles' slices (tiles bin count -> scatter)
 
 # -- sentinels ---------------------------------------------------------------------------------
 EMPTY_BITS = 0xFFFFFFFF  # an empty depth (above every positive float's bits: atomicMin keeps the nearest)

@@ -123,11 +123,8 @@ class RenderConfig:
     tile_walk: Literal["auto", "linear", "sparse"] = option(
         "auto", "tiles: how the raster finds a pixel's discs: linear (every disc of the tile in turn, its box "
                 "tested: fastest for short lists), sparse (only the discs whose box holds the pixel: for long "
-                "ones) or auto (each tile by its list's length: sparse above tile_sparse_min discs); the same "
-                "layers")
-    tile_sparse_min: int = option(SPARSE_MIN, "tiles, tile_walk auto: a tile whose list holds more discs than this "
-                                              "walks sparsely; the fastest value depends on the GPU: python -m "
-                                              "bench.bench_visibility --tile-sweep", minimum=0)
+                f"ones) or auto (sparse for a frame whose tiles held more than {SPARSE_MIN} discs on average the "
+                "last time the list length was read); the same layers")
     kbuffer_slots: int = option(0, "k-buffer fragments kept per pixel; 0 = 6 per layer + 2 (>= 99.9 % of the "
                                    "peeled layers' pixels); a pixel with more fragments in front of its k-th layer "
                                    "loses its deepest layers", minimum=0)
@@ -243,8 +240,7 @@ class Renderer:
                                           self.config.kbuffer_slots or 6 * self.config.layers + 2, n,
                                           self.config.tile_check, self.shading.status, hit_masks=self.config.labeling,
                                           tile_batch=self.config.tile_batch, tile_top=self.config.tile_hits,
-                                          tile_walk=self.config.tile_walk,
-                                          tile_sparse_min=self.config.tile_sparse_min)
+                                          tile_walk=self.config.tile_walk)
         defines = {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
                    "SECANT": int(self.config.search == "secant"), "RAYTRACE": int(self.config.raytrace),
                    "STATISTICS": int(self.config.statistics), "ILLINOIS": int(self.config.refine == "illinois")}

@@ -7,12 +7,10 @@ built in registers, and global memory sees each disc a few times per frame rathe
 covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
 
 1. ``dmrt_tiles_bin`` (count): one thread per disc culls it and counts it into every 16x16-pixel
-   screen tile its conservative pixel box overlaps (``atomicAdd`` per tile, whose value, the disc's
-   rank in the tile, it keeps); a disc over many tiles goes to a list that a workgroup per disc
-   bins (dispatch-indirect).
+   screen tile its conservative pixel box overlaps (``atomicAdd`` per tile); a disc over many tiles
+   goes to a list that a workgroup per disc bins (dispatch-indirect).
 2. ``dmrt_tiles_scan``: exclusive prefix sum of the tile counts = each tile's slice of one list.
-3. ``dmrt_tiles_bin`` (scatter): the same walk writes the disc indices into the slices, at their
-   ranks.
+3. ``dmrt_tiles_bin`` (scatter): the same walk writes the disc indices into the slices.
 4. ``dmrt_tiles_raster``: one workgroup per tile, one invocation per pixel: each layer is the
    smallest (depth bits, label) among the pixel's hits behind the layer before with another label.
    The workgroup walks its tile's discs (held in shared memory) once, each invocation keeping its
@@ -56,11 +54,10 @@ MASK_DISCS = 256  # the raster's hit masks cover a tile's first 256 discs (dmrt_
 # and tile_hits set them for another GPU)
 DEFAULT_BATCH = 288
 DEFAULT_TOP = 12
-# walk="auto" walks a tile sparsely (each pixel only the discs whose box holds it) when its list
-# holds more discs than this, else every disc in turn (dmrt_tiles_raster.glsl, SPARSE_WALK: H200,
-# whole frames of ~180 discs a tile sparse 0.35 ms against 0.50, of ~63 a tile 1.78 against 1.72)
+# walk="auto" walks a frame's tiles sparsely (each pixel only the discs whose box holds it) when the
+# last known list held more discs than this a tile on average (dmrt_tiles_raster.glsl, SPARSE_WALK:
+# H200, ~180 discs a tile sparse 0.35 ms against 0.50, ~63 a tile 1.78 against 1.72)
 SPARSE_MIN = 100
-ALL_COUNTS = (0, 0xFFFFFFFF)  # the raster's u_walk_counts: every tile
 
 
 class TileVisibility:
@@ -99,11 +96,8 @@ class TileVisibility:
     walk : ``"auto"``, ``"linear"`` or ``"sparse"``
         How the raster finds a pixel's discs (``SPARSE_WALK`` in ``dmrt_tiles_raster.glsl``): every
         disc in turn with its box tested (linear: fastest for short lists), or only the discs whose
-        box holds the pixel (sparse: for long ones); auto: each tile by its list's length, sparse
-        above ``sparse_min`` discs (two dispatches, each program skipping the other's tiles). The
-        layers are the same.
-    sparse_min : int
-        walk="auto": a tile whose list holds more discs than this walks sparsely.
+        box holds the pixel (sparse: for long ones); auto: sparse for a frame when the last list
+        length known held more than ``SPARSE_MIN`` discs a tile on average. The layers are the same.
     warp_blocks : bool
         Each 32 invocations of the raster and labeling passes cover an 8 x 4 pixel block of the tile
         instead of two rows (``tile_local_pixel`` in ``dmrt_tiles_common.glsl``; tile a multiple
@@ -112,7 +106,7 @@ class TileVisibility:
 
     Attributes
     ----------
-    tile, batch, top, check, walk, sparse_min : the parameters above
+    tile, batch, top, check, walk : the parameters above
     capacity : int
         Entries the list buffer holds.
     dropped_frames : int
@@ -121,7 +115,7 @@ class TileVisibility:
 
     def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = DEFAULT_BATCH, top: int = DEFAULT_TOP,
                  max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None,
-                 hit_masks: bool = True, warp_blocks: bool = True, walk: str = "auto", sparse_min: int = SPARSE_MIN):
+                 hit_masks: bool = True, warp_blocks: bool = True, walk: str = "auto"):
         if not 1 <= tile <= 32:
             raise ValueError(f"tile must be 1..32 (tile^2 invocations per workgroup), not {tile}")
         if batch < 1:
@@ -132,8 +126,6 @@ class TileVisibility:
             raise ValueError(f"check must be 'frame' or 'lagged', not {check!r}")
         if walk not in ("auto", "linear", "sparse"):
             raise ValueError(f"walk must be 'auto', 'linear' or 'sparse', not {walk!r}")
-        if sparse_min < 0:
-            raise ValueError(f"sparse_min must be >= 0, not {sparse_min}")
         self.ctx, self.splats = ctx, splats
         self.tile, self.check, self.batch, self.top = int(tile), check, int(batch), int(top)
         self.hit_masks = bool(hit_masks) and self.tile * self.tile == MASK_DISCS
@@ -144,13 +136,11 @@ class TileVisibility:
                                                                             "MAX_THREAD_TILES": max_thread_tiles})
                      for scatter in (0, 1) for large in (0, 1)}
         self._scan = load_program(ctx, "dmrt_tiles_scan")
-        # each disc's rank in each of its tiles' slices, from the count to the scatter pass (a disc
-        # over more than max_thread_tiles tiles takes an atomic instead)
-        self.ranks = ctx.buffer(reserve=4 * max_thread_tiles * max(splats.n, 1))
-        self.walk, self.sparse_min = walk, int(sparse_min)
+        self.walk = walk
         self._rasters = {sparse: load_program(ctx, "dmrt_tiles_raster", {**self._defines, "TOP": int(top),
                                                                           "SPARSE_WALK": int(sparse)})
                          for sparse in (0, 1) if walk == "auto" or sparse == (walk == "sparse")}
+        self._last_total = 0  # the last list length read back (walk="auto" decides by it)
         n = max(splats.n, 1)
         # large-disc list: dispatch-indirect header (groups x, y, z), its length, proxy indices
         self.large = ctx.buffer(reserve=16 + 4 * n)
@@ -191,7 +181,7 @@ class TileVisibility:
         points = {"proxies": abi.B_PROXIES, "layer_depth": abi.B_LAYER_DEPTH, "layer_label": abi.B_LAYER_LABEL,
                   "large": abi.B_LARGE, "entries": abi.B_TILE_ENTRIES,
                   "counts": abi.B_TILE_COUNTS, "offsets": abi.B_TILE_OFFSETS, "masks": abi.B_TILE_MASKS,
-                  "status": abi.B_FRAME_STATUS, "ranks": abi.B_TILE_RANKS}
+                  "status": abi.B_FRAME_STATUS}
         for name, buf in buffers.items():
             if buf is not None:  # no hit masks without the labeling pass or with tiles other than 16 x 16
                 buf.bind_to_storage_buffer(points[name])
@@ -232,6 +222,7 @@ class TileVisibility:
         if self.check == "lagged" and frame - LAG in self._capacity_of:
             # the GPU has finished the frame two back by now (or the read waits for it, not for this one)
             total = self.status.read(LAG)[0]
+            self._last_total = total
             self.dropped_frames += total > self._capacity_of[frame - LAG]
             self._fit(total)
         status = self.status.record(0)
@@ -258,17 +249,17 @@ class TileVisibility:
             return False
         return self._outgrown(self.status.total())
 
-    def walks(self) -> list[tuple[int, tuple[int, int]]]:
-        """The raster's programs (``SPARSE_WALK`` 0 or 1) and the list lengths (lo, hi) of the tiles
-        each walks (``walk``, ``sparse_min``)."""
+    def _sparse(self) -> bool:
+        """Whether this frame's raster walks sparsely (``walk``)."""
         if self.walk != "auto":
-            return [(int(self.walk == "sparse"), ALL_COUNTS)]
-        return [(0, (0, self.sparse_min)), (1, (self.sparse_min + 1, ALL_COUNTS[1]))]
+            return self.walk == "sparse"
+        return self._grid is not None and self._last_total > SPARSE_MIN * self._grid[0] * self._grid[1]
 
     def _outgrown(self, total: int) -> bool:
         """Whether a list of ``total`` entries outgrew the buffer; if so the buffer is grown now,
         else headroom for the next frames is made at the next frame (the labeling pass still walks
         this list)."""
+        self._last_total = total
         if total <= self.capacity:
             self._grow_to = total
             return False
@@ -303,7 +294,7 @@ class TileVisibility:
         for large in (0, 1):
             program = self._bin[scatter, large]
             self._bind(proxies=self.splats.buffer, large=self.large, entries=self.entries, counts=self.counts,
-                       offsets=self.offsets, ranks=self.ranks)
+                       offsets=self.offsets)
             set_uniforms(program, u_capacity=self.capacity, **tile_uniforms)
             if large:
                 program.run_indirect(self.large)
@@ -314,11 +305,9 @@ class TileVisibility:
     def _raster_pass(self, tile_uniforms: dict, layers: int, layer_depth, layer_label) -> None:
         self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label,
                    entries=self.entries, offsets=self.offsets, masks=self.masks)
-        for sparse, counts in self.walks():  # disjoint tiles: no barrier between them
-            program = self._rasters[sparse]
-            set_uniforms(program, u_capacity=self.capacity, u_layers=int(layers), u_walk_counts=counts,
-                         **tile_uniforms)
-            program.run(*self._grid)
+        program = self._rasters[int(self._sparse())]
+        set_uniforms(program, u_capacity=self.capacity, u_layers=int(layers), **tile_uniforms)
+        program.run(*self._grid)
         self.ctx.memory_barrier(_BARRIER)
 
     def label_pass(self, uniforms: dict, hits, key=None, vlabel=None, packed: bool = False,
@@ -375,13 +364,13 @@ class TileVisibility:
 
     @property
     def nbytes(self) -> int:
-        """GPU bytes of the path's own buffers (list, tile counts and offsets, large list, ranks, hit
-        masks, status records if its own)."""
-        bufs = [self.entries, self.large, self.counts, self.offsets, self.masks, self.ranks]
+        """GPU bytes of the path's own buffers (list, tile counts and offsets, large list, status
+        records if its own)."""
+        bufs = [self.entries, self.large, self.counts, self.offsets, self.masks]
         return sum(b.size for b in bufs if b is not None) + (self.status.nbytes if self._own_status else 0)
 
     def release(self) -> None:
-        for name in ("entries", "large", "counts", "offsets", "masks", "ranks"):
+        for name in ("entries", "large", "counts", "offsets", "masks"):
             buf = getattr(self, name)
             if buf is not None:
                 buf.release()
