@@ -188,6 +188,29 @@ def test_long_tile_lists(ctx, discs, batch):
             obj.release()
 
 
+@pytest.mark.parametrize("max_thread_tiles", [1, 2])
+def test_large_discs_share_tiles_with_small_ones(ctx, bundle, splats, max_thread_tiles):
+    """Discs over more than max_thread_tiles tiles are binned by a workgroup each (the large list,
+    dispatch-indirect), the others by a thread each: with 1 or 2 tiles a thread, many tiles hold
+    both kinds, and their slices must still get every disc once (the layers equal peeling's)."""
+    from dmrt.runtime.tiles import TileVisibility
+    from dmrt.runtime.visibility import VisibilityStage
+
+    peel = VisibilityStage(ctx, splats, "compute")
+    tiles = TileVisibility(ctx, splats, max_thread_tiles=max_thread_tiles)
+    try:
+        for cam in _views(bundle):
+            splats.begin_frame()
+            ref = _layers(ctx, peel, cam, 5)
+            got = _layers(ctx, tiles, cam, 5)
+            n_large = int(np.frombuffer(tiles.large.read(16), np.uint32)[3])
+            assert 0 < n_large < splats.n // 2, cam.name  # both kinds, in numbers
+            _assert_equal(ref, got, 5, f"{cam.name}, {max_thread_tiles} tiles a thread")
+    finally:
+        peel.release()
+        tiles.release()
+
+
 def test_auto_walk_turns_sparse_on_long_lists(ctx):
     """walk="auto": the first frame walks every disc in turn (no list length known yet), the next
     one, after a list of 1300 discs over 12 tiles (108 a tile, above SPARSE_MIN), only the discs
