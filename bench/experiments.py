@@ -84,23 +84,33 @@ def _back_to_back(renderer, cameras, seconds: float) -> list[float]:
 # The photo cache fills over several walkthroughs: a frame uploads at most max_uploads_per_frame
 # photos, each once its background decode is done. On the paper preset at 1280x720 (192 photos, all
 # of which fit) ~100 photos were still uploaded after the statistics pass, the last ones within the
-# sustained timed pass, where each upload frame read 2-8 ms (reports/frame-h200, sessions 18-19).
-# The timed passes measure the steady state that a viewer reaches once it has looked around.
-WARM_UP_LOOPS = 20
+# sustained timed pass, where each upload frame read 2-8 ms and moved the median (reports/frame-h200,
+# sessions 18-19). The timed passes measure the steady state that a viewer reaches once it has
+# looked around: warm_photo_cache preloads what the statistics pass wanted, then renders the
+# walkthrough until a whole pass uploads nothing, for at most WARM_UP_MAX_S (a path whose frames take
+# 100 ms gains nothing from a steadier cache that is worth minutes).
+WARM_UP_MAX_S = 10.0
 
 
-def warm_photo_cache(renderer, cameras) -> dict:
-    """Render ``cameras`` (frames left on the GPU) until a whole walkthrough uploads no photo with
-    no decode pending, at most :data:`WARM_UP_LOOPS` times. Returns ``loops`` (walkthroughs
-    rendered) and ``uploads`` (photos uploaded by them)."""
-    first = renderer.images.uploads
-    for loop in range(1, WARM_UP_LOOPS + 1):
-        before = renderer.images.uploads
+def warm_photo_cache(renderer, cameras, wanted) -> dict:
+    """Upload ``wanted`` (photo indices, e.g. those the statistics pass wanted, first seen first;
+    :meth:`dmrt.runtime.texturing.ImageCache.preload`), then render ``cameras`` (frames left on the
+    GPU) until a whole walkthrough uploads no photo with no decode pending, or
+    :data:`WARM_UP_MAX_S` have passed. Returns ``loops`` (walkthroughs rendered), ``uploads``
+    (photos uploaded, the preload's included) and ``steady`` (the last walkthrough uploaded
+    nothing)."""
+    images = renderer.images
+    first = images.uploads
+    images.preload(wanted)
+    t0, loops = time.perf_counter(), 0
+    while True:
+        before = images.uploads
         for cam in cameras:
             renderer.render(cam, readback=False)
-        if renderer.images.uploads == before and not renderer.images.pending:
-            break
-    return {"loops": loop, "uploads": int(renderer.images.uploads - first)}
+        loops += 1
+        steady = images.uploads == before and not images.pending
+        if steady or time.perf_counter() - t0 > WARM_UP_MAX_S:
+            return {"loops": loops, "uploads": int(images.uploads - first), "steady": steady}
 
 
 def _stage_summary(frames: list[dict]) -> dict:
@@ -160,7 +170,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         per frame ``total_ms_per_frame``, ``stage_ms_per_frame`` {stage: list}, ``wall_ms_per_frame``
         (``render()`` wall clock), ``median_cpu_ms``, ``mean_iterations`` (over the pixels with a
         surface), ``surface_fraction``, ``photo_uploads`` (in the timed passes: 0 once the cache is
-        steady), ``warm_up`` {``loops``, ``uploads``} (:func:`warm_photo_cache`), ``gpu_bytes`` and ``tile_stats`` (the tiles
+        steady), ``warm_up`` {``loops``, ``uploads``, ``steady``} (:func:`warm_photo_cache`), ``gpu_bytes`` and ``tile_stats`` (the tiles
         path's :meth:`~dmrt.runtime.tiles.TileVisibility.stats` of the last frame, else None).
     """
     from tqdm import tqdm
@@ -169,15 +179,16 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
 
     renderer = Renderer(bundle, config)
     try:
-        iters, surface = [], []
+        iters, surface, wanted = [], [], {}
         for cam in tqdm(cameras, desc=f"{desc} (statistics)", unit="frame", leave=False, disable=not progress):
             f = renderer.render(cam)
+            wanted.update(dict.fromkeys(renderer.images.wanted))
             hit = f["depth"] > 0
             surface.append(float(hit.mean()))
             iters.append(float(f["iterations"][hit].mean()) if hit.any() else 0.0)
             if on_frame is not None:
                 on_frame(f)
-        warm_up = warm_photo_cache(renderer, cameras)
+        warm_up = warm_photo_cache(renderer, cameras, list(wanted))
         uploads0 = renderer.images.uploads
         clocks_before = gpu_clocks()  # the statistics pass just ran back to back: clocks are up
         timings, parts, cpu, wall = [], [], [], []

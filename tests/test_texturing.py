@@ -93,3 +93,28 @@ def test_image_cache_replaces_the_least_recently_wanted(ctx, bundle):
         assert cache.uploads == 5
     finally:
         cache.release()
+
+
+def test_image_cache_preload(ctx, bundle):
+    """preload makes the first n_slots of its photos resident at once (decoded in parallel, even in
+    a streaming cache that uploads one photo a frame), the same bytes as an upload by update; a
+    frame wanting them then uploads nothing."""
+    from dmrt.runtime.texturing import ImageCache
+
+    slot_mb = max(c.width * c.height for c in bundle.cameras) * ImageCache.SLOT_TEXEL_BYTES / 2 ** 20
+    streamed = ImageCache(ctx, bundle, cache_mb=3.5 * slot_mb, max_uploads=1, asynchronous=True)
+    synced = ImageCache(ctx, bundle, cache_mb=3.5 * slot_mb)
+    try:
+        assert streamed.preload([4, 2, 4, 0, 1]) == 3  # duplicates once; the slots hold three
+        assert streamed.wanted == (4, 2, 0) and list(np.flatnonzero(streamed.slot_of >= 0)) == [0, 2, 4]
+        assert streamed.pending == 0 and streamed.update([0, 2, 4]) == 0 and streamed.uploads == 3
+        assert synced.update([4, 2, 0]) == 3
+        a, b = streamed.high.read(), synced.high.read()  # every slot
+        n = len(a) // streamed.n_slots
+        for j in (4, 2, 0):
+            sa, sb = streamed.slot_of[j], synced.slot_of[j]
+            assert a[sa * n:(sa + 1) * n] == b[sb * n:(sb + 1) * n], j
+        assert streamed.preload([3]) == 1 and streamed.slot_of[3] >= 0  # the least recently wanted slot
+    finally:
+        streamed.release()
+        synced.release()

@@ -25,6 +25,7 @@ the photo's photometric gain (:mod:`dmrt.preprocess.photometric`, :func:`gains_b
 
 from __future__ import annotations
 
+import os
 from collections import OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 
@@ -61,6 +62,7 @@ class ImageCache:
     slots : moderngl.Buffer, ``slot_of`` on the GPU.
     uploads : int, full-resolution uploads so far.
     pending : int, photos being decoded for an upload.
+    wanted : tuple of int, the photos the last frame wanted.
     """
 
     # bytes a texel of a cache slot: RGBA8, the 4th byte unused. An RGB8 upload is widened by the
@@ -100,6 +102,11 @@ class ImageCache:
         self._cpu_budget = max(0.0, cpu_cache_mb) * 2 ** 20
 
     @property
+    def wanted(self) -> tuple[int, ...]:
+        """The photos the last frame wanted, most relevant first (:meth:`update`)."""
+        return tuple(self._wanted)
+
+    @property
     def pending(self) -> int:
         """Photos whose background decode has started and which are not uploaded yet."""
         return len(self._pending)
@@ -119,11 +126,7 @@ class ImageCache:
         """
         if self.n_slots == 0:
             return 0
-        self._wanted = [int(j) for j in wanted][:self.n_slots]
-        self._frame += 1
-        for j in self._wanted:
-            if self.slot_of[j] >= 0:
-                self._last_used[self.slot_of[j]] = self._frame
+        self._want(wanted)
         return self._upload(self.max_uploads, block=self._pool is None)
 
     def flush(self) -> int:
@@ -131,6 +134,28 @@ class ImageCache:
         if self._pending:
             wait(list(self._pending.values()))
         return self._upload(0, block=True) if self.n_slots else 0
+
+    def preload(self, photos) -> int:
+        """Make ``photos`` resident now (indices, most relevant first; the first ``n_slots``), decoded
+        on a thread per CPU core: for a viewer that knows which photos a walkthrough will want (the
+        benchmark's warm-up). Returns the number uploaded."""
+        if self.n_slots == 0:
+            return 0
+        self._want(photos)
+        with ThreadPoolExecutor(os.cpu_count() or 2, thread_name_prefix="dmrt-preload") as pool:
+            for j in self._wanted:
+                if self.slot_of[j] < 0 and j not in self._decoded and j not in self._pending:
+                    self._pending[j] = pool.submit(self._decode, j)
+            return self._upload(0, block=True)
+
+    def _want(self, photos) -> None:
+        """A new frame wants ``photos`` (the first ``n_slots``): the resident ones' slots count as
+        used now."""
+        self._wanted = list(dict.fromkeys(int(j) for j in photos))[:self.n_slots]
+        self._frame += 1
+        for j in self._wanted:
+            if self.slot_of[j] >= 0:
+                self._last_used[self.slot_of[j]] = self._frame
 
     def _upload(self, limit: int, block: bool) -> int:
         missing = [j for j in self._wanted if self.slot_of[j] < 0]
