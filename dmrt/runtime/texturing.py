@@ -16,7 +16,8 @@
   background threads: a wanted photo whose decode is not finished is uploaded by a later frame
   (the low-res copy stands in meanwhile), so no frame waits for a disk read or a PNG decode.
   ``max_uploads`` bounds the uploads of one frame (0 = no bound). Synchronous and unbounded, a
-  frame's cache is exactly its most frequent labels (what the tests check).
+  frame's cache is exactly its most frequent labels (what the tests check). :meth:`ImageCache.preload`
+  makes a known set of photos resident at once (the benchmark warms the cache with it).
 
 The texturing pass then colours each pixel from its label's photo at the projection of its
 raytraced point: from the cache when resident, else from the low-res copy (bilinear both), times
