@@ -86,27 +86,29 @@ def _back_to_back(renderer, cameras, seconds: float) -> list[float]:
 # of which fit) ~100 photos were still uploaded after the statistics pass, the last ones within the
 # sustained timed pass, where each upload frame read 2-8 ms and moved the median (reports/frame-h200,
 # sessions 18-19). The timed passes measure the steady state that a viewer reaches once it has
-# looked around: warm_photo_cache preloads what the statistics pass wanted, then renders the
-# walkthrough until a whole pass uploads nothing, for at most WARM_UP_MAX_S (a path whose frames take
-# 100 ms gains nothing from a steadier cache that is worth minutes).
+# looked around: warm_photo_cache preloads what the walkthrough wants, until a whole pass uploads
+# nothing, for at most WARM_UP_MAX_S (a path whose frames take 100 ms gains nothing from a steadier
+# cache that is worth minutes).
 WARM_UP_MAX_S = 10.0
 
 
 def warm_photo_cache(renderer, cameras, wanted) -> dict:
-    """Upload ``wanted`` (photo indices, e.g. those the statistics pass wanted, first seen first;
-    :meth:`dmrt.runtime.texturing.ImageCache.preload`), then render ``cameras`` (frames left on the
-    GPU) until a whole walkthrough uploads no photo with no decode pending, or
-    :data:`WARM_UP_MAX_S` have passed. Returns ``loops`` (walkthroughs rendered), ``uploads``
-    (photos uploaded, the preload's included) and ``steady`` (the last walkthrough uploaded
-    nothing)."""
+    """Make the photo cache steady for ``cameras``: upload ``wanted`` (photo indices, e.g. those the
+    statistics pass wanted, first seen first; :meth:`dmrt.runtime.texturing.ImageCache.preload`),
+    render the walkthrough (frames left on the GPU), and again with what it wanted added, until a
+    whole walkthrough uploads no photo with no decode pending, or :data:`WARM_UP_MAX_S` have
+    passed. (A streaming cache follows the frame before's choice, so the statistics pass never
+    wants its last frame's own.) Returns ``loops`` (walkthroughs rendered), ``uploads`` (photos
+    uploaded, the preloads' included) and ``steady`` (the last walkthrough uploaded nothing)."""
     images = renderer.images
-    first = images.uploads
-    images.preload(wanted)
+    first, wanted = images.uploads, dict.fromkeys(wanted)
     t0, loops = time.perf_counter(), 0
     while True:
+        images.preload(list(wanted))
         before = images.uploads
         for cam in cameras:
             renderer.render(cam, readback=False)
+            wanted.update(dict.fromkeys(images.wanted))
         loops += 1
         steady = images.uploads == before and not images.pending
         if steady or time.perf_counter() - t0 > WARM_UP_MAX_S:
