@@ -13,7 +13,9 @@ more splat pass). For the single passes also the agreement of their layers with 
 its list's statistics and GPU bytes. Then the tiles stage alone for each ``--tile-sweep``
 setting (tile side, discs in shared memory, nearest hits kept, the warps' pixel blocks: what bounds
 the raster pass), its tile lists' and raster's median GPU ms over frames back to back and its
-layers against the first setting's. One JSON ``visibility-<name>.json``.
+layers against the first setting's. With ``--walk-frames``, each frame's raster alone with the
+linear and the sparse walk (:func:`walk_per_frame`: which walk suits which frame). One JSON
+``visibility-<name>.json``.
 
     python -m bench.bench_visibility --bundle B --out R --width 3840 --height 2160 --no-paths \
         --tile-sweep 16:288:12 16:288:12:r 16:384:16 16:512:16 16:256:8 16:192:12 8:256:12
@@ -50,6 +52,8 @@ def main(argv=None) -> None:
                         "raster's sparse / linear walk instead of auto (TileVisibility tile, batch, top, "
                         "warp_blocks, walk); the first is the reference of the layers' comparison")
     p.add_argument("--no-paths", action="store_true", help="only the --tile-sweep")
+    p.add_argument("--walk-frames", action="store_true", help="also each frame's tile raster alone with the linear "
+                   "and the sparse walk, beside its discs a tile and the share of a tile a disc's box covers")
     args = p.parse_args(argv)
     try:
         sweep = [parse_tile_setting(spec) for spec in args.tile_sweep]
@@ -101,10 +105,12 @@ def main(argv=None) -> None:
                         if k != "label_agreement_per_layer")
               + f"  agreement min {min(row['label_agreement_per_layer']):.4f}", flush=True)
     tile_runs = tile_sweep(bundle, path, args.layers, sweep)
+    walks = walk_per_frame(bundle, path, args.layers) if args.walk_frames else None
     out = args.out / f"visibility-{args.preset or bundle.root.name}.json"
     out.write_text(json.dumps({"benchmark": "visibility", "version": 2, "machine": {"gl": renderer_info(get_context())},
                                "frame_size": [args.width, args.height], "layers": args.layers,
-                               "counts": bundle.meta.get("counts"), "runs": runs, "tile_sweep": tile_runs}, indent=1))
+                               "counts": bundle.meta.get("counts"), "runs": runs, "tile_sweep": tile_runs,
+                               "walk_frames": walks}, indent=1))
     print(f"wrote {out}")
 
 
@@ -200,3 +206,68 @@ def tile_sweep(bundle, path, layers: int, settings) -> list[dict]:
 
 if __name__ == "__main__":
     main()
+
+
+WALK_REPEATS = 7  # timed renders of each frame and walk (the median kept), after 3 untimed
+
+
+def walk_per_frame(bundle, path, layers: int) -> list[dict]:
+    """Each frame of the camera ``path``: the tile raster alone (GPU ms, median of
+    :data:`WALK_REPEATS` renders back to back) with ``walk="linear"`` and ``"sparse"``, its list's
+    discs a tile ``N`` and the mean share of a tile that a disc's box covers there (``cover``, 0-1:
+    the sparse walk pays where a pixel's discs are a small part of its tile's). H200, session 19 of
+    reports/frame-h200: sparse faster at 1280x720 above ~45 discs a tile, linear on every 3840x2160
+    frame."""
+    from dmrt.gl import get_context
+    from dmrt.gl.timer import GpuTimer
+    from dmrt.runtime.shading import camera_uniforms
+    from dmrt.runtime.tiles import TileVisibility
+    from dmrt.runtime.visibility import ProxySplats
+
+    ctx = get_context()
+    w, h = path[0].width, path[0].height
+    splats = ProxySplats(ctx, bundle.proxy)
+    depth, label = ctx.buffer(reserve=4 * layers * w * h), ctx.buffer(reserve=4 * layers * w * h)
+    timer = GpuTimer(ctx)
+    stages = {walk: TileVisibility(ctx, splats, walk=walk) for walk in ("linear", "sparse")}
+    span = np.array([bin(i).count("1") for i in range(1 << 16)], np.int64)  # a box word's columns or rows
+
+    def render(stage, uniforms, timed):
+        splats.begin_frame()
+        stage.run(uniforms, (w, h), layers, depth, label, timer if timed else None)
+
+    try:
+        rows = []
+        for i, cam in enumerate(path):
+            uniforms = camera_uniforms(cam.relative_to(bundle.origin))
+            row = {"frame": i}
+            for walk, stage in stages.items():
+                stage.check = "frame"  # the list sized for this view
+                render(stage, uniforms, False)
+                stage.check = "lagged"
+                for _ in range(3):
+                    render(stage, uniforms, False)
+                timer.deferred = True
+                for _ in range(WALK_REPEATS):
+                    timer.reset()
+                    render(stage, uniforms, True)
+                timer.reset()
+                frames = timer.collect()
+                timer.deferred = False
+                row[f"{walk}_ms"] = float(np.median([f.get("visibility:tile_raster", 0.0) for f in frames]))
+            tiles = stages["linear"]
+            n = tiles.stats()["entries"]
+            boxes = np.frombuffer(tiles.entries.read(8 * n), np.uint32).reshape(-1, 2)[:, 1]
+            area = span[boxes & 0xFFFF] * span[boxes >> 16]  # pixels of the box in the tile
+            row.update(N=n / (-(-w // tiles.tile) * -(-h // tiles.tile)),
+                       cover=float(area.mean()) / tiles.tile ** 2 if n else 0.0)
+            rows.append(row)
+            print(f"  frame {i}: linear {row['linear_ms']:.3f} ms, sparse {row['sparse_ms']:.3f} ms, "
+                  f"{row['N']:.1f} discs a tile, cover {row['cover']:.3f}", flush=True)
+        return rows
+    finally:
+        for stage in stages.values():
+            stage.release()
+        depth.release()
+        label.release()
+        splats.release()

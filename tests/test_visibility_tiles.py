@@ -211,6 +211,20 @@ def test_large_discs_share_tiles_with_small_ones(ctx, bundle, splats, max_thread
         tiles.release()
 
 
+def test_walk_per_frame_bench(bundle):
+    """bench_visibility --walk-frames: per frame both walks' raster times, the list's discs a tile
+    (its length over the tiles) and the share of a tile a disc's box covers (a box of the 16 x 16
+    tile's pixels: between one pixel and the whole tile)."""
+    from bench.bench_visibility import walk_per_frame
+
+    cams = [c.resized(W) for c in bundle.cameras[:2]]  # world frame, as a walkthrough's
+    rows = walk_per_frame(bundle, cams, 3)
+    assert [r["frame"] for r in rows] == [0, 1]
+    for r in rows:
+        assert r["linear_ms"] >= 0.0 and r["sparse_ms"] >= 0.0 and r["N"] > 1.0
+        assert 1 / 256 <= r["cover"] <= 1.0
+
+
 def test_auto_walk_turns_sparse_on_long_lists(ctx):
     """walk="auto": the first frame walks every disc in turn (no list length known yet), the next
     one, after a list of 1300 discs over 12 tiles (108 a tile, above SPARSE_MIN), only the discs
