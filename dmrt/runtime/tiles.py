@@ -8,7 +8,7 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
 
 1. ``dmrt_tiles_bin`` (count): one thread per disc culls it and counts it into every 16x16-pixel
    screen tile its conservative pixel box overlaps (``atomicAdd`` per tile); a disc over many tiles
-   goes to a list that a workgroup per disc bins (dispatch-indirect).
+   goes to a list that workgroups of 256 threads bin, 32 discs at a time (dispatch-indirect).
 2. ``dmrt_tiles_scan``: exclusive prefix sum of the tile counts = each tile's slice of one list.
 3. ``dmrt_tiles_bin`` (scatter): the same walk writes the disc indices into the slices.
 4. ``dmrt_tiles_raster``: one workgroup per tile, one invocation per pixel: each layer is the
@@ -58,6 +58,11 @@ DEFAULT_TOP = 12
 # last known list held more discs than this a tile on average (dmrt_tiles_raster.glsl, SPARSE_WALK:
 # H200, ~180 discs a tile sparse 0.35 ms against 0.50, ~63 a tile 1.78 against 1.72)
 SPARSE_MIN = 100
+
+
+def _padded(tiles: int) -> int:
+    """Words of the tile counts buffer: a multiple of four (dmrt_tiles_scan.glsl reads uvec4s)."""
+    return -(-tiles // 4) * 4
 
 
 class TileVisibility:
@@ -164,7 +169,7 @@ class TileVisibility:
             if buf is not None:
                 buf.release()
         n = grid[0] * grid[1]
-        self.counts = self.ctx.buffer(reserve=4 * n)
+        self.counts = self.ctx.buffer(reserve=4 * _padded(n))  # the scan reads four counts at a time
         self.offsets = self.ctx.buffer(reserve=4 * (n + 1))
         self._grid = grid
 
@@ -280,7 +285,7 @@ class TileVisibility:
         """Bin (count), scan, bin (scatter): each tile's slice of the list, unsorted."""
         ctx = self.ctx
         n_tiles = tile_uniforms["u_tile_count"]
-        fill_u32(ctx, self.counts, 0, n_tiles)
+        fill_u32(ctx, self.counts, 0, _padded(n_tiles))
         self.large.write(EMPTY_DISPATCH)
         ctx.memory_barrier(_BARRIER)
         self._bin_pass(0, tile_uniforms)
