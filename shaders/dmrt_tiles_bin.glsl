@@ -5,8 +5,7 @@
 //            a disc over more than MAX_THREAD_TILES tiles is appended to the Large list instead,
 //            whose header holds the dispatch-indirect arguments of the LARGE 1 passes (the host
 //            resets it to zero workgroups and an empty list before this pass);
-//   SCATTER 0, LARGE 1: workgroups of 256 threads striding over the large list, LARGE_BATCH discs at a
-//            time, its threads over the batch's (disc, tile) pairs;
+//   SCATTER 0, LARGE 1: a workgroup per listed large disc at a time, its threads striding over its tiles;
 //   SCATTER 1, LARGE 0/1: the same walk again, writing the proxy index and its box in the tile
 //            (box_bits, which the raster and labeling passes test pixels against) into the tile's
 //            slice of Entries: slot = Offsets[tile] + (Counts[tile] decremented atomically) - 1, so the
@@ -35,7 +34,6 @@
 #ifndef MAX_THREAD_TILES
 #define MAX_THREAD_TILES 16
 #endif
-#define LARGE_BATCH 32u     // large discs a workgroup takes at a time
 #define LARGE_GROUPS 1024u  // workgroups striding over the large list
 
 layout(std430, binding = B_LARGE) buffer Large { uint groups_x; uint groups_y; uint groups_z; uint n_large; uint large[]; };
@@ -61,50 +59,25 @@ void bin_into(int tx, int ty, uint k, ivec4 box) {
 
 #if LARGE
 
-// A workgroup bins LARGE_BATCH listed discs at a time: its first invocations load the discs and their
-// boxes into shared memory, then every invocation takes the batch's (disc, tile) pairs in turn, so
-// none waits on a disc's loads between its tiles. (A workgroup a disc, looping over the list, took
-// 0.057 ms (count) and 0.100 ms (scatter) at 3840x2160 on an H200, session 20; 32 invocations a disc
-// 0.148 / 0.416.)
 layout(local_size_x = 256) in;
 
-shared uint s_disc[LARGE_BATCH];
-shared ivec4 s_box[LARGE_BATCH];
-shared uint s_first[LARGE_BATCH + 1u];  // the batch's pairs before its disc d
-
+// Workgroup g takes the g-th of gl_NumWorkGroups.x contiguous runs of the list, so the discs binned at
+// the same time lie far apart in it: neighbours in the list (neighbouring proxies) cover the same
+// tiles, and their atomics on one counter wait on each other (workgroup g taking discs g, g + groups,
+// ...: 0.056 ms (count) and 0.103 ms (scatter) at 3840x2160 on an H200, session 20).
 void main() {
-    uint t = gl_LocalInvocationID.x;
-    for (uint b0 = gl_WorkGroupID.x * LARGE_BATCH; b0 < n_large; b0 += gl_NumWorkGroups.x * LARGE_BATCH) {
-        uint n = min(LARGE_BATCH, n_large - b0);
-        if (t < n) {
-            uint k = large[b0 + t];
-            int label;
-            ivec4 box = splat_pixel_box(load_proxy(k, label));
-            ivec4 tb = box / TILE;  // the box is non-empty and non-negative here
-            s_disc[t] = k;
-            s_box[t] = box;
-            s_first[t + 1u] = uint((tb.z - tb.x + 1) * (tb.w - tb.y + 1));
-        }
-        memoryBarrierShared();
-        barrier();
-        if (t == 0u) {
-            s_first[0] = 0u;
-            for (uint d = 1u; d <= n; ++d) s_first[d] += s_first[d - 1u];
-        }
-        memoryBarrierShared();
-        barrier();
-        for (uint j = t; j < s_first[n]; j += gl_WorkGroupSize.x) {
-            uint d = 0u, hi = n - 1u;  // the disc d with s_first[d] <= j < s_first[d + 1]
-            while (d < hi) {
-                uint mid = (d + hi + 1u) >> 1u;
-                if (s_first[mid] <= j) d = mid; else hi = mid - 1u;
-            }
-            ivec4 box = s_box[d];
-            ivec4 tb = box / TILE;
-            int w = tb.z - tb.x + 1, i = int(j - s_first[d]);
-            bin_into(tb.x + i % w, tb.y + i / w, s_disc[d], box);
-        }
-        barrier();  // the next batch overwrites the shared arrays
+    uint per = (n_large + gl_NumWorkGroups.x - 1u) / gl_NumWorkGroups.x;
+    uint end = min(n_large, (gl_WorkGroupID.x + 1u) * per);
+    for (uint i = gl_WorkGroupID.x * per; i < end; ++i) {
+        uint k = large[i];
+        int label;
+        Splat s = load_proxy(k, label);
+        ivec4 box = splat_pixel_box(s);
+        ivec4 tb = box / TILE;  // the box is non-empty and non-negative here
+        int w = tb.z - tb.x + 1;
+        int n = w * (tb.w - tb.y + 1);
+        for (int j = int(gl_LocalInvocationID.x); j < n; j += int(gl_WorkGroupSize.x))
+            bin_into(tb.x + j % w, tb.y + j / w, k, box);
     }
 }
 
@@ -112,9 +85,22 @@ void main() {
 
 layout(local_size_x = 64) in;
 
+// SPREAD 1: the count pass's, 2: both passes' 32 invocations of a warp take proxies u_count / 32
+// apart instead of neighbours, so that they rarely add to one tile's counter at once. (The order in
+// which the scatter pass fills a slice is the raster's order of the tile's discs, which moves its
+// time: reports/frame-h200, session 19.)
+#ifndef SPREAD
+#define SPREAD 0
+#endif
+#define SPREAD_HERE (SPREAD == 2 || (SPREAD == 1 && SCATTER == 0))
+
 void main() {
     uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
-    for (uint k = gl_GlobalInvocationID.x; k < u_count; k += stride) {
+    uint span = (u_count + 31u) / 32u;
+    uint n = SPREAD_HERE ? 32u * span : u_count;
+    for (uint g = gl_GlobalInvocationID.x; g < n; g += stride) {
+        uint k = SPREAD_HERE ? (g & 31u) * span + (g >> 5u) : g;
+        if (k >= u_count) continue;
         int label;
         Splat s = load_proxy(k, label);
         ivec4 box = splat_pixel_box(s);
@@ -124,7 +110,7 @@ void main() {
 #if !SCATTER
             uint i = atomicAdd(n_large, 1u);
             large[i] = k;
-            atomicMax(groups_x, min(i / LARGE_BATCH + 1u, LARGE_GROUPS));
+            atomicMax(groups_x, min(i + 1u, LARGE_GROUPS));
 #endif
             continue;
         }

@@ -59,11 +59,11 @@ void main() {
     uint run = s_sum[t] - sum;  // exclusive
     for (uint q0 = b; q0 < e; q0 += uint(LOADS_IN_FLIGHT)) {
         load_counts(q0, e, c);
-        for (uint j = 0u; j < uint(LOADS_IN_FLIGHT) && q0 + j < e; ++j) {
+        for (uint j = 0u; j < uint(LOADS_IN_FLIGHT); ++j) {  // a constant count: unrolled, c stays in registers
             for (uint m = 0u; m < 4u; ++m) {
                 uint i = 4u * (q0 + j) + m;
-                if (i < u_tile_count) offsets[i] = run;
-                run += c[j][m];
+                if (q0 + j < e && i < u_tile_count) offsets[i] = run;
+                run += c[j][m];  // 0 past e
             }
         }
     }

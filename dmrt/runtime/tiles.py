@@ -8,7 +8,7 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
 
 1. ``dmrt_tiles_bin`` (count): one thread per disc culls it and counts it into every 16x16-pixel
    screen tile its conservative pixel box overlaps (``atomicAdd`` per tile); a disc over many tiles
-   goes to a list that workgroups of 256 threads bin, 32 discs at a time (dispatch-indirect).
+   goes to a list that workgroups of 256 threads bin, a disc at a time each (dispatch-indirect).
 2. ``dmrt_tiles_scan``: exclusive prefix sum of the tile counts = each tile's slice of one list.
 3. ``dmrt_tiles_bin`` (scatter): the same walk writes the disc indices into the slices.
 4. ``dmrt_tiles_raster``: one workgroup per tile, one invocation per pixel: each layer is the
