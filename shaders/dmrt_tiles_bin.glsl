@@ -5,7 +5,7 @@
 //            a disc over more than MAX_THREAD_TILES tiles is appended to the Large list instead,
 //            whose header holds the dispatch-indirect arguments of the LARGE 1 passes (the host
 //            resets it to zero workgroups and an empty list before this pass);
-//   SCATTER 0, LARGE 1: a workgroup per listed large disc at a time, its threads striding over its tiles;
+//   SCATTER 0, LARGE 1: one workgroup per listed large disc, its threads striding over its tiles;
 //   SCATTER 1, LARGE 0/1: the same walk again, writing the proxy index and its box in the tile
 //            (box_bits, which the raster and labeling passes test pixels against) into the tile's
 //            slice of Entries: slot = Offsets[tile] + (Counts[tile] decremented atomically) - 1, so the
@@ -61,14 +61,8 @@ void bin_into(int tx, int ty, uint k, ivec4 box) {
 
 layout(local_size_x = 256) in;
 
-// Workgroup g takes the g-th of gl_NumWorkGroups.x contiguous runs of the list, so the discs binned at
-// the same time lie far apart in it: neighbours in the list (neighbouring proxies) cover the same
-// tiles, and their atomics on one counter wait on each other (workgroup g taking discs g, g + groups,
-// ...: 0.056 ms (count) and 0.103 ms (scatter) at 3840x2160 on an H200, session 20).
 void main() {
-    uint per = (n_large + gl_NumWorkGroups.x - 1u) / gl_NumWorkGroups.x;
-    uint end = min(n_large, (gl_WorkGroupID.x + 1u) * per);
-    for (uint i = gl_WorkGroupID.x * per; i < end; ++i) {
+    for (uint i = gl_WorkGroupID.x; i < n_large; i += gl_NumWorkGroups.x) {
         uint k = large[i];
         int label;
         Splat s = load_proxy(k, label);
@@ -85,22 +79,9 @@ void main() {
 
 layout(local_size_x = 64) in;
 
-// SPREAD 1: the count pass's, 2: both passes' 32 invocations of a warp take proxies u_count / 32
-// apart instead of neighbours, so that they rarely add to one tile's counter at once. (The order in
-// which the scatter pass fills a slice is the raster's order of the tile's discs, which moves its
-// time: reports/frame-h200, session 19.)
-#ifndef SPREAD
-#define SPREAD 0
-#endif
-#define SPREAD_HERE (SPREAD == 2 || (SPREAD == 1 && SCATTER == 0))
-
 void main() {
     uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
-    uint span = (u_count + 31u) / 32u;
-    uint n = SPREAD_HERE ? 32u * span : u_count;
-    for (uint g = gl_GlobalInvocationID.x; g < n; g += stride) {
-        uint k = SPREAD_HERE ? (g & 31u) * span + (g >> 5u) : g;
-        if (k >= u_count) continue;
+    for (uint k = gl_GlobalInvocationID.x; k < u_count; k += stride) {
         int label;
         Splat s = load_proxy(k, label);
         ivec4 box = splat_pixel_box(s);

@@ -1,75 +1,80 @@
 // Tile-binned visibility stage, scan (dmrt/runtime/tiles.py): the exclusive prefix sum of the
 // per-tile disc counts, i.e. where each tile's slice of the Entries list starts.
-// One workgroup of SCAN_THREADS threads: thread t sums a contiguous run of the counts, read four at
-// a time and LOADS_IN_FLIGHT of those loads issued before the first is used (the pass is one
-// workgroup, so it takes as long as its chain of loads: a count a load, one after the other, it
-// took 0.081 ms for 32400 tiles at 3840x2160 on an H200, session 20); the run sums are scanned in
-// shared memory (Hillis-Steele), then each thread writes its run's offsets. The counts buffer holds
-// a multiple of four words, its padding zero (dmrt/runtime/tiles.py).
+// One workgroup of SCAN_THREADS threads. The counts are read four at a time (uvec4), thread t taking
+// quads t, t + SCAN_THREADS, ... (ROUNDS of them at once, a sweep), so that each load of a warp is
+// 512 contiguous bytes and all of a thread's loads are in flight together; each round's quad sums
+// are scanned in shared memory (Hillis-Steele, all rounds in the same steps), the rounds follow each
+// other, and each quad's four offsets are written as one uvec4. (Thread t summing a contiguous run
+// of counts, a load each, took 0.081 ms at 3840x2160 on an H200; the same four at a time 0.057 ms:
+// the pass is one workgroup, so its loads' and stores' transactions, one a lane, were its time.
+// Session 20.) Both buffers hold a multiple of four words, the counts' padding zero
+// (dmrt/runtime/tiles.py).
 //
 // Buffers (binding: layout):
 //   B_FRAME_STATUS  the frame's FrameStatus record (dmrt/runtime/status.py): its first word, the
 //                   entries this frame (the host sizes the list from it)
 //   B_TILE_COUNTS   uint[tiles] (dmrt_tiles_bin.glsl SCATTER 0)
-//   B_TILE_OFFSETS  uint[tiles + 1]: Offsets[t] = sum of Counts[0..t), Offsets[tiles] = total
+//   B_TILE_OFFSETS  uint[tiles + 1]: Offsets[t] = sum of Counts[0..t), Offsets[tiles] = total (and the
+//                   padding after it)
 #if defined COMPUTE_SHADER
 
 #ifndef SCAN_THREADS
 #define SCAN_THREADS 1024
 #endif
-#define LOADS_IN_FLIGHT 8
+// quads a thread holds in a sweep: a sweep covers 4 x 8 x 1024 = 32768 tiles (3840 x 2160 pixels in
+// 16 x 16 tiles: 32400); larger frames take more sweeps
+#define ROUNDS 8
 
 layout(local_size_x = SCAN_THREADS) in;
 
 layout(std430, binding = B_FRAME_STATUS) buffer Status { uint total; };  // tile_total
-layout(std430, binding = B_TILE_COUNTS) readonly buffer Counts { uvec4 counts4[]; };  // padded
-layout(std430, binding = B_TILE_OFFSETS) writeonly buffer Offsets { uint offsets[]; };
+layout(std430, binding = B_TILE_COUNTS) readonly buffer Counts { uvec4 counts4[]; };
+layout(std430, binding = B_TILE_OFFSETS) writeonly buffer Offsets { uvec4 offsets4[]; };
 
 uniform uint u_tile_count;  // tiles_x * tiles_y
 
-shared uint s_sum[SCAN_THREADS];
-
-// Counts [4q, 4q + 4) for q in [q0, q0 + LOADS_IN_FLIGHT) within [q0, e), zero past e.
-void load_counts(uint q0, uint e, out uvec4 c[LOADS_IN_FLIGHT]) {
-    for (uint j = 0u; j < uint(LOADS_IN_FLIGHT); ++j) c[j] = q0 + j < e ? counts4[q0 + j] : uvec4(0u);
-}
+shared uint s_sum[ROUNDS * SCAN_THREADS];  // per round, the inclusive scan of its quad sums
 
 void main() {
     uint t = gl_LocalInvocationID.x;
     uint quads = (u_tile_count + 3u) / 4u;
-    uint per = (quads + uint(SCAN_THREADS) - 1u) / uint(SCAN_THREADS);
-    uint b = min(t * per, quads), e = min(b + per, quads);
-    uvec4 c[LOADS_IN_FLIGHT];
-    uint sum = 0u;
-    for (uint q0 = b; q0 < e; q0 += uint(LOADS_IN_FLIGHT)) {
-        load_counts(q0, e, c);
-        for (uint j = 0u; j < uint(LOADS_IN_FLIGHT); ++j) sum += c[j].x + c[j].y + c[j].z + c[j].w;
-    }
-    s_sum[t] = sum;
-    memoryBarrierShared();
-    barrier();
-    for (uint d = 1u; d < uint(SCAN_THREADS); d <<= 1u) {
-        uint add = t >= d ? s_sum[t - d] : 0u;
-        memoryBarrierShared();
-        barrier();
-        s_sum[t] += add;
-        memoryBarrierShared();
-        barrier();
-    }
-    uint run = s_sum[t] - sum;  // exclusive
-    for (uint q0 = b; q0 < e; q0 += uint(LOADS_IN_FLIGHT)) {
-        load_counts(q0, e, c);
-        for (uint j = 0u; j < uint(LOADS_IN_FLIGHT); ++j) {  // a constant count: unrolled, c stays in registers
-            for (uint m = 0u; m < 4u; ++m) {
-                uint i = 4u * (q0 + j) + m;
-                if (q0 + j < e && i < u_tile_count) offsets[i] = run;
-                run += c[j][m];  // 0 past e
-            }
+    uint carry = 0u;  // the counts of the sweeps before
+    for (uint q0 = 0u; q0 < quads; q0 += uint(ROUNDS * SCAN_THREADS)) {
+        uint v[ROUNDS];  // this thread's quad sums
+        for (int r = 0; r < ROUNDS; ++r) {
+            uint q = q0 + uint(r * SCAN_THREADS) + t;
+            uvec4 c = q < quads ? counts4[q] : uvec4(0u);
+            v[r] = c.x + c.y + c.z + c.w;
+            s_sum[r * SCAN_THREADS + int(t)] = v[r];
         }
+        memoryBarrierShared();
+        barrier();
+        for (uint d = 1u; d < uint(SCAN_THREADS); d <<= 1u) {
+            uint add[ROUNDS];
+            for (int r = 0; r < ROUNDS; ++r) add[r] = t >= d ? s_sum[r * SCAN_THREADS + int(t - d)] : 0u;
+            memoryBarrierShared();
+            barrier();
+            for (int r = 0; r < ROUNDS; ++r) s_sum[r * SCAN_THREADS + int(t)] += add[r];
+            memoryBarrierShared();
+            barrier();
+        }
+        for (int r = 0; r < ROUNDS; ++r) {
+            uint q = q0 + uint(r * SCAN_THREADS) + t;
+            if (q < quads) {
+                uvec4 c = counts4[q];
+                uint run = carry + s_sum[r * SCAN_THREADS + int(t)] - v[r];  // exclusive
+                offsets4[q] = uvec4(run, run + c.x, run + c.x + c.y, run + c.x + c.y + c.z);
+            }
+            carry += s_sum[r * SCAN_THREADS + SCAN_THREADS - 1];
+        }
+        memoryBarrierShared();
+        barrier();  // the next sweep overwrites s_sum
     }
-    if (t == uint(SCAN_THREADS) - 1u) {
-        offsets[u_tile_count] = s_sum[t];
-        total = s_sum[t];
+    // Offsets[tiles]: in the last quad written when tiles is not a multiple of four (the padded
+    // counts are zero, so its offset is the total), else the first of the next
+    if (t == 0u) {
+        if (u_tile_count % 4u == 0u) offsets4[quads] = uvec4(carry);
+        total = carry;
     }
 }
 

@@ -188,6 +188,38 @@ def test_long_tile_lists(ctx, discs, batch):
             obj.release()
 
 
+def test_scan_against_numpy(ctx):
+    """The tile counts' exclusive prefix sum (dmrt_tiles_scan.glsl, one workgroup reading and writing
+    four words at a time, 32768 tiles a sweep) against numpy's: counts that are not a multiple of
+    four, one sweep exactly, and several sweeps; the total in the status word and after the last
+    offset. Buffers as TileVisibility allocates them (padded to four words)."""
+    from dmrt.gl import abi
+    from dmrt.gl.shaders import load_program, set_uniforms
+    from dmrt.runtime.tiles import _padded
+
+    program = load_program(ctx, "dmrt_tiles_scan")
+    rng = np.random.default_rng(7)
+    for tiles in (1, 3, 4, 5, 3600, 32400, 32768, 32771, 70001):
+        counts = rng.integers(0, 300, tiles).astype(np.uint32)
+        padded = np.zeros(_padded(tiles), np.uint32)
+        padded[:tiles] = counts
+        bufs = {abi.B_TILE_COUNTS: ctx.buffer(padded.tobytes()),
+                abi.B_TILE_OFFSETS: ctx.buffer(reserve=4 * (_padded(tiles) + 4)),
+                abi.B_FRAME_STATUS: ctx.buffer(reserve=16)}
+        try:
+            for point, buf in bufs.items():
+                buf.bind_to_storage_buffer(point)
+            set_uniforms(program, u_tile_count=tiles)
+            program.run(1)
+            offsets = np.frombuffer(bufs[abi.B_TILE_OFFSETS].read(), np.uint32)[:tiles + 1]
+            want = np.concatenate([[0], np.cumsum(counts, dtype=np.uint64)]).astype(np.uint32)
+            np.testing.assert_array_equal(offsets, want, err_msg=f"{tiles} tiles")
+            assert np.frombuffer(bufs[abi.B_FRAME_STATUS].read(4), np.uint32)[0] == want[-1]
+        finally:
+            for buf in bufs.values():
+                buf.release()
+
+
 @pytest.mark.parametrize("max_thread_tiles", [1, 2])
 def test_large_discs_share_tiles_with_small_ones(ctx, bundle, splats, max_thread_tiles):
     """Discs over more than max_thread_tiles tiles are binned by a workgroup each (the large list,

@@ -8,7 +8,7 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
 
 1. ``dmrt_tiles_bin`` (count): one thread per disc culls it and counts it into every 16x16-pixel
    screen tile its conservative pixel box overlaps (``atomicAdd`` per tile); a disc over many tiles
-   goes to a list that workgroups of 256 threads bin, a disc at a time each (dispatch-indirect).
+   goes to a list that a workgroup per disc bins (dispatch-indirect).
 2. ``dmrt_tiles_scan``: exclusive prefix sum of the tile counts = each tile's slice of one list.
 3. ``dmrt_tiles_bin`` (scatter): the same walk writes the disc indices into the slices.
 4. ``dmrt_tiles_raster``: one workgroup per tile, one invocation per pixel: each layer is the
@@ -61,7 +61,7 @@ SPARSE_MIN = 100
 
 
 def _padded(tiles: int) -> int:
-    """Words of the tile counts buffer: a multiple of four (dmrt_tiles_scan.glsl reads uvec4s)."""
+    """``tiles`` rounded up to a multiple of four (dmrt_tiles_scan.glsl reads and writes uvec4s)."""
     return -(-tiles // 4) * 4
 
 
@@ -170,7 +170,7 @@ class TileVisibility:
                 buf.release()
         n = grid[0] * grid[1]
         self.counts = self.ctx.buffer(reserve=4 * _padded(n))  # the scan reads four counts at a time
-        self.offsets = self.ctx.buffer(reserve=4 * (n + 1))
+        self.offsets = self.ctx.buffer(reserve=4 * (_padded(n) + 4))  # the scan writes four at a time
         self._grid = grid
 
     def _fit(self, total: int) -> None:
