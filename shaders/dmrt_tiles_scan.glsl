@@ -40,25 +40,28 @@ void main() {
     uint quads = (u_tile_count + 3u) / 4u;
     uint carry = 0u;  // the counts of the sweeps before
     for (uint q0 = 0u; q0 < quads; q0 += uint(ROUNDS * SCAN_THREADS)) {
+        // the rounds that hold quads (one at 1280x720): the others are skipped, not scanned as zeros
+        uint live = min(uint(ROUNDS), (quads - q0 + uint(SCAN_THREADS) - 1u) / uint(SCAN_THREADS));
         uint v[ROUNDS];  // this thread's quad sums
-        for (int r = 0; r < ROUNDS; ++r) {
+        for (int r = 0; r < ROUNDS; ++r) {  // constant bounds and guarded bodies: unrolled, v and add in registers
             uint q = q0 + uint(r * SCAN_THREADS) + t;
             uvec4 c = q < quads ? counts4[q] : uvec4(0u);
             v[r] = c.x + c.y + c.z + c.w;
-            s_sum[r * SCAN_THREADS + int(t)] = v[r];
+            if (uint(r) < live) s_sum[r * SCAN_THREADS + int(t)] = v[r];
         }
         memoryBarrierShared();
         barrier();
         for (uint d = 1u; d < uint(SCAN_THREADS); d <<= 1u) {
             uint add[ROUNDS];
-            for (int r = 0; r < ROUNDS; ++r) add[r] = t >= d ? s_sum[r * SCAN_THREADS + int(t - d)] : 0u;
+            for (int r = 0; r < ROUNDS; ++r) add[r] = uint(r) < live && t >= d ? s_sum[r * SCAN_THREADS + int(t - d)] : 0u;
             memoryBarrierShared();
             barrier();
-            for (int r = 0; r < ROUNDS; ++r) s_sum[r * SCAN_THREADS + int(t)] += add[r];
+            for (int r = 0; r < ROUNDS; ++r) if (uint(r) < live) s_sum[r * SCAN_THREADS + int(t)] += add[r];
             memoryBarrierShared();
             barrier();
         }
         for (int r = 0; r < ROUNDS; ++r) {
+            if (uint(r) >= live) continue;
             uint q = q0 + uint(r * SCAN_THREADS) + t;
             if (q < quads) {
                 uvec4 c = counts4[q];
