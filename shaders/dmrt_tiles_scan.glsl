@@ -21,9 +21,13 @@
 #ifndef SCAN_THREADS
 #define SCAN_THREADS 1024
 #endif
-// quads a thread holds in a sweep: a sweep covers 4 x 8 x 1024 = 32768 tiles (3840 x 2160 pixels in
-// 16 x 16 tiles: 32400); larger frames take more sweeps
+// quads a thread holds in a sweep, at most 8 (SCAN_ROUNDS in dmrt/runtime/tiles.py, which sets the
+// rounds a frame needs: shared memory for eight took 0.004 ms more at 1280x720, which needs one): a
+// sweep covers 4 x 8 x 1024 = 32768 tiles (3840 x 2160 pixels in 16 x 16 tiles: 32400); larger
+// frames take more sweeps
+#ifndef ROUNDS
 #define ROUNDS 8
+#endif
 
 layout(local_size_x = SCAN_THREADS) in;
 

@@ -190,16 +190,16 @@ def test_long_tile_lists(ctx, discs, batch):
 
 def test_scan_against_numpy(ctx):
     """The tile counts' exclusive prefix sum (dmrt_tiles_scan.glsl, one workgroup reading and writing
-    four words at a time, 32768 tiles a sweep) against numpy's: counts that are not a multiple of
-    four, one sweep exactly, and several sweeps; the total in the status word and after the last
-    offset. Buffers as TileVisibility allocates them (padded to four words)."""
+    four words at a time, 4096 tiles a round, 1 or 8 rounds a sweep) against numpy's: counts that are
+    not a multiple of four, one sweep exactly, and several sweeps; the total in the status word and
+    after the last offset. Buffers as TileVisibility allocates them (padded to four words)."""
     from dmrt.gl import abi
     from dmrt.gl.shaders import load_program, set_uniforms
     from dmrt.runtime.tiles import _padded
 
-    program = load_program(ctx, "dmrt_tiles_scan")
     rng = np.random.default_rng(7)
-    for tiles in (1, 3, 4, 5, 3600, 32400, 32768, 32771, 70001):
+    for rounds, tiles in [(r, n) for r in (1, 8) for n in (1, 3, 4, 5, 3600, 32400, 32768, 32771, 70001)]:
+        program = load_program(ctx, "dmrt_tiles_scan", {"ROUNDS": rounds})
         counts = rng.integers(0, 300, tiles).astype(np.uint32)
         padded = np.zeros(_padded(tiles), np.uint32)
         padded[:tiles] = counts
@@ -213,7 +213,7 @@ def test_scan_against_numpy(ctx):
             program.run(1)
             offsets = np.frombuffer(bufs[abi.B_TILE_OFFSETS].read(), np.uint32)[:tiles + 1]
             want = np.concatenate([[0], np.cumsum(counts, dtype=np.uint64)]).astype(np.uint32)
-            np.testing.assert_array_equal(offsets, want, err_msg=f"{tiles} tiles")
+            np.testing.assert_array_equal(offsets, want, err_msg=f"{tiles} tiles, {rounds} rounds")
             assert np.frombuffer(bufs[abi.B_FRAME_STATUS].read(4), np.uint32)[0] == want[-1]
         finally:
             for buf in bufs.values():

@@ -60,6 +60,9 @@ DEFAULT_TOP = 12
 SPARSE_MIN = 100
 
 
+SCAN_THREADS, SCAN_ROUNDS = 1024, 8  # dmrt_tiles_scan.glsl: its workgroup, the most quads a thread holds
+
+
 def _padded(tiles: int) -> int:
     """``tiles`` rounded up to a multiple of four (dmrt_tiles_scan.glsl reads and writes uvec4s)."""
     return -(-tiles // 4) * 4
@@ -140,7 +143,6 @@ class TileVisibility:
                                                                             "LARGE": large,
                                                                             "MAX_THREAD_TILES": max_thread_tiles})
                      for scatter in (0, 1) for large in (0, 1)}
-        self._scan = load_program(ctx, "dmrt_tiles_scan")
         self.walk = walk
         self._rasters = {sparse: load_program(ctx, "dmrt_tiles_raster", {**self._defines, "TOP": int(top),
                                                                           "SPARSE_WALK": int(sparse)})
@@ -290,8 +292,10 @@ class TileVisibility:
         ctx.memory_barrier(_BARRIER)
         self._bin_pass(0, tile_uniforms)
         self._bind(status=status, counts=self.counts, offsets=self.offsets)
-        set_uniforms(self._scan, u_tile_count=n_tiles)
-        self._scan.run(1)
+        # the scan's shared memory holds only the rounds the frame needs (one at 1280x720)
+        scan = load_program(ctx, "dmrt_tiles_scan", {"ROUNDS": min(SCAN_ROUNDS, -(-_padded(n_tiles) // (4 * SCAN_THREADS)))})
+        set_uniforms(scan, u_tile_count=n_tiles)
+        scan.run(1)
         status.written(_BARRIER)  # reading the list length waits for the scan, not the whole frame
         self._bin_pass(1, tile_uniforms)
 
