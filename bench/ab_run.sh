@@ -10,7 +10,8 @@
 #
 # Steps: the bench workspace's main bundle (scene and preprocessing, ~3 minutes on an H100; or
 # BUNDLE=path to use one), then for each tree, in order, `bench.bench_render` with the tree's own
-# code (5 layers, no leveling, tiles, 1280x720 and 3840x2160; SIZES, FRAMES override), its results
+# code (5 layers, no leveling, tiles, 1280x720 and 3840x2160; SIZES, FRAMES override; PASSES=1: the
+# tile lists timed pass by pass, `--passes`, for trees that have it), its results
 # in OUT_DIR/results/<tree name>/ and OUT_DIR/results.tgz repacked after each tree; with SWEEP="T:B:K ..."
 # also each tree's tile raster alone per setting and size (`bench.bench_visibility --tile-sweep`, in
 # OUT_DIR/results/<tree name>/sweep-<width>/: ~10 s a setting). Trees need
@@ -37,7 +38,7 @@ for t in "$@"; do
     name=$(basename "$t")
     (cd "$t" && PYTHONPATH="$PWD:$repo:${PYTHONPATH:-}" DMRT_COMMIT=$(cat COMMIT 2>/dev/null || echo "$name") \
         python3 -m bench.bench_render --bundle "$bundle" --out "$out/results/$name" --layers 5 --no-leveling \
-        --methods tiles --sizes ${SIZES:-1280x720 3840x2160} --frames ${FRAMES:-30}) >>"$log" 2>&1
+        --methods tiles --sizes ${SIZES:-1280x720 3840x2160} --frames ${FRAMES:-30} ${PASSES:+--passes}) >>"$log" 2>&1
     echo "$name rc=$? $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
     for size in ${SWEEP:+${SIZES:-1280x720 3840x2160}}; do
         (cd "$t" && PYTHONPATH="$PWD:$repo:${PYTHONPATH:-}" python3 -m bench.bench_visibility --bundle "$bundle" \

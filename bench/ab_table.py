@@ -9,7 +9,9 @@ surface fraction, which equal trees must share (a change meant to keep the frame
 them). The first tree is the reference of the ``GPU / first`` column. Where a tree has tile sweeps
 (``bench/ab_run.sh`` with ``SWEEP``: ``sweep-<width>/visibility-*.json``), also a table per frame
 size of the tile raster's ms per setting (``T:B:K[:r][:s|:l]``) and tree, with the layers' agreement with
-the sweep's first setting where it is not 1.
+the sweep's first setting where it is not 1. Where a tree's tile lists were timed pass by pass
+(``bench_render --passes``, ``bench/ab_run.sh`` with ``PASSES=1``), also a table per frame size of
+those passes.
 """
 
 from __future__ import annotations
@@ -87,6 +89,26 @@ def table(runs: dict[str, list[dict]], size: tuple[int, int]) -> str:
     return "\n".join(lines)
 
 
+def passes_table(runs: dict[str, list[dict]], size: tuple[int, int]) -> str | None:
+    """The Markdown table of the tile lists' passes (``visibility:lists_*``) of the trees that timed
+    them at ``size``, with their sum; None if none did."""
+    rows = {}
+    for name, rs in runs.items():
+        r = next((r for r in rs if tuple(r["frame_size"]) == size), None)
+        parts = {} if r is None else {k.split(":lists_")[1]: v for k, v in r["sustained_timed"]["median_part_ms"].items()
+                                      if k.startswith("visibility:lists_")}
+        if parts:
+            rows[name] = parts
+    if not rows:
+        return None
+    names = list(dict.fromkeys(p for parts in rows.values() for p in parts))
+    lines = ["| " + " | ".join(["tree", *names, "sum"]) + " |", "|" + "---|" * (len(names) + 2)]
+    for name, parts in rows.items():
+        cells = [f"{parts.get(p, 0.0):.4f}" for p in names] + [f"{sum(parts.values()):.3f}"]
+        lines.append("| " + " | ".join([name, *cells]) + " |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("results", type=Path, help="bench/ab_run.sh's OUT_DIR/results")
@@ -104,6 +126,10 @@ def main(argv=None) -> None:
     for w, h in sizes:
         print(f"\n{w}x{h}, ms (GPU: the sustained pass's timer queries; sustained: wall per frame)\n")
         print(table(runs, (w, h)))
+        lists = passes_table(runs, (w, h))
+        if lists is not None:
+            print(f"\n{w}x{h}, the tile lists pass by pass, ms (sustained timed pass)\n")
+            print(lists)
     for (w, h), settings in load_sweeps(args.results, list(runs)).items():
         print(f"\n{w}x{h}, the tile raster alone, ms per setting T:B:K[:r][:s|:l] (bench_visibility --tile-sweep)\n")
         print(sweep_table(settings, list(runs)))

@@ -86,6 +86,8 @@ def main(argv=None) -> None:
                         "be measured with a cap before it becomes a default")
     p.add_argument("--fenced", action="store_true", help="glFinish around every timed section: each stage's "
                    "and part's own GPU time (slower frames; see dmrt.gl.timer.GpuTimer.fenced)")
+    p.add_argument("--passes", action="store_true", help="each pass of the tile lists timed as a part of its own "
+                   "(visibility:lists_*; see dmrt.gl.timer.GpuTimer.passes)")
     p.add_argument("--leveling", action=argparse.BooleanOptionalAction, default=True,
                    help="screen-space leveling, as the paper's texturing pass (default: on)")
     p.add_argument("--frames", type=int, default=30, help="walkthrough frames per configuration")
@@ -115,7 +117,7 @@ def main(argv=None) -> None:
             depths: list[np.ndarray] = []
             keep = (lambda f: depths.append(f["depth"].copy())) if len(args.max_steps) > 1 else None
             r = measure_walkthrough(bundle, config, path, f"{method} k={k} {w}x{h}", fenced=args.fenced,
-                                    on_frame=keep)
+                                    passes=args.passes, on_frame=keep)
             r.pop("stage_ms_per_frame")
             if args.cpu_profile:
                 r["cpu_profile"] = profile_walkthrough(bundle, config, path)
@@ -136,7 +138,7 @@ def main(argv=None) -> None:
                                                     **r['sustained_timed']['median_part_ms']}.items()) + ", "
                     f"clocks {r['gpu_clocks']}", flush=True)
     result = {"benchmark": "render", "version": 2, "bundle": str(bundle.root), "preset": args.preset,
-              "fenced": args.fenced,
+              "fenced": args.fenced, "passes": args.passes,
               "machine": {"gl": renderer_info(get_context())}, "setup_s": setup, "frames": args.frames,
               "leveling": args.leveling, "counts": bundle.meta.get("counts"), "runs": runs}
     out = args.out / f"render-{name}.json"

@@ -132,7 +132,7 @@ def _stage_summary(frames: list[dict]) -> dict:
 
 def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
                         on_frame: Callable[[dict], None] | None = None, progress: bool = True,
-                        fenced: bool = False) -> dict:
+                        fenced: bool = False, passes: bool = False) -> dict:
     """Render ``cameras`` in four passes with a fresh renderer: a statistics pass that reads every
     frame back, then the walkthrough again until the photo cache is steady (:func:`warm_photo_cache`),
     the timed pass, whose
@@ -153,6 +153,8 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
     on_frame : called with every frame of the statistics pass (e.g. to collect statistics).
     fenced : the timed pass's sections fenced by ``glFinish`` (:attr:`dmrt.gl.GpuTimer.fenced`):
         each stage's own time, at the cost of slower frames; the sustained pass is never fenced.
+    passes : in both timed passes, each dispatch of a stage that names them a part of its own
+        (:attr:`dmrt.gl.GpuTimer.passes`: the tile lists' six).
 
     Returns
     -------
@@ -195,6 +197,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         clocks_before = gpu_clocks()  # the statistics pass just ran back to back: clocks are up
         timings, parts, cpu, wall = [], [], [], []
         renderer.timer.fenced = fenced
+        renderer.timer.passes = passes
         for cam in tqdm(cameras, desc=desc, unit="frame", leave=False, disable=not progress):
             t0 = time.perf_counter()
             f = renderer.render(cam, readback=False)
@@ -223,6 +226,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         renderer.timer.reset()
         frames = renderer.timer.collect()
         renderer.timer.deferred = False
+        renderer.timer.passes = False
         sustained_timed = _stage_summary(frames)
         sustained_timed["wall_ms"] = timed_wall
         tiles = renderer.visibility.tiles  # its list length: the tile raster's work (disc-tile pairs)

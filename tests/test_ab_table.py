@@ -29,6 +29,22 @@ def test_table_per_size_against_the_first_tree(tmp_path, capsys):
     assert [r[7] for r in rows] == ["0.400", "1.600"]  # tile_raster
 
 
+def test_list_passes_table(tmp_path, capsys):
+    """A tree run with --passes gets a row of its tile lists' passes and their sum; one without none."""
+    from bench.ab_table import main
+
+    for name, passes in (("base", {}), ("split", {"visibility:lists_count": 0.024, "visibility:lists_scan": 0.081})):
+        (tmp_path / name).mkdir()
+        run = _run((3840, 2160), 3.5, 1.7)
+        run["sustained_timed"]["median_part_ms"].update(passes)
+        (tmp_path / name / "render-bundle.json").write_text(json.dumps({"runs": [run]}))
+    main([str(tmp_path)])
+    out = capsys.readouterr().out
+    assert "the tile lists pass by pass" in out
+    assert "| split | 0.0240 | 0.0810 | 0.105 |" in out
+    assert not any(line.startswith("| base | 0.0") for line in out.split("pass by pass")[1].splitlines())
+
+
 def test_tile_sweeps_per_size_and_setting(tmp_path, capsys):
     """A tree's sweeps (ab_run.sh SWEEP) become a table per frame size: the raster's ms per setting
     and tree, '-' where a tree lacks the setting, the layers' agreement where it is not 1."""

@@ -188,6 +188,34 @@ def test_long_tile_lists(ctx, discs, batch):
             obj.release()
 
 
+def test_list_passes_timed_apart(ctx, bundle, splats):
+    """GpuTimer.passes: each dispatch of the tile lists timed as a part of its own, in place of the
+    one ``visibility:tile_lists`` section; the layers are the same either way."""
+    from dmrt.gl.timer import GpuTimer
+    from dmrt.runtime.tiles import TileVisibility
+
+    cam, k = _views(bundle)[0], 5
+    w, h = cam.width, cam.height
+    tiles = TileVisibility(ctx, splats)
+    depth, label = ctx.buffer(reserve=4 * k * w * h), ctx.buffer(reserve=4 * k * w * h)
+    try:
+        layers, names = [], []
+        for passes in (False, True):
+            timer = GpuTimer(ctx)
+            timer.passes = passes
+            splats.begin_frame()
+            tiles.run(_uniforms(cam), (w, h), k, depth, label, timer=timer)
+            layers.append((depth.read(), label.read()))
+            names.append(set(timer.part_ms))
+        assert layers[0] == layers[1]
+        lists = {f"visibility:lists_{p}" for p in ("clear", "count", "count_large", "scan", "scatter", "scatter_large")}
+        assert names[0] == {"visibility:tile_lists", "visibility:tile_raster"}
+        assert names[1] == lists | {"visibility:tile_raster"}
+    finally:
+        for obj in (depth, label, tiles):
+            obj.release()
+
+
 def test_scan_against_numpy(ctx):
     """The tile counts' exclusive prefix sum (dmrt_tiles_scan.glsl, one workgroup reading and writing
     four words at a time, 4096 tiles a round, 1 or 8 rounds a sweep) against numpy's: counts that are
@@ -235,7 +263,7 @@ def test_large_discs_share_tiles_with_small_ones(ctx, bundle, splats, max_thread
             splats.begin_frame()
             ref = _layers(ctx, peel, cam, 5)
             got = _layers(ctx, tiles, cam, 5)
-            n_large = int(np.frombuffer(tiles.large.read(16), np.uint32)[3])
+            n_large = tiles.stats()["large"]
             assert 0 < n_large < splats.n // 2, cam.name  # both kinds, in numbers
             _assert_equal(ref, got, 5, f"{cam.name}, {max_thread_tiles} tiles a thread")
     finally:

@@ -66,6 +66,11 @@ class GpuTimer:
         Without the fence a section can take in the end of the work issued before it: the stages'
         sum is right, their split only approximate. Fenced frames are slower, and light ones let
         the clocks fall (an H200 at 1425 MHz for 720p frames); for profiling only.
+    passes : bool
+        True: a stage made of several dispatches times each as a part of its own where it names
+        them (the tile lists: ``visibility:lists_clear``, ``_count``, ``_count_large``, ``_scan``,
+        ``_scatter``, ``_scatter_large`` in place of ``visibility:tile_lists``). Each section adds
+        a little GPU time (~0.01 ms at 1280x720 on an H200); for profiling only.
     deferred : bool
         True: nothing is read until :meth:`collect`; each :meth:`reset` closes a frame, and
         :attr:`ms` stays empty meanwhile. Waiting for each frame's queries leaves the GPU idle
@@ -83,6 +88,7 @@ class GpuTimer:
         self._open: str | None = None
         self.enabled = True
         self.fenced = False
+        self.passes = False
         self.deferred = False
         self._frames: list[list[tuple[str, moderngl.Query]]] = []  # deferred frames' sections
         try:

@@ -39,6 +39,7 @@ holds, three frames old.
 from __future__ import annotations
 
 import moderngl
+import numpy as np
 
 from dmrt.gl import abi
 from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups
@@ -236,8 +237,9 @@ class TileVisibility:
         tile_uniforms = {**uniforms, "u_tiles": grid, "u_count": self.splats.n, "u_tile_count": grid[0] * grid[1]}
         raster = (tile_uniforms, layers, layer_depth, layer_label)
 
-        with timed(timer, "visibility:tile_lists"):
-            self._build_list(tile_uniforms, status)
+        passes = timer if timer is not None and timer.passes else None  # each pass a part of its own
+        with timed(None if passes else timer, "visibility:tile_lists"):
+            self._build_list(tile_uniforms, status, passes)
         with timed(timer, "visibility:tile_raster"):
             self._raster_pass(*raster)
         if (self.check == "frame" and self._own_status) or first:
@@ -283,33 +285,38 @@ class TileVisibility:
                 self._build_list(tile_uniforms, status)
                 self._raster_pass(*raster)
 
-    def _build_list(self, tile_uniforms: dict, status) -> None:
-        """Bin (count), scan, bin (scatter): each tile's slice of the list, unsorted."""
+    def _build_list(self, tile_uniforms: dict, status, timer=None) -> None:
+        """Bin (count), scan, bin (scatter): each tile's slice of the list, unsorted. With ``timer``,
+        each pass timed as a part ``visibility:lists_*`` (:attr:`dmrt.gl.timer.GpuTimer.passes`)."""
         ctx = self.ctx
         n_tiles = tile_uniforms["u_tile_count"]
-        fill_u32(ctx, self.counts, 0, _padded(n_tiles))
-        self.large.write(EMPTY_DISPATCH)
-        ctx.memory_barrier(_BARRIER)
-        self._bin_pass(0, tile_uniforms)
-        self._bind(status=status, counts=self.counts, offsets=self.offsets)
-        # the scan's shared memory holds only the rounds the frame needs (one at 1280x720)
-        scan = load_program(ctx, "dmrt_tiles_scan", {"ROUNDS": min(SCAN_ROUNDS, -(-_padded(n_tiles) // (4 * SCAN_THREADS)))})
-        set_uniforms(scan, u_tile_count=n_tiles)
-        scan.run(1)
-        status.written(_BARRIER)  # reading the list length waits for the scan, not the whole frame
-        self._bin_pass(1, tile_uniforms)
+        with timed(timer, "visibility:lists_clear"):
+            fill_u32(ctx, self.counts, 0, _padded(n_tiles))
+            self.large.write(EMPTY_DISPATCH)
+            ctx.memory_barrier(_BARRIER)
+        self._bin_pass(0, tile_uniforms, timer)
+        with timed(timer, "visibility:lists_scan"):
+            self._bind(status=status, counts=self.counts, offsets=self.offsets)
+            # the scan's shared memory holds only the rounds the frame needs (one at 1280x720)
+            rounds = min(SCAN_ROUNDS, -(-_padded(n_tiles) // (4 * SCAN_THREADS)))
+            scan = load_program(ctx, "dmrt_tiles_scan", {"ROUNDS": rounds})
+            set_uniforms(scan, u_tile_count=n_tiles)
+            scan.run(1)
+            status.written(_BARRIER)  # reading the list length waits for the scan, not the whole frame
+        self._bin_pass(1, tile_uniforms, timer)
 
-    def _bin_pass(self, scatter: int, tile_uniforms: dict) -> None:
+    def _bin_pass(self, scatter: int, tile_uniforms: dict, timer=None) -> None:
         for large in (0, 1):
-            program = self._bin[scatter, large]
-            self._bind(proxies=self.splats.buffer, large=self.large, entries=self.entries, counts=self.counts,
-                       offsets=self.offsets)
-            set_uniforms(program, u_capacity=self.capacity, **tile_uniforms)
-            if large:
-                program.run_indirect(self.large)
-            elif self.splats.n:
-                program.run(groups(self.splats.n, 64))
-            self.ctx.memory_barrier(_BARRIER)
+            with timed(timer, f"visibility:lists_{('count', 'scatter')[scatter]}{('', '_large')[large]}"):
+                program = self._bin[scatter, large]
+                self._bind(proxies=self.splats.buffer, large=self.large, entries=self.entries,
+                           counts=self.counts, offsets=self.offsets)
+                set_uniforms(program, u_capacity=self.capacity, **tile_uniforms)
+                if large:
+                    program.run_indirect(self.large)
+                elif self.splats.n:
+                    program.run(groups(self.splats.n, 64))
+                self.ctx.memory_barrier(_BARRIER)
 
     def _raster_pass(self, tile_uniforms: dict, layers: int, layer_depth, layer_label) -> None:
         self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label,
@@ -357,12 +364,14 @@ class TileVisibility:
         -------
         dict
             ``entries`` (list length: disc-tile overlaps), ``capacity`` (entries the buffer held),
-            ``dropped`` (bool: the list outgrew the buffer, entries past it were lost).
+            ``dropped`` (bool: the list outgrew the buffer, entries past it were lost), ``large``
+            (discs over more than ``max_thread_tiles`` tiles, binned by a workgroup each).
         """
         if self.status.frame not in self._capacity_of:
-            return {"entries": 0, "capacity": self.capacity, "dropped": False}
+            return {"entries": 0, "capacity": self.capacity, "dropped": False, "large": 0}
         entries, capacity = self.status.read(0)[0], self._capacity_of[self.status.frame]
-        return {"entries": entries, "capacity": capacity, "dropped": entries > capacity}
+        large = int(np.frombuffer(self.large.read(16), np.uint32)[3])  # the list's header: groups x, y, z, length
+        return {"entries": entries, "capacity": capacity, "dropped": entries > capacity, "large": large}
 
     def read_overflow(self) -> int:
         """Pixels of the last frame that may differ from peeling: every pixel if the frame's list
