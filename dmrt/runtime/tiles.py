@@ -299,7 +299,7 @@ class TileVisibility:
             self._bind(status=status, counts=self.counts, offsets=self.offsets)
             # the scan's shared memory holds only the rounds the frame needs (one at 1280x720)
             rounds = min(SCAN_ROUNDS, -(-_padded(n_tiles) // (4 * SCAN_THREADS)))
-            scan = load_program(ctx, "dmrt_tiles_scan", {"ROUNDS": rounds})
+            scan = load_program(ctx, "dmrt_tiles_scan", {"ROUNDS": rounds, "SCAN_THREADS": SCAN_THREADS})
             set_uniforms(scan, u_tile_count=n_tiles)
             scan.run(1)
             status.written(_BARRIER)  # reading the list length waits for the scan, not the whole frame
