@@ -204,10 +204,6 @@ def tile_sweep(bundle, path, layers: int, settings) -> list[dict]:
     return rows
 
 
-if __name__ == "__main__":
-    main()
-
-
 WALK_REPEATS = 7  # timed renders of each frame and walk (the median kept), after 3 untimed
 
 
@@ -271,3 +267,7 @@ def walk_per_frame(bundle, path, layers: int) -> list[dict]:
         depth.release()
         label.release()
         splats.release()
+
+
+if __name__ == "__main__":
+    main()

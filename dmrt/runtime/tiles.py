@@ -174,6 +174,9 @@ class TileVisibility:
         n = grid[0] * grid[1]
         self.counts = self.ctx.buffer(reserve=4 * _padded(n))  # the scan reads four counts at a time
         self.offsets = self.ctx.buffer(reserve=4 * (_padded(n) + 4))  # the scan writes four at a time
+        # the scan's shared memory holds only the rounds the grid needs (one at 1280x720)
+        rounds = min(SCAN_ROUNDS, -(-_padded(n) // (4 * SCAN_THREADS)))
+        self._scan = load_program(self.ctx, "dmrt_tiles_scan", {"ROUNDS": rounds, "SCAN_THREADS": SCAN_THREADS})
         self._grid = grid
 
     def _fit(self, total: int) -> None:
@@ -297,11 +300,8 @@ class TileVisibility:
         self._bin_pass(0, tile_uniforms, timer)
         with timed(timer, "visibility:lists_scan"):
             self._bind(status=status, counts=self.counts, offsets=self.offsets)
-            # the scan's shared memory holds only the rounds the frame needs (one at 1280x720)
-            rounds = min(SCAN_ROUNDS, -(-_padded(n_tiles) // (4 * SCAN_THREADS)))
-            scan = load_program(ctx, "dmrt_tiles_scan", {"ROUNDS": rounds, "SCAN_THREADS": SCAN_THREADS})
-            set_uniforms(scan, u_tile_count=n_tiles)
-            scan.run(1)
+            set_uniforms(self._scan, u_tile_count=n_tiles)
+            self._scan.run(1)
             status.written(_BARRIER)  # reading the list length waits for the scan, not the whole frame
         self._bin_pass(1, tile_uniforms, timer)
 
