@@ -11,8 +11,8 @@
 //
 // The walk's cost is in the loads and the tests, so:
 // 1. A list of up to BATCH discs is loaded into shared memory once (camera-space centre, normal,
-//    radius, label, pixel box) and serves every walk; a longer one is walked BATCH discs at a
-//    time, loaded again for each walk.
+//    squared radius, label, pixel box) and serves every walk; a longer one is walked BATCH discs
+//    at a time, loaded again for each walk.
 // 2. The first walk tests the discs whose box holds the pixel (SPARSE_WALK says how), and each
 //    invocation keeps its TOP nearest hits sorted by depth in registers. The layers are the
 //    peeling rule applied to the pixel's hits in that order (a hit is the next layer if it lies
@@ -68,7 +68,7 @@ layout(std430, binding = B_TILE_MASKS) writeonly buffer Masks { uvec4 masks[]; }
 uniform uint u_capacity;  // entries the buffer holds (a slice past it was cut short)
 uniform int u_layers;     // k
 
-shared vec4 s_pr[BATCH];     // camera-space centre (m), radius (m)
+shared vec4 s_pr[BATCH];     // camera-space centre (m), squared radius (m^2)
 shared vec4 s_nl[BATCH];     // unit normal, label (uint bits)
 // How a walk finds the discs whose pixel box holds the pixel (the program is built both ways; the
 // stage picks one a frame from how many discs its tiles hold, TileVisibility's walk):
@@ -87,7 +87,7 @@ shared vec4 s_nl[BATCH];     // unit normal, label (uint bits)
 shared uint s_cols[WORDS * TILE];
 shared uint s_rows[WORDS * TILE];
 #else
-shared uint s_box[BATCH];    // pixel box in the tile (box_bits)
+shared uint s_box[BATCH + 1];  // pixel box in the tile (box_bits); one more: the walk reads one ahead
 #endif
 shared uint s_found[3];      // "some pixel found this layer", one per walk, rotating
 
@@ -98,7 +98,7 @@ uint g_col, g_row;        // the pixel's column and row in the tile
 uint g_px;                // the pixel's bits in the tile (pixel_bits)
 #endif
 vec3 g_ray;               // its ray through the pixel centre (splat_ray)
-float g_ray_len;          // length(g_ray)
+float g_graze;            // GRAZING_COS * length(g_ray) (splat_depth_ray_r2)
 uint g_prev_d, g_prev_l;  // the last layer's depth bits and label (label ~0u before the first)
 uint g_best_d, g_best_l;  // the nearest hit that passes the filter so far
 uint g_count;             // discs in the tile's list
@@ -110,7 +110,6 @@ uvec4 g_lo, g_hi;
 // constant indices, as the masks.
 uvec4 g_top_d0, g_top_l0, g_top_d1, g_top_l1, g_top_d2, g_top_l2, g_top_d3, g_top_l3;
 uint g_hits;   // hits of the pixel in the first walk
-bool g_first;  // the first walk (collect the nearest hits) or a later one (the filtered minimum)
 
 // Load discs [first, first + n) of the list into shared memory (call it from uniform control flow
 // after a barrier that ends every read of the batch before: with SPARSE_WALK it holds one).
@@ -127,7 +126,7 @@ void load_batch(uint first, uint n) {
         int label;
         uvec2 e = entries[first + i];
         Splat s = load_proxy(e.x, label);
-        s_pr[i] = vec4(s.pc, s.r);
+        s_pr[i] = vec4(s.pc, s.r * s.r);
         s_nl[i] = vec4(s.nc, intBitsToFloat(label));
 #if SPARSE_WALK
         uint at = (i >> 5u) * uint(TILE), bit = 1u << (i & 31u);
@@ -139,19 +138,20 @@ void load_batch(uint first, uint n) {
     }
 }
 
-// Depth bits of disc j's hit at the pixel, 0 for none.
-uint hit_bits(uint j) {
-    Splat s;
-    s.pc = s_pr[j].xyz;
-    s.r = s_pr[j].w;
-    s.nc = s_nl[j].xyz;
-    float z = splat_depth_ray(s, g_ray, g_ray_len);
+// Depth bits of disc j's hit at the pixel, 0 for none; its label. The walks are bound by the
+// instructions they issue (raising the workgroups an SM holds from 4 to 5 made them slower:
+// reports/frame-h200, session 21), so each test does only what varies: the squared radius comes
+// from shared memory, the grazing bound is the pixel's, the normal's load brings the label along.
+uint hit_bits(uint j, out uint label) {
+    vec4 pr = s_pr[j];
+    vec4 nl = s_nl[j];
+    label = floatBitsToUint(nl.w);
+    float z = splat_depth_ray_r2(pr.xyz, nl.xyz, pr.w, g_ray, g_graze);
     return z > 0.0 ? floatBitsToUint(z) : 0u;
 }
 
 // The peeling filter and the minimum: a hit behind the last layer with another label.
-void consider(uint d, uint j) {
-    uint l = floatBitsToUint(s_nl[j].w);
+void consider(uint d, uint l) {
     if (d > g_prev_d && l != g_prev_l && (d < g_best_d || (d == g_best_d && l < g_best_l))) {
         g_best_d = d;
         g_best_l = l;
@@ -178,8 +178,7 @@ bool g_tie;
     SORT_STEP(D.x, L.x) SORT_STEP(D.y, L.y) SORT_STEP(D.z, L.z) SORT_STEP(D.w, L.w) }
 #define FARTHEST_D (TOP > 12 ? g_top_d3.w : TOP > 8 ? g_top_d2.w : TOP > 4 ? g_top_d1.w : g_top_d0.w)
 
-void keep_nearest(uint d, uint j) {
-    uint l = floatBitsToUint(s_nl[j].w);
+void keep_nearest(uint d, uint l) {
     ++g_hits;
     if (d >= FARTHEST_D) {
         g_tie = g_tie || d == FARTHEST_D;  // the list is full (an empty entry matches no hit)
@@ -217,7 +216,7 @@ bool ties_in_nearest() {
 
 // Test discs [from, to) of the batch in shared memory; the bits of the hits, from bit 0 for disc
 // `from` (meaningful for up to 32 discs).
-uint walk(uint from, uint to) {
+uint walk(uint from, uint to, const bool first) {
     uint mask = 0u;
 #if SPARSE_WALK
     for (uint w = from >> 5u; w << 5u < to; ++w) {
@@ -227,26 +226,26 @@ uint walk(uint from, uint to) {
         while (m != 0u) {
             uint j = (w << 5u) + uint(findLSB(m));
             m &= m - 1u;
-            uint d = hit_bits(j);
+            uint l, d = hit_bits(j, l);
             if (d == 0u) continue;
-            mask |= 1u << ((j - from) & 31u);
-            if (g_first) keep_nearest(d, j);
-            else consider(d, j);
+            mask |= 1u << (j & 31u);
+            if (first) keep_nearest(d, l);
+            else consider(d, l);
         }
     }
 #else
     // each disc's pixel box is read one iteration ahead: the load's latency overlaps the tests (H100:
     // 2-5 % off this pass, reports/frame-h200, session 13)
-    uint next = s_box[min(from, uint(BATCH - 1))];
+    uint next = s_box[from];
     for (uint j = from; j < to; ++j) {
         uint b = next;
-        next = s_box[min(j + 1u, uint(BATCH - 1))];
+        next = s_box[j + 1u];
         if (!in_box(g_px, b)) continue;
-        uint d = hit_bits(j);
+        uint l, d = hit_bits(j, l);
         if (d == 0u) continue;
-        mask |= 1u << ((j - from) & 31u);
-        if (g_first) keep_nearest(d, j);
-        else consider(d, j);
+        mask |= 1u << (j & 31u);
+        if (first) keep_nearest(d, l);
+        else consider(d, l);
     }
 #endif
     return mask;
@@ -254,7 +253,7 @@ uint walk(uint from, uint to) {
 
 // The first walk over the 32 discs from `base`: their hit mask.
 uint first_word(uint base) {
-    return base < g_count ? walk(base, min(g_count, base + 32u)) : 0u;
+    return base < g_count ? walk(base, min(g_count, base + 32u), true) : 0u;
 }
 
 // A later walk over the remembered hits of a word; those at or in front of the last layer leave
@@ -265,9 +264,9 @@ uint again(uint word, uint base) {
         int b = findLSB(m);
         m &= m - 1u;
         uint j = base + uint(b);
-        uint d = hit_bits(j);
+        uint l, d = hit_bits(j, l);
         if (d <= g_prev_d) word &= ~(1u << uint(b));
-        else consider(d, j);
+        else consider(d, l);
     }
     return word;
 }
@@ -304,7 +303,7 @@ void layers_from_nearest() {
 // A list longer than BATCH: walked BATCH discs at a time, each batch loaded into shared memory by
 // the whole workgroup (call it from uniform control flow: it holds barriers); `walking`: this
 // invocation tests the discs.
-void walk_batches(uint off, uint count, bool walking) {
+void walk_batches(uint off, uint count, bool walking, const bool first) {
     for (uint sb = 0u; sb < count; sb += uint(BATCH)) {
         uint nb = min(uint(BATCH), count - sb);
         memoryBarrierShared();
@@ -312,7 +311,7 @@ void walk_batches(uint off, uint count, bool walking) {
         load_batch(off + sb, nb);
         memoryBarrierShared();
         barrier();
-        if (walking) walk(0u, nb);
+        if (walking) walk(0u, nb, first);
     }
 }
 
@@ -330,7 +329,7 @@ void main() {
     g_px = pixel_bits(local);
 #endif
     g_ray = splat_ray(vec2(p) + 0.5);  // the pixel centre, as in every splat path
-    g_ray_len = length(g_ray);
+    g_graze = GRAZING_COS * length(g_ray);
     g_prev_d = 0u;
     g_prev_l = ~0u;
     g_found = 0u;
@@ -350,7 +349,6 @@ void main() {
     barrier();
 
     // the first walk: every disc, the pixel's nearest hits kept sorted
-    g_first = true;
     if (cached) {
         if (inside) {
             g_lo = uvec4(first_word(0u), first_word(32u), first_word(64u), first_word(96u));
@@ -359,12 +357,11 @@ void main() {
             masks[2u * g_pix] = g_lo;  // for the labeling pass (dmrt_tiles_labeling.glsl)
             if (masks_second_half(count)) masks[2u * g_pix + 1u] = g_hi;
 #endif
-            walk(min(count, uint(MASK_DISCS)), count);
+            walk(min(count, uint(MASK_DISCS)), count, true);
         }
     } else {
-        walk_batches(off, count, inside);
+        walk_batches(off, count, inside, true);
     }
-    g_first = false;
     g_tie = g_tie || ties_in_nearest();
     if (inside && !g_tie) layers_from_nearest();
     // a pixel whose hits did not all fit in the sorted prefix and which lacks layers walks again,
@@ -386,10 +383,10 @@ void main() {
             if (searching) {
                 g_lo = uvec4(again(g_lo.x, 0u), again(g_lo.y, 32u), again(g_lo.z, 64u), again(g_lo.w, 96u));
                 g_hi = uvec4(again(g_hi.x, 128u), again(g_hi.y, 160u), again(g_hi.z, 192u), again(g_hi.w, 224u));
-                walk(min(count, uint(MASK_DISCS)), count);
+                walk(min(count, uint(MASK_DISCS)), count, false);
             }
         } else {
-            walk_batches(off, count, searching);
+            walk_batches(off, count, searching, false);
         }
         if (searching && g_best_d != EMPTY_BITS) write_layer(g_best_d, g_best_l);
         searching = searching && g_best_d != EMPTY_BITS && g_found < uint(u_layers);
