@@ -166,8 +166,15 @@ def load_program(ctx: moderngl.Context, name: str, defines: dict | None = None):
             f"{files[0]}: GLSL program {name!r} failed to compile or link "
             f"(source-string numbers in the log: {legend}):\n{exc}"
         ) from None
+    program.__dict__["_dmrt_loaded"] = (name, dict(defines or {}))  # for loaded_programs
     programs[key] = program
     return program
+
+
+def loaded_programs(ctx: moderngl.Context) -> list[tuple[str, dict]]:
+    """``(name, defines)`` of every program :func:`load_program` has compiled for ``ctx``, in load
+    order: what a renderer built, for tools that measure its programs (``bench/occupancy.py``)."""
+    return [program.__dict__["_dmrt_loaded"] for program in _cache.get(ctx, {}).values()]
 
 
 def set_uniforms(program, **values) -> None:
