@@ -120,26 +120,20 @@ vec3 splat_ray(vec2 uv) {
     return vec3((uv.x - u_K.z) / u_K.x, (uv.y - u_K.w) / u_K.y, 1.0);
 }
 
-// splat_depth_ray of the disc with centre pc, unit normal nc and squared radius r2 (m^2), the
-// grazing bound `graze` = GRAZING_COS * length(d) given: the same bits, for a pass that keeps r2 per
-// disc and the bound per pixel (the tile raster: a multiplication fewer a test, reports/frame-h200
-// session 21).
-float splat_depth_ray_r2(vec3 pc, vec3 nc, float r2, vec3 d, float graze) {
-    float nd = dot(nc, d);
-    if (abs(nd) > graze) {
-        float z = dot(nc, pc) / nd;
-        vec3 q = z * d - pc;
-        return (z > 0.0 && dot(q, q) <= r2) ? z : 0.0;
+// Camera z where the pixel ray d = splat_ray(uv), of length dlen = length(d), meets the disc; 0.0
+// if it misses. A pass that tests many discs at one pixel computes d and dlen once. The tile
+// raster's hit_bits (dmrt_tiles_raster.glsl) is this test written out: keep the two equal (the
+// tiles tests compare its layers with compute peeling's, bit for bit).
+float splat_depth_ray(Splat s, vec3 d, float dlen) {
+    float nd = dot(s.nc, d);
+    if (abs(nd) > GRAZING_COS * dlen) {
+        float z = dot(s.nc, s.pc) / nd;
+        vec3 q = z * d - s.pc;
+        return (z > 0.0 && dot(q, q) <= s.r * s.r) ? z : 0.0;
     }
     vec3 dh = normalize(d);
-    vec3 q = dot(pc, dh) * dh - pc;
-    return (pc.z > 0.0 && dot(q, q) <= r2) ? pc.z : 0.0;
-}
-
-// Camera z where the pixel ray d = splat_ray(uv), of length dlen = length(d), meets the disc; 0.0
-// if it misses. A pass that tests many discs at one pixel computes d and dlen once.
-float splat_depth_ray(Splat s, vec3 d, float dlen) {
-    return splat_depth_ray_r2(s.pc, s.nc, s.r * s.r, d, GRAZING_COS * dlen);
+    vec3 q = dot(s.pc, dh) * dh - s.pc;
+    return (s.pc.z > 0.0 && dot(q, q) <= s.r * s.r) ? s.pc.z : 0.0;
 }
 
 // Camera z where the ray of the pixel centred at uv meets the disc; 0.0 if it misses.
