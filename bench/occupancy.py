@@ -3,9 +3,9 @@
     python -m bench.occupancy --bundle BUNDLE --out RESULTS_DIR [--size 3840x2160]
     python -m bench.occupancy --bundle B --out R --variant dmrt_tiles_raster:TOP=8,BATCH=256
 
-A renderer with the default configuration renders one frame at ``--size``, which builds the
-programs the frame uses with the defines it uses (:func:`dmrt.gl.shaders.loaded_programs`). Each
-compute program is then compiled once more as a probe: its ``main`` renamed and called only under a
+A renderer with the default configuration renders one frame at ``--size``, which loads the
+programs the frame uses with the defines it uses (:func:`dmrt.gl.shaders.recording_programs`).
+Each compute program is then compiled once more as a probe: its ``main`` renamed and called only under a
 uniform that is never set, so that the driver gives the program the registers and shared memory it
 gives the shipping one, and a new ``main`` in which the first invocation of each warp adds 1 to its
 SM's counter (``gl_SMIDNV``), spins ~50 us, and subtracts 1 again. Every SM fills up to the limit
@@ -92,17 +92,15 @@ def resident_warps(ctx, name: str, defines: dict, spin: int = 30000, groups: int
 
 def frame_programs(bundle, size: tuple[int, int]) -> list[tuple[str, dict]]:
     """The compute programs one default frame at ``size`` uses, with their defines."""
-    from dmrt.gl import get_context
-    from dmrt.gl.shaders import loaded_programs, stage_sources
+    from dmrt.gl.shaders import recording_programs, stage_sources
     from dmrt.runtime.renderer import RenderConfig, Renderer
 
-    ctx = get_context()
-    r = Renderer(bundle, RenderConfig(async_photos=False))
-    try:
-        r.render(bundle.cameras[0].resized(*size))
-        programs = loaded_programs(ctx)
-    finally:
-        r.release()
+    with recording_programs() as programs:
+        r = Renderer(bundle, RenderConfig(async_photos=False))
+        try:
+            r.render(bundle.cameras[0].resized(*size))
+        finally:
+            r.release()
     seen, out = set(), []
     for name, defines in programs:
         key = (name, tuple(sorted(defines.items())))
@@ -128,6 +126,7 @@ def parse_variant(spec: str) -> tuple[str, dict]:
 
 def main(argv=None) -> None:
     from bench.bench_render import add_source_args, bundle_path
+    from dmrt.errors import DMRTError
     from dmrt.gl import get_context, renderer_info
     from dmrt.io.bundle import read_bundle
 
@@ -146,15 +145,21 @@ def main(argv=None) -> None:
         p.error(f"--size / --variant: {exc}")
     args.write_normals = False
     ctx = get_context()
-    bundle = read_bundle(bundle_path(args, {}))
+    try:
+        bundle = read_bundle(bundle_path(args, {}))
+    except DMRTError as exc:
+        p.exit(2, f"occupancy: {exc}\n")
     programs = frame_programs(bundle, (w, h))
     rows = []
-    for name, defines in programs + [(n, {**next((d for m, d in programs if m == n), {}), **v}) for n, v in variants]:
+    def frame_defines(name: str) -> dict:  # the defines of the frame's first build of `name`
+        return next((d for n, d in programs if n == name), {})
+
+    for name, defines in programs + [(name, {**frame_defines(name), **changed}) for name, changed in variants]:
         row = {"program": name, "defines": defines, **resident_warps(ctx, name, defines, args.spin, args.groups)}
         rows.append(row)
         shown = ", ".join(f"{k}={v}" for k, v in defines.items())
-        print(f"{row['warps_per_sm']:3d} warps/SM  {row['workgroups_per_sm']:6.2f} x {row['workgroup']:4d}  {name}  {shown}",
-              flush=True)
+        print(f"{row['warps_per_sm']:3d} warps/SM  {row['workgroups_per_sm']:6.2f} x {row['workgroup']:4d}  "
+              f"{name}  {shown}", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / f"occupancy-{w}x{h}.json"
     path.write_text(json.dumps({"benchmark": "occupancy", "machine": renderer_info(ctx), "frame_size": [w, h],

@@ -19,6 +19,7 @@ A file that mentions ``COMPUTE_SHADER`` becomes a :class:`moderngl.ComputeShader
 
 from __future__ import annotations
 
+import contextlib
 import re
 import weakref
 from pathlib import Path
@@ -39,6 +40,7 @@ _STAGE_NAME = re.compile(r"\b(VERTEX_SHADER|GEOMETRY_SHADER|FRAGMENT_SHADER|COMP
 
 # ctx -> {(name, defines): program}; weak so that releasing a context frees its programs' cache entry.
 _cache: "weakref.WeakKeyDictionary[moderngl.Context, dict]" = weakref.WeakKeyDictionary()
+_recorders: list[list] = []  # recording_programs blocks now open
 
 
 class ShaderError(RuntimeError):
@@ -144,6 +146,8 @@ def load_program(ctx: moderngl.Context, name: str, defines: dict | None = None):
     ShaderError
         Missing file or include, or a compile/link error; the message starts with the file's path.
     """
+    for calls in _recorders:
+        calls.append((name, dict(defines or {})))
     key = (str(SHADER_DIR), name, tuple(sorted((str(k), repr(v)) for k, v in (defines or {}).items())))
     programs = _cache.setdefault(ctx, {})
     if key in programs:
@@ -166,15 +170,21 @@ def load_program(ctx: moderngl.Context, name: str, defines: dict | None = None):
             f"{files[0]}: GLSL program {name!r} failed to compile or link "
             f"(source-string numbers in the log: {legend}):\n{exc}"
         ) from None
-    program.__dict__["_dmrt_loaded"] = (name, dict(defines or {}))  # for loaded_programs
     programs[key] = program
     return program
 
 
-def loaded_programs(ctx: moderngl.Context) -> list[tuple[str, dict]]:
-    """``(name, defines)`` of every program :func:`load_program` has compiled for ``ctx``, in load
-    order: what a renderer built, for tools that measure its programs (``bench/occupancy.py``)."""
-    return [program.__dict__["_dmrt_loaded"] for program in _cache.get(ctx, {}).values()]
+@contextlib.contextmanager
+def recording_programs():
+    """Collect ``(name, defines)`` of every :func:`load_program` call made inside the block (cached
+    or compiled), in call order: what a renderer builds, for tools that measure its programs
+    (``bench/occupancy.py``)."""
+    calls: list[tuple[str, dict]] = []
+    _recorders.append(calls)
+    try:
+        yield calls
+    finally:
+        _recorders.remove(calls)
 
 
 def set_uniforms(program, **values) -> None:
