@@ -46,6 +46,19 @@ def bundle_path(args, setup: dict) -> Path:
     return out
 
 
+def open_bundle(p: argparse.ArgumentParser, args, setup: dict):
+    """:func:`bundle_path` read (``args.bundle`` set to its path): a bundle that cannot be read ends the
+    program with one line that names it and exit status 2, before anything is written."""
+    from dmrt.errors import DMRTError
+    from dmrt.io.bundle import read_bundle
+
+    try:
+        args.bundle = bundle_path(args, setup)
+        return read_bundle(args.bundle)
+    except DMRTError as exc:
+        p.exit(2, f"{p.prog}: error: {exc}\n")
+
+
 def add_source_args(p: argparse.ArgumentParser, work: str) -> None:
     """``--bundle BUNDLE`` or ``--preset NAME`` (made in ``--work``, default ``work``), and ``--out``."""
     src = p.add_mutually_exclusive_group(required=True)
@@ -67,7 +80,6 @@ def _depth_change(first_steps: int, first: list, depths: list) -> dict:
 def main(argv=None) -> None:
     from bench.experiments import measure_walkthrough, profile_walkthrough
     from dmrt.gl import get_context, renderer_info
-    from dmrt.io.bundle import read_bundle
     from dmrt.runtime.renderer import RenderConfig
     from dmrt.runtime.walkthrough import camera_path
 
@@ -95,11 +107,9 @@ def main(argv=None) -> None:
                    "back to back (cProfile: Python and each GL call's own time; cpu_profile in the JSON)")
     p.add_argument("--write-normals", action="store_true", help="synthetic scan carries normals (skips estimation)")
     args = p.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-
     setup = {}
-    args.bundle = bundle_path(args, setup)
-    bundle = read_bundle(args.bundle)
+    bundle = open_bundle(p, args, setup)
+    args.out.mkdir(parents=True, exist_ok=True)
     name = args.preset or bundle.root.name
     keys = bundle.cameras[:: max(1, len(bundle.cameras) // 12)]
     runs = []

@@ -30,8 +30,7 @@ import numpy as np
 
 
 def main(argv=None) -> None:
-    from bench.bench_render import add_source_args, bundle_path
-    from dmrt.io.bundle import read_bundle
+    from bench.bench_render import add_source_args, open_bundle
     from dmrt.gl import get_context, renderer_info
     from dmrt.runtime.renderer import RenderConfig, Renderer
     from dmrt.runtime.walkthrough import camera_path
@@ -61,9 +60,8 @@ def main(argv=None) -> None:
         p.error(f"--tile-sweep: settings are TILE:BATCH:TOP[:r][:s|:l] (tile 1-32, batch >= 1, top 4, 8, 12 "
                 f"or 16, r: warps of pixel rows; else 8x4 blocks, for a tile a multiple of 8; s / l: the sparse "
                 f"/ linear walk, else auto), e.g. 16:384:16:s, not {' '.join(args.tile_sweep)}")
+    bundle = open_bundle(p, args, {})
     args.out.mkdir(parents=True, exist_ok=True)
-    args.bundle = bundle_path(args, {})
-    bundle = read_bundle(args.bundle)
     keys = bundle.cameras[:: max(1, len(bundle.cameras) // 12)]
     path = camera_path(keys, args.frames, args.width, args.height)
     configs = [("compute", mtp, 0) for mtp in args.max_thread_pixels]

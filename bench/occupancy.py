@@ -125,10 +125,8 @@ def parse_variant(spec: str) -> tuple[str, dict]:
 
 
 def main(argv=None) -> None:
-    from bench.bench_render import add_source_args, bundle_path
-    from dmrt.errors import DMRTError
+    from bench.bench_render import add_source_args, open_bundle
     from dmrt.gl import get_context, renderer_info
-    from dmrt.io.bundle import read_bundle
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_source_args(p, "/tmp/dmrt-occupancy")
@@ -145,10 +143,7 @@ def main(argv=None) -> None:
         p.error(f"--size / --variant: {exc}")
     args.write_normals = False
     ctx = get_context()
-    try:
-        bundle = read_bundle(bundle_path(args, {}))
-    except DMRTError as exc:
-        p.exit(2, f"occupancy: {exc}\n")
+    bundle = open_bundle(p, args, {})
     programs = frame_programs(bundle, (w, h))
     rows = []
     def frame_defines(name: str) -> dict:  # the defines of the frame's first build of `name`

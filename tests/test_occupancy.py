@@ -39,13 +39,3 @@ def test_every_frame_program_probes(ctx, tiny_bundle):
         assert row["workgroup"] >= 1, name
     assert resident_warps(ctx, "dmrt_tiles_raster", raster, spin=4, groups=2)["workgroup"] == 16 * 16
 
-
-def test_missing_bundle_is_one_line(tmp_path, capsys):
-    from bench.occupancy import main
-
-    with pytest.raises(SystemExit) as exit_info:
-        main(["--bundle", str(tmp_path / "none"), "--out", str(tmp_path / "out")])
-    assert exit_info.value.code == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("occupancy: ") and "none" in err and "\n" not in err
-    assert not (tmp_path / "out").exists()  # nothing half-written

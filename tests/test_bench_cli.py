@@ -1,0 +1,17 @@
+"""The component benchmarks that read a bundle (``--bundle``) answer a bundle they cannot read
+with one line naming it and exit status 2, before they write anything."""
+
+import importlib
+
+import pytest
+
+
+@pytest.mark.parametrize("module", ["bench.bench_render", "bench.bench_visibility", "bench.occupancy"])
+def test_missing_bundle_is_one_line(module, tmp_path, capsys):
+    main = importlib.import_module(module).main
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--bundle", str(tmp_path / "none"), "--out", str(tmp_path / "out")])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert ": error: " in err and str(tmp_path / "none") in err and "\n" not in err
+    assert not (tmp_path / "out").exists()  # nothing written
