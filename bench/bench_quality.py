@@ -37,6 +37,7 @@ def log_gain_spread(frame: dict, truth: np.ndarray) -> tuple[float, float] | Non
 def main(argv=None) -> None:
     from baselines.dmt import DMTConfig, DMTRenderer
     from dmrt.io.bundle import read_bundle
+    from dmrt.errors import DMRTError
     from dmrt.runtime.renderer import RenderConfig, Renderer
     from dmrt.io.scene import load_scene
     from reference.metrics import compare
@@ -67,7 +68,10 @@ def main(argv=None) -> None:
                                  force=True, progress=False)
     if args.scene is None or args.bundle is None:
         p.error("give --scene and --bundle, or --preset")
-    scene, bundle = load_scene(args.scene), read_bundle(args.bundle)
+    try:
+        scene, bundle = load_scene(args.scene), read_bundle(args.bundle)
+    except DMRTError as exc:  # one line, exit 2, nothing written (as bench_render's open_bundle)
+        p.exit(2, f"{p.prog}: error: {exc}\n")
     sync = {"async_photos": False, "max_uploads_per_frame": 0}
     reference = EmbreeReference.from_scene(scene)
     refs = []

@@ -1,5 +1,5 @@
-"""The component benchmarks that read a bundle (``--bundle``) answer a bundle they cannot read
-with one line naming it and exit status 2, before they write anything."""
+"""The component benchmarks that read a bundle (``--bundle``) answer a bundle (or scene) they cannot
+read with one line naming it and exit status 2, before they write anything."""
 
 import importlib
 
@@ -15,3 +15,14 @@ def test_missing_bundle_is_one_line(module, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert ": error: " in err and str(tmp_path / "none") in err and "\n" not in err
     assert not (tmp_path / "out").exists()  # nothing written
+
+
+def test_quality_missing_scene_is_one_line(tmp_path, capsys):
+    from bench.bench_quality import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--scene", str(tmp_path / "no-scene"), "--bundle", str(tmp_path / "none"), "--out", str(tmp_path / "out")])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert ": error: " in err and str(tmp_path / "no-scene") in err and "\n" not in err
+    assert not (tmp_path / "out").exists()
