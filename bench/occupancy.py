@@ -5,10 +5,10 @@
 
 A renderer with the default configuration renders one frame at ``--size``, which loads the
 programs the frame uses with the defines it uses (:func:`dmrt.gl.shaders.recording_programs`).
-Each compute program is then compiled once more as a probe: its ``main`` renamed and called only under a
-uniform that is never set, so that the driver gives the program the registers and shared memory it
-gives the shipping one, and a new ``main`` in which the first invocation of each warp adds 1 to its
-SM's counter (``gl_SMIDNV``), spins ~50 us, and subtracts 1 again. Every SM fills up to the limit
+Each compute program is then compiled once more as a probe: its ``main`` renamed and called only
+under a uniform that is never set, so that the driver gives the program the registers and shared
+memory it gives the shipping one, and a new ``main`` in which the first invocation of each warp
+adds 1 to its SM's counter (``gl_SMIDNV``), spins ~50 us, and subtracts 1 again. Every SM fills up to the limit
 that registers and shared memory set before the first workgroups leave, so the largest count seen
 is the program's resident warps per SM (H200: 64 at most). GL gives no other view of it: NVIDIA's
 program binary holds the assembly before register allocation, and no profiler reaches GL compute
@@ -145,10 +145,11 @@ def main(argv=None) -> None:
     ctx = get_context()
     bundle = open_bundle(p, args, {})
     programs = frame_programs(bundle, (w, h))
-    rows = []
+
     def frame_defines(name: str) -> dict:  # the defines of the frame's first build of `name`
         return next((d for n, d in programs if n == name), {})
 
+    rows = []
     for name, defines in programs + [(name, {**frame_defines(name), **changed}) for name, changed in variants]:
         row = {"program": name, "defines": defines, **resident_warps(ctx, name, defines, args.spin, args.groups)}
         rows.append(row)
