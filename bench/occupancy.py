@@ -8,9 +8,9 @@ programs the frame uses with the defines it uses (:func:`dmrt.gl.shaders.recordi
 Each compute program is then compiled once more as a probe: its ``main`` renamed and called only
 under a uniform that is never set, so that the driver gives the program the registers and shared
 memory it gives the shipping one, and a new ``main`` in which the first invocation of each warp
-adds 1 to its SM's counter (``gl_SMIDNV``), spins ~50 us, and subtracts 1 again. Every SM fills up to the limit
-that registers and shared memory set before the first workgroups leave, so the largest count seen
-is the program's resident warps per SM (H200: 64 at most). GL gives no other view of it: NVIDIA's
+adds 1 to its SM's counter (``gl_SMIDNV``), spins ~50 us, and subtracts 1 again. Every SM fills
+up to the limit that registers and shared memory set before the first workgroups leave, so the
+largest count seen is the program's resident warps per SM (H200: 64 at most). GL gives no other view of it: NVIDIA's
 program binary holds the assembly before register allocation, and no profiler reaches GL compute
 programs here. ``--variant PROGRAM:KEY=VALUE,...`` adds the program built with other defines.
 
