@@ -22,7 +22,9 @@ warmed on a two-camera render of a few points, which makes its GL context and co
 depth-map programs. With ``--repeat R`` the three ways run in turn R times and each way's fastest
 run counts (all are recorded). The maps of the three ways must be equal (``np.array_equal``), else the result
 is written and the command exits 1. The result (JSON): points, photos, the seconds of each way,
-their GPU milliseconds per stage (summed over the GPUs), the speed-ups (``dask_1gpu / dask_ngpu``
+their GPU milliseconds per stage (summed over the GPUs), their wall seconds per stage
+(:func:`~dmrt.preprocess.pipeline.render_depth_phase`'s ``wall``: reading and uploading, read-backs,
+each GPU task, the merge), the speed-ups (``dask_1gpu / dask_ngpu``
 and ``in_process / dask_ngpu``), the GL renderers, the machine and commit (``DMRT_COMMIT`` or git)
 and ``nvidia-smi``'s view of the GPUs where there is one. On a machine without NVIDIA GPUs
 (llvmpipe) N defaults to 1 and the timings say nothing about GPUs; ``--gpus 2`` still runs
@@ -38,6 +40,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -89,24 +92,27 @@ def _run_way(executor, octree, cameras, names, work, out_dir, has_normals, confi
     """Phase 3 once on ``executor``, timed; the maps go to ``out_dir/depthmaps``."""
     from dmrt.preprocess.pipeline import render_depth_phase
 
+    wall: dict = {}
     t0 = time.perf_counter()
     rels, _, gpu_ms, renderers = render_depth_phase(executor, octree, cameras, names, work, out_dir, has_normals,
-                                                    config)
+                                                    config, wall=wall)
     seconds = time.perf_counter() - t0
-    return {"seconds": round(seconds, 3), "gpu_ms": {k: round(v, 3) for k, v in gpu_ms.items()},
+    return {"seconds": round(seconds, 3), "gpu_ms": {k: round(v, 3) for k, v in gpu_ms.items()}, "wall_s": wall,
             "gl_renderers": renderers, "maps": [str(Path(out_dir) / r) for r in rels]}
 
 
 def _maps_equal(ways: dict) -> bool:
     """Whether every way's maps equal the in-process ones, value for value (np.array_equal)."""
     from dmrt.io.exr import read_depth_exr
+    from dmrt.preprocess.parallel import default_workers
+
+    def same(pair) -> bool:
+        return np.array_equal(read_depth_exr(pair[0]), read_depth_exr(pair[1]))
 
     first = ways["in_process"]["maps"]
-    for way in WAYS[1:]:
-        for a, b in zip(first, ways[way]["maps"], strict=True):
-            if not np.array_equal(read_depth_exr(a), read_depth_exr(b)):
-                return False
-    return True
+    pairs = [p for way in WAYS[1:] for p in zip(first, ways[way]["maps"], strict=True)]
+    with ThreadPoolExecutor(default_workers()) as pool:  # EXR decompression releases the GIL
+        return all(pool.map(same, pairs))
 
 
 def run(scene_dir, gpus: int, workers: int | None, config, work: Path, repeat: int = 1,
@@ -158,7 +164,7 @@ def run(scene_dir, gpus: int, workers: int | None, config, work: Path, repeat: i
     return {
         "points": octree.n_points, "photos": len(cameras), "gpus": gpus,
         "seconds": s, "runs_s": {w: [r["seconds"] for r in runs[w]] for w in WAYS},
-        "gpu_ms": {w: ways[w]["gpu_ms"] for w in WAYS},
+        "gpu_ms": {w: ways[w]["gpu_ms"] for w in WAYS}, "wall_s": {w: ways[w]["wall_s"] for w in WAYS},
         "speedup": {"dask_1gpu_over_ngpu": round(s["dask_1gpu"] / s["dask_ngpu"], 3),
                     "in_process_over_ngpu": round(s["in_process"] / s["dask_ngpu"], 3)},
         "gl_renderers": {**{w: ways[w]["gl_renderers"] for w in WAYS},

@@ -196,6 +196,28 @@ def test_reopen_gives_same_data(big):
     assert again.meta["n_buckets"] > 10  # the 8 MB limit really split the cloud
 
 
+def test_deal_interleaves_the_chunks(big):
+    """OctreeRange.deal: the range's own chunks (never across a level), dealt round-robin, each
+    share reading every level it reaches; the shares together are the range, point for point."""
+    tree, _ = big
+    whole = tree.point_range(chunk_size=7_000)
+    chunks = list(whole())
+    shares = whole.deal(3)
+    assert len(shares) == 3 and [len(s) for s in shares] == [len(range(p, len(chunks), 3)) for p in range(3)]
+    for p, share in enumerate(shares):
+        for piece, chunk in zip(share, chunks[p::3], strict=True):
+            (read,) = list(piece())  # one chunk, the one at its place in the whole range's order
+            assert len(piece) == len(chunk["positions"])
+            for k in chunk:
+                np.testing.assert_array_equal(read[k], chunk[k])
+    # every share has points of every level of at least 3 chunks (split's thirds would not)
+    bounds = np.cumsum([0] + tree.level_counts)
+    big_levels = [(a, b) for a, b in zip(bounds, bounds[1:]) if b - a >= 3 * 7_000]
+    assert len(big_levels) >= 3
+    assert all(any(a <= r.start < b for r in s) for s in shares for a, b in big_levels)
+    assert whole.deal(10**9) == [[c] for c in whole.deal(1)[0]]  # at most one share per chunk
+
+
 # ---------------------------------------------------------------------------------------------
 # exactness against the naive reference, on a small cloud with every hard case:
 # coarse levels spanning buckets, an over-full bucket, exact distance ties, duplicate points

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import collections
 import functools
+import os
 import resource
 import shlex
 import shutil
@@ -127,10 +128,11 @@ def _float32(a) -> np.ndarray:
     return np.array(a, np.float32) if isinstance(a, np.memmap) else np.ascontiguousarray(a, np.float32)
 
 
-def _depth_renderer(work, points, has_normals: bool, config: PreprocessConfig):
-    """This process's depth-map renderer and the chunk source of P_HD's points ``points`` (an
-    :class:`~dmrt.preprocess.octree.OctreeRange`) with their normals and radii from ``work``; each
-    call of the source reads its chunks two ahead of the consumer (:func:`_read_ahead`)."""
+def _depth_renderer(work, ranges, has_normals: bool, config: PreprocessConfig):
+    """This process's depth-map renderer and the chunk source of P_HD's points in ``ranges`` (a
+    list of :class:`~dmrt.preprocess.octree.OctreeRange`, read in turn) with their normals and
+    radii from ``work``; each call of the source reads its chunks two ahead of the consumer
+    (:func:`_read_ahead`)."""
     from dmrt.gl import GpuTimer, get_context
     from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer
 
@@ -139,12 +141,13 @@ def _depth_renderer(work, points, has_normals: bool, config: PreprocessConfig):
     radii = np.load(Path(work) / "attrs" / "radii.npy", mmap_mode="r")
 
     def read():
-        g = points.start  # the attributes are indexed in octree order, as the range
-        for ch in points():
-            m = len(ch["positions"])
-            nrm = ch["normals"] if has_normals else normals[g:g + m]
-            yield _float32(ch["positions"]), _float32(nrm), _float32(radii[g:g + m])
-            g += m
+        for points in ranges:
+            g = points.start  # the attributes are indexed in octree order, as the range
+            for ch in points():
+                m = len(ch["positions"])
+                nrm = ch["normals"] if has_normals else normals[g:g + m]
+                yield _float32(ch["positions"]), _float32(nrm), _float32(radii[g:g + m])
+                g += m
 
     def hd_chunks():  # a fresh reader (and thread) per call: render_many may read the cloud twice
         return _read_ahead(read())
@@ -158,7 +161,7 @@ def _depth_renderer(work, points, has_normals: bool, config: PreprocessConfig):
 
 
 def render_depth_maps(cameras, names, work, out_dir, has_normals: bool, config: PreprocessConfig,
-                      progress: bool = False) -> tuple[list[str], list[list[int]], dict, str]:
+                      progress: bool = False, wall: dict | None = None) -> tuple[list[str], list[list[int]], dict, str]:
     """Phase 3 in this process: every photo's depth map from all of P_HD (the octree and the
     normals/radii in the work folder ``work``), splatted by
     :meth:`~dmrt.preprocess.depthmaps.DepthMapRenderer.render_many` on this process's GL context
@@ -168,12 +171,15 @@ def render_depth_maps(cameras, names, work, out_dir, has_normals: bool, config: 
     -------
     rels : the maps' paths relative to ``out_dir``, in photo order.  sizes : ``[w, h]`` each.
     gpu_ms : GPU milliseconds per stage (:class:`~dmrt.gl.GpuTimer`).  renderer : the GL renderer.
+    ``wall``, when given, receives the wall seconds of :func:`_wall_seconds` and ``writes_s``
+    (the wait for the last EXR writes after the last map).
     """
     from dmrt.preprocess.octree import Octree
 
     points = Octree.open(Path(work) / "octree").point_range(chunk_size=config.chunk_points)
-    renderer, hd_chunks, timer = _depth_renderer(work, points, has_normals, config)
+    renderer, hd_chunks, timer = _depth_renderer(work, [points], has_normals, config)
     rels, sizes, writes = [], [], []
+    t0 = time.perf_counter()
     # EXR compression (~40 ms a map) runs on threads while the GPU renders the next maps
     with ThreadPoolExecutor(default_workers()) as pool:
         try:
@@ -185,14 +191,27 @@ def render_depth_maps(cameras, names, work, out_dir, has_normals: bool, config: 
                 sizes.append([depth.shape[1], depth.shape[0]])
         finally:
             renderer.release()
+        t1 = time.perf_counter()
         for f in writes:
             f.result()  # a failed write raises here
+    if wall is not None:
+        wall.update(_wall_seconds(renderer, t1 - t0), writes_s=round(time.perf_counter() - t1, 3))
     return rels, sizes, dict(timer.ms), _gl_renderer_string()
 
 
-def render_depth_part(item, cameras, work, has_normals: bool, config: PreprocessConfig) -> tuple[dict, str]:
+def _wall_seconds(renderer, render_s: float) -> dict:
+    """Where a render_many loop's ``render_s`` wall seconds went: ``upload_s`` (reading, packing
+    and uploading the cloud), ``readback_s`` (waiting for and copying back the maps), the rest being
+    splatting and the caller's work between maps; with ``mode`` (:attr:`DepthMapRenderer.last_stats`)."""
+    stats = renderer.last_stats
+    return {"mode": stats.get("mode"), "render_s": round(render_s, 3),
+            **{k: round(stats.get(k, 0.0), 3) for k in ("upload_s", "readback_s")}}
+
+
+def render_depth_part(item, cameras, work, has_normals: bool, config: PreprocessConfig) -> tuple[dict, str, dict]:
     """Phase 3 on one of several GPUs (a Dask task): every photo's depth map from the points of
-    ``item = (part, points)`` only (an :class:`~dmrt.preprocess.octree.OctreeRange` of P_HD),
+    ``item = (part, ranges)`` only (a list of :class:`~dmrt.preprocess.octree.OctreeRange` of
+    P_HD: a share of :meth:`~dmrt.preprocess.octree.OctreeRange.deal`),
     saved as ``work/depth-parts/p<part>/<photo index>.npy`` ((h, w) float32 camera z, 0 where
     empty). A map is the nearest splat at each texel, so the nearest of the parts' maps there
     (:func:`nearest_depth`) is the map of all points, bit for bit. Each GPU reads and uploads only
@@ -202,17 +221,30 @@ def render_depth_part(item, cameras, work, has_normals: bool, config: Preprocess
     Returns
     -------
     gpu_ms : GPU milliseconds per stage.  renderer : the GL renderer.
+    wall : wall seconds, as :func:`render_depth_maps` gives them (``saves_s``: the wait for the
+    last saves), ``task_s`` (the whole task), and ``device_index`` (the worker's
+    ``GLCONTEXT_DEVICE_INDEX``: :func:`~dmrt.preprocess.parallel._pin_gpu`).
     """
-    part, points = item
+    t_task = time.perf_counter()
+    part, ranges = item
     folder = Path(work) / "depth-parts" / f"p{part:03d}"
     folder.mkdir(parents=True, exist_ok=True)
-    renderer, hd_chunks, timer = _depth_renderer(work, points, has_normals, config)
-    try:
-        for j, depth in renderer.render_many(cameras, hd_chunks, resident_mb=config.resident_mb):
-            np.save(folder / f"{j}.npy", depth)
-    finally:
-        renderer.release()
-    return dict(timer.ms), _gl_renderer_string()
+    renderer, hd_chunks, timer = _depth_renderer(work, ranges, has_normals, config)
+    t0 = time.perf_counter()
+    # each map is saved on a thread while the GPU splats the next one (as the in-process EXRs)
+    with ThreadPoolExecutor(2) as pool:
+        try:
+            saves = [pool.submit(np.save, folder / f"{j}.npy", depth)
+                     for j, depth in renderer.render_many(cameras, hd_chunks, resident_mb=config.resident_mb)]
+        finally:
+            renderer.release()
+        t1 = time.perf_counter()
+        for f in saves:
+            f.result()  # a failed save raises here
+    wall = {**_wall_seconds(renderer, t1 - t0), "saves_s": round(time.perf_counter() - t1, 3),
+            "task_s": round(time.perf_counter() - t_task, 3),
+            "device_index": os.environ.get("GLCONTEXT_DEVICE_INDEX")}  # the EGL device asked for, if any
+    return dict(timer.ms), _gl_renderer_string(), wall
 
 
 def nearest_depth(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -253,12 +285,14 @@ def normals_radii_phase(octree, cameras, work, config: PreprocessConfig, executo
 
 
 def render_depth_phase(executor, octree, cameras, names, work, out_dir, has_normals: bool, config: PreprocessConfig,
-                       progress: bool = False) -> tuple[list[str], list[list[int]], dict, list[str]]:
+                       progress: bool = False,
+                       wall: dict | None = None) -> tuple[list[str], list[list[int]], dict, list[str]]:
     """Phase 3: every photo's depth map from all of P_HD (the octree and the normals/radii in the
     work folder ``work``), written to ``out_dir/depthmaps/<photo stem>.exr``.
 
-    On an executor with ``gpu_tasks`` (Dask), P_HD is cut into one share per GPU worker
-    (:meth:`~dmrt.preprocess.parallel.DaskExecutor.map_gpus`), each splatted into every map
+    On an executor with ``gpu_tasks`` (Dask), P_HD's chunks are dealt into one share per GPU
+    worker (:meth:`~dmrt.preprocess.octree.OctreeRange.deal`,
+    :meth:`~dmrt.preprocess.parallel.DaskExecutor.map_gpus`), each splatted into every map
     (:func:`render_depth_part`), and each map merged here as the nearest depth of the shares'
     (:func:`nearest_depth`, exact); otherwise :func:`render_depth_maps` on this process's GL
     context. The maps are the same bit for bit either way.
@@ -273,17 +307,23 @@ def render_depth_phase(executor, octree, cameras, names, work, out_dir, has_norm
     -------
     rels : the maps' paths relative to ``out_dir``, in photo order.  sizes : ``[w, h]`` each.
     gpu_ms : GPU milliseconds per stage, summed over the GPUs.  renderers : the GL renderers used.
+    ``wall``, when given, receives wall seconds per stage: in process, those of
+    :func:`render_depth_maps`; on Dask, ``parts`` (each GPU task's, :func:`render_depth_part`),
+    ``gpus_s`` (until the last task ended) and ``merge_s`` (the merge and the EXRs after it).
     """
     work, out_dir = Path(work), Path(out_dir)
     if not executor.gpu_tasks:
         rels, sizes, gpu_ms, renderer = render_depth_maps(cameras, names, work, out_dir, has_normals, config,
-                                                          progress=progress)
+                                                          progress=progress, wall=wall)
         return rels, sizes, gpu_ms, [renderer]
     # each GPU worker splats its share of P_HD into every map; the maps' nearest depths are merged here
     points = octree.point_range(chunk_size=config.chunk_points)
-    shares = list(enumerate(points.split(len(executor.gpu_workers))))
+    # dealt by chunks, not cut in halves: each GPU's splats then cost about the same (OctreeRange.deal)
+    shares = list(enumerate(points.deal(len(executor.gpu_workers))))
+    t0 = time.perf_counter()
     parts = executor.map_gpus(render_depth_part, shares, desc="depth maps", progress=progress,
                               cameras=cameras, work=str(work), has_normals=has_normals, config=config)
+    t1 = time.perf_counter()
 
     def merge(j):
         maps = (np.load(work / "depth-parts" / f"p{p:03d}" / f"{j}.npy") for p, _ in shares)
@@ -295,11 +335,14 @@ def render_depth_phase(executor, octree, cameras, names, work, out_dir, has_norm
     with ThreadPoolExecutor(default_workers()) as pool:
         rels, sizes = (list(x) for x in zip(*pool.map(merge, range(len(cameras)))))
     shutil.rmtree(work / "depth-parts")
+    if wall is not None:
+        wall.update(parts=[w for _, _, w in parts], gpus_s=round(t1 - t0, 3),
+                    merge_s=round(time.perf_counter() - t1, 3))
     gpu_ms: dict[str, float] = {}
-    for ms, _ in parts:
+    for ms, _, _ in parts:
         for k, v in ms.items():
             gpu_ms[k] = gpu_ms.get(k, 0.0) + v
-    return rels, sizes, gpu_ms, list(dict.fromkeys(r for _, r in parts))
+    return rels, sizes, gpu_ms, list(dict.fromkeys(r for _, r, _ in parts))
 
 
 def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
