@@ -145,9 +145,10 @@ class FrameShading:
         return self.status.begin()
 
     def finish(self, hits, colors, normals, depthmaps, cam_uniforms: dict, stages, what: str,
-               readback: bool) -> tuple[dict, np.ndarray | None]:
+               readback: bool, blend=None) -> tuple[dict, np.ndarray | None]:
         """Shade the frame whose ``Hit`` records are in ``hits`` (and, with ``readback``, normals in
-        ``normals``: h x w x 3 float32) and return it.
+        ``normals``: h x w x 3 float32) and return it. ``blend``: the view-dependent photo choice's
+        blend records (:class:`dmrt.runtime.view_choice.ViewChoice`), mixed by the texturing pass.
 
         Returns
         -------
@@ -185,7 +186,7 @@ class FrameShading:
             wanted = self.status.wanted()
         cpu_ms = {"status_read": (time.perf_counter() - t0) * 1e3}
         cpu_ms["image_management"] = texture_frame(ctx, timer, self.images, wanted, hits, colors, self.photos,
-                                                   cam_uniforms, self.gains)
+                                                   cam_uniforms, self.gains, blend)
         if self.leveler is not None:  # its seams compare the photos' colours after the gains
             self.gains.bind_to_storage_buffer(abi.B_PHOTO_GAINS)
             cpu_ms["leveling"] = self.leveler.run(timer, hits, colors, self.photos, self.images, depthmaps,
