@@ -103,7 +103,8 @@ class FrameShading:
     depth_sizes : list of (w, h), each photo's depth map as the renderer holds it (texels)
     config : RenderConfig or DMTConfig (``cache_mb``, ``max_uploads_per_frame``, ``async_photos``,
         ``cpu_cache_mb``, ``photometric``, ``leveling``, ``leveling_min_samples``, ``leveling_max_gain``,
-        ``discontinuity_threshold``)
+        ``discontinuity_threshold``; ``photo_choice``: "view" counts the candidates bound at
+        ``abi.B_VIEW_CANDIDATES`` in the histogram)
 
     Attributes
     ----------
@@ -124,7 +125,10 @@ class FrameShading:
         self.gains = ctx.buffer(gains_buffer_data(self.photo_gains, n).tobytes())
         # the label histogram: the photo choice and the leveling's gains solve read it on the GPU
         self._counts_gpu = ctx.buffer(reserve=4 * n)
-        self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": HISTOGRAM_RUN})
+        # with the view-dependent photo choice its candidates are counted too (shaders/dmrt_label_histogram.glsl)
+        view = getattr(config, "photo_choice", "labels") == "view"
+        self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": HISTOGRAM_RUN,
+                                                                     "VIEW_CANDIDATES": int(view)})
         self._choice = load_program(ctx, "dmrt_photo_choice", {"N_PHOTOS": n})
         self.status = FrameStatus(ctx, self.images.n_slots)
         self.sync_photos = not config.async_photos
