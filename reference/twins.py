@@ -22,6 +22,9 @@ Twin -> shader(s) in ``shaders/`` -> GPU wrapper in ``dmrt/``:
   ``dmrt.preprocess.candidates.find_candidates``
 * :func:`texturing_pass` -> ``dmrt_texturing.glsl``, ``dmrt_photo_color.glsl`` ->
   ``dmrt.runtime.texturing`` (``color``)
+* :func:`view_scores`, :func:`view_choice` -> ``dmrt_view_scores.glsl``, ``dmrt_view_choice.glsl``
+  (``dmrt_view_common.glsl``) -> ``dmrt.runtime.view_choice.ViewChoice`` (``label`` and the blend
+  with ``photo_choice="view"``)
 * :func:`grid_mesh_depth` -> ``dmt_mesh.glsl`` -> ``baselines.dmt.DMTRenderer`` (one map from its
   own camera)
 
@@ -41,7 +44,8 @@ from dmrt.camera import Camera
 GRAZING_COS = 1e-3  # the shaders' GRAZING_COS (shaders/splat_depth_common.glsl)
 
 __all__ = ["GRAZING_COS", "disc_hits", "grid_mesh_depth", "labeling_pass", "pixel_points", "raytrace",
-           "splat_depth_map", "surface_depth", "texturing_pass", "visibility_layers", "visible_in_depth_map"]
+           "splat_depth_map", "surface_depth", "texturing_pass", "view_choice", "view_scores", "visibility_layers",
+           "visible_in_depth_map"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -569,6 +573,132 @@ def texturing_pass(camera: Camera, depth: np.ndarray, label: np.ndarray, cameras
         uv, _ = cameras[j].project(pts[m])
         flat[m] = np.clip(np.rint(sample_bilinear(image(j), uv)), 0, 255).astype(np.uint8)
     return expected
+
+
+# ---------------------------------------------------------------------------------------------
+# view-dependent photo choice
+# ---------------------------------------------------------------------------------------------
+_MIN_PENALTY = 1e-3  # dmrt_view_common.glsl's MIN_PENALTY
+
+
+def view_penalties(camera: Camera, points: np.ndarray, cameras, depthmaps, photo: np.ndarray,
+                   tolerance: float, resolution_weight: float) -> np.ndarray:
+    """Penalty of photo ``photo[i]`` for point ``points[i]`` seen by ``camera`` (``view_penalty``
+    and ``view_sees`` of ``shaders/dmrt_view_common.glsl``): the angle between the view ray and the
+    photo's ray to the point, radians, plus ``resolution_weight`` per octave by which the photo's
+    pixel at the point is coarser than the frame's; NaN where the photo does not see the point (behind
+    it, outside its map, or its depth map more than ``tolerance`` metres off).
+
+    Parameters
+    ----------
+    camera : Camera, the frame's (points' frame)
+    points : (n, 3) float, metres
+    cameras : list of Camera, the photos' (points' frame, full resolution)
+    depthmaps : list of (h, w) float32, their depth maps
+    photo : (n,) int, which photo each point is tested against
+
+    Returns
+    -------
+    (n,) float64
+    """
+    out = np.full(len(points), np.nan)
+    view = points - camera.center
+    dist = np.linalg.norm(view, axis=1)
+    footprint = dist / camera.fx
+    for j in np.unique(photo):
+        m = photo == j
+        D = depthmaps[j]
+        c = cameras[j].scaled(D.shape[1], D.shape[0])
+        uv, z = c.project(points[m])
+        inside = (z > 1e-6) & (uv >= 0).all(1) & (uv <= [D.shape[1], D.shape[0]]).all(1)
+        depth, ok, _, _ = surface_depth(D, np.where(inside[:, None], uv, np.nan))
+        seen = inside & ok & (np.abs(depth - z) <= tolerance)
+        ray = points[m] - c.center
+        length = np.linalg.norm(ray, axis=1)
+        cos = np.einsum("ij,ij->i", view[m] / dist[m, None], ray / length[:, None])
+        octaves = np.log2(np.maximum(length / cameras[j].fx / footprint[m], 1e-30))
+        pen = np.maximum(np.arccos(np.clip(cos, -1, 1)) + resolution_weight * np.maximum(octaves, 0), _MIN_PENALTY)
+        out[np.flatnonzero(m)[seen]] = pen[seen]
+    return out
+
+
+def _sample_points(camera: Camera, depth: np.ndarray, stride: int, grid) -> np.ndarray:
+    """Flat pixel indices of the view-choice score samples (``dmrt.runtime.view_choice.sample_grid``)."""
+    h, w = depth.shape
+    xs = np.minimum(np.arange(grid[0]) * stride + stride // 2, w - 1)
+    ys = np.minimum(np.arange(grid[1]) * stride + stride // 2, h - 1)
+    return (ys[:, None] * w + xs[None, :]).ravel()
+
+
+def view_scores(camera: Camera, depth: np.ndarray, cameras, depthmaps, stride: int, grid, tolerance: float,
+                resolution_weight: float) -> np.ndarray:
+    """Each photo's score against the frame (``shaders/dmrt_view_scores.glsl``): the sum over the
+    sample pixels (``stride`` apart, ``grid`` = (columns, rows)) whose point it sees of
+    ``floor(64 / penalty)``.
+
+    Returns
+    -------
+    (n_photos,) int64
+    """
+    pix = _sample_points(camera, depth, stride, grid)
+    pix = pix[depth.ravel()[pix] > 0]
+    pts = pixel_points(camera, depth).reshape(-1, 3)[pix]
+    n = len(cameras)
+    pen = view_penalties(camera, np.repeat(pts, n, 0), cameras, depthmaps, np.tile(np.arange(n), len(pts)),
+                         tolerance, resolution_weight).reshape(len(pts), n)
+    return np.where(np.isnan(pen), 0, np.floor(64.0 / np.nan_to_num(pen, nan=1.0))).astype(np.int64).sum(0)
+
+
+def view_choice(camera: Camera, depth: np.ndarray, label: np.ndarray, cameras, depthmaps, candidates, blend: int,
+                tolerance: float, resolution_weight: float) -> tuple[np.ndarray, np.ndarray]:
+    """The per-pixel view-dependent choice (``shaders/dmrt_view_choice.glsl``): each pixel's label
+    and the candidates ranked by :func:`view_penalties`, the ``blend`` best that see the point kept
+    with unstructured-lumigraph weights ``(1 - p_i / p_t) / p_i`` normalised (``p_t`` the next best
+    visible penalty, pi if none).
+
+    Parameters
+    ----------
+    camera : Camera, the frame's (h, w)
+    depth : (h, w) float, camera z, 0 = none
+    label : (h, w) int, the final labels before the choice, -1 = none
+    cameras, depthmaps : the photos (as :func:`view_penalties`)
+    candidates : (m,) int, the frame's candidates
+    blend : int, 1-4
+
+    Returns
+    -------
+    photos : (h, w, blend) int, best first, -1 = none (the first is the new final label)
+    weights : (h, w, blend) float64, summing to 1 on labelled pixels, 0 elsewhere
+    """
+    h, w = depth.shape
+    pts = pixel_points(camera, depth)
+    lab = label.ravel()
+    cand = np.concatenate([lab[:, None], np.broadcast_to(np.asarray(candidates, np.int64), (h * w, len(candidates)))], 1)
+    cand = np.where(np.arange(cand.shape[1]) == 0, cand, np.where(cand == lab[:, None], -1, cand))
+    valid = (lab >= 0) & (depth.ravel() > 0)
+    cand[~valid] = -1
+    pen = np.full(cand.shape, np.nan)
+    m = cand >= 0
+    rows = np.nonzero(m)[0]
+    pen[m] = view_penalties(camera, pts[rows], cameras, depthmaps, cand[m], tolerance, resolution_weight)
+    pen = np.where(np.isnan(pen), np.inf, pen)
+    order = np.argsort(pen, axis=1, kind="stable")[:, :blend + 1]
+    best_pen = np.take_along_axis(pen, order, 1)
+    best = np.where(np.isfinite(best_pen), np.take_along_axis(cand, order, 1), -1)
+    none = valid & (best[:, 0] < 0)  # nobody sees the point: the label alone
+    best[none, 0], best_pen[none, 0] = lab[none], _MIN_PENALTY
+    if best.shape[1] <= blend:  # fewer candidates than blend + 1
+        best = np.pad(best, ((0, 0), (0, blend + 1 - best.shape[1])), constant_values=-1)
+        best_pen = np.pad(best_pen, ((0, 0), (0, blend + 1 - best_pen.shape[1])), constant_values=np.inf)
+    thresh = np.where(best[:, blend] >= 0, best_pen[:, blend], np.pi)
+    p = best_pen[:, :blend]
+    wts = np.where(best[:, :blend] >= 0, np.maximum(1 - p / thresh[:, None], 0) / np.where(np.isfinite(p), p, 1), 0)
+    total = wts.sum(1, keepdims=True)
+    wts = np.where(total > 0, wts / np.where(total > 0, total, 1), np.eye(1, blend)[0])
+    photos = np.where(wts > 0, best[:, :blend], -1)
+    photos[:, 0] = best[:, 0]
+    wts[~valid], photos[~valid] = 0, -1
+    return photos.reshape(h, w, blend), wts.reshape(h, w, blend)
 
 
 # ---------------------------------------------------------------------------------------------

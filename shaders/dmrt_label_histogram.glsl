@@ -23,6 +23,19 @@ layout(local_size_x = 64) in;
 
 layout(std430, binding = B_COUNTS) buffer Counts { uint counts[]; };
 
+#ifndef VIEW_CANDIDATES
+#define VIEW_CANDIDATES 0
+#endif
+#if VIEW_CANDIDATES
+// The view-dependent photo choice's candidates (dmrt_view_choice.glsl) each count one pixel more:
+// a photo that only ever takes part in blends is then wanted by the photo cache too, after every
+// photo that is some pixel's best.
+layout(std430, binding = B_VIEW_CANDIDATES) readonly buffer Candidates {
+    uint candidates_header[STATUS_HEADER_WORDS];
+    int candidates[];
+};
+#endif
+
 shared uint local_counts[N_PHOTOS];
 
 void main() {
@@ -50,6 +63,10 @@ void main() {
     barrier();
     for (uint i = lid; i < uint(N_PHOTOS); i += gl_WorkGroupSize.x)
         if (local_counts[i] > 0u) atomicAdd(counts[i], local_counts[i]);
+#if VIEW_CANDIDATES
+    if (gl_WorkGroupID.x == 0u && gl_WorkGroupID.y == 0u)
+        for (uint i = lid; i < candidates_header[1]; i += gl_WorkGroupSize.x) atomicAdd(counts[candidates[i]], 1u);
+#endif
 }
 
 #endif

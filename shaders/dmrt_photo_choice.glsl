@@ -11,16 +11,24 @@
 // Buffers (binding: layout):
 //   B_COUNTS        uint[N_PHOTOS]: pixels per final label (dmrt_label_histogram.glsl)
 //   B_FRAME_STATUS  the next frame's record: n_wanted and wanted[] written, tile_total untouched
+// The view-dependent photo choice ranks its scores into its candidate list with the same program
+// (COUNTS_BINDING B_VIEW_SCORES, STATUS_BINDING B_VIEW_CANDIDATES: dmrt/runtime/view_choice.py).
 #if defined COMPUTE_SHADER
 
 #ifndef N_PHOTOS
 #define N_PHOTOS 1
 #endif
+#ifndef COUNTS_BINDING
+#define COUNTS_BINDING B_COUNTS
+#endif
+#ifndef STATUS_BINDING
+#define STATUS_BINDING B_FRAME_STATUS
+#endif
 
 layout(local_size_x = 64) in;
 
-layout(std430, binding = B_COUNTS) readonly buffer Counts { uint counts[]; };
-layout(std430, binding = B_FRAME_STATUS) buffer Status {
+layout(std430, binding = COUNTS_BINDING) readonly buffer Counts { uint counts[]; };
+layout(std430, binding = STATUS_BINDING) buffer Status {
     uint tile_total;
     uint n_wanted;
     uint spare[STATUS_HEADER_WORDS - 2];

@@ -60,6 +60,10 @@ B_LEVEL_EDGES = 32  # n_photos x n_photos uvec2: row a lists photo a's seam neig
 B_LEVEL_P = 33      # n_photos vec4: the conjugate-gradient search direction, where shared memory is too small
 B_NORMALS = 34      # h x w x 3 float: unit world normals, written only for a frame that is read back
 B_TILE_MASKS = 35   # h x w x 2 uvec4: which of its tile's first 256 discs hit each pixel (tiles raster -> labeling)
+# view-dependent photo choice (dmrt/runtime/view_choice.py)
+B_VIEW_SCORES = 36      # n_photos uint: each photo's score against the frame's sample points
+B_VIEW_CANDIDATES = 37  # STATUS_HEADER_WORDS uint (word 1: count), then int: the photos each pixel tests
+B_VIEW_BLEND = 38       # h x w ivec4: the 2nd-4th photo of a pixel's blend (-1 = none), the 4 weights packed
 
 # -- sentinels ---------------------------------------------------------------------------------
 EMPTY_BITS = 0xFFFFFFFF  # an empty depth (above every positive float's bits: atomicMin keeps the nearest)

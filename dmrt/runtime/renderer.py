@@ -57,6 +57,7 @@ from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.runtime.shading import FrameShading, camera_uniforms, hit_depth_at
 from dmrt.runtime.tiles import DEFAULT_BATCH, DEFAULT_TOP, SPARSE_MIN
+from dmrt.runtime.view_choice import MAX_BLEND, ViewChoice
 from dmrt.runtime.visibility import ProxySplats, VisibilityStage
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
@@ -147,6 +148,16 @@ class RenderConfig:
                                      "from a photo in which it is occluded)")
     label_check_tolerance: float = option(0.05, "depth difference, metres, beyond which a depth map does not see "
                                                 "a pixel's point (the label check)", minimum=0.0)
+    photo_choice: Literal["labels", "view"] = option(
+        "labels", "the photo of each pixel: labels (the paper: the label fixed per proxy in preprocessing, from the "
+                  "labeling pass) or view (addition to the paper: among the photos whose depth maps see the pixel's "
+                  "point, those whose rays are closest in angle to the view ray: dmrt/runtime/view_choice.py)")
+    view_blend: int = option(3, "view photo choice: photos mixed per pixel with unstructured-lumigraph weights "
+                                "(smooth as the camera moves); 1 = the best alone", minimum=1, maximum=MAX_BLEND)
+    view_candidates: int = option(16, "view photo choice: photos each pixel tests besides its label, the frame's best "
+                                      "scored (the per-pixel cost); 0 = the label only", minimum=0)
+    view_resolution_weight: float = option(0.05, "view photo choice: radians of angle a photo pays per octave its "
+                                                 "texel is coarser than the frame's pixel", minimum=0.0)
     photometric: bool = option(True, "addition to the paper: multiply each photo's colours by its gain from the "
                                      "global photometric adjustment of preprocessing (bundle.json photo_gains; a "
                                      "bundle without them: 1); off, colours are the photos' own")
@@ -255,6 +266,10 @@ class Renderer:
         # and read back by a finalize pass, so no buffers for them)
         self._labels_finalized = self.config.labeling and self.visibility.tiles is not None
         self._max_groups = max_groups(self.ctx)
+        self.view_choice = None
+        if self.config.photo_choice == "view":
+            self.view_choice = ViewChoice(self.ctx, n, self.config.view_candidates, self.config.view_blend,
+                                          self.config.view_resolution_weight, self.config.label_check_tolerance)
         self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
         self.step_stats = self.ctx.buffer(reserve=16 * self.config.layers * STEP_BINS) if self.config.statistics else None
         self._size: tuple[int, int] | None = None
@@ -408,8 +423,12 @@ class Renderer:
                 set_uniforms(self._finalize, u_use_labeling=int(cfg.labeling), **check, **cam_uniforms)
                 self._finalize.run(*grid)
                 ctx.memory_barrier(_BARRIER)
+        blend = None
+        if self.view_choice is not None:
+            self.view_choice.run(timer, b["hits"], self.photos, self.depthmaps, cam_uniforms)
+            blend = self.view_choice.blend_buffer
         frame, hits = self.shading.finish(b["hits"], b["colors"], b["normals"], self.depthmaps, cam_uniforms, STAGES,
-                                          "rendering a DMRT frame", readback)
+                                          "rendering a DMRT frame", readback, blend)
         if tiles is not None and tiles.end_frame():
             return None
         if readback:
@@ -467,7 +486,7 @@ class Renderer:
         self.visibility.release()
         self.splats.release()
         self.shading.release()
-        for obj in (self.depthmaps, self.step_stats):
+        for obj in (self.depthmaps, self.step_stats, self.view_choice):
             if obj is not None:
                 obj.release()
 

@@ -103,7 +103,8 @@ class FrameShading:
     depth_sizes : list of (w, h), each photo's depth map as the renderer holds it (texels)
     config : RenderConfig or DMTConfig (``cache_mb``, ``max_uploads_per_frame``, ``async_photos``,
         ``cpu_cache_mb``, ``photometric``, ``leveling``, ``leveling_min_samples``, ``leveling_max_gain``,
-        ``discontinuity_threshold``)
+        ``discontinuity_threshold``; ``photo_choice``: "view" counts the candidates bound at
+        ``abi.B_VIEW_CANDIDATES`` in the histogram)
 
     Attributes
     ----------
@@ -124,7 +125,10 @@ class FrameShading:
         self.gains = ctx.buffer(gains_buffer_data(self.photo_gains, n).tobytes())
         # the label histogram: the photo choice and the leveling's gains solve read it on the GPU
         self._counts_gpu = ctx.buffer(reserve=4 * n)
-        self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": HISTOGRAM_RUN})
+        # with the view-dependent photo choice its candidates are counted too (shaders/dmrt_label_histogram.glsl)
+        view = getattr(config, "photo_choice", "labels") == "view"
+        self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": HISTOGRAM_RUN,
+                                                                     "VIEW_CANDIDATES": int(view)})
         self._choice = load_program(ctx, "dmrt_photo_choice", {"N_PHOTOS": n})
         self.status = FrameStatus(ctx, self.images.n_slots)
         self.sync_photos = not config.async_photos
@@ -145,9 +149,10 @@ class FrameShading:
         return self.status.begin()
 
     def finish(self, hits, colors, normals, depthmaps, cam_uniforms: dict, stages, what: str,
-               readback: bool) -> tuple[dict, np.ndarray | None]:
+               readback: bool, blend=None) -> tuple[dict, np.ndarray | None]:
         """Shade the frame whose ``Hit`` records are in ``hits`` (and, with ``readback``, normals in
-        ``normals``: h x w x 3 float32) and return it.
+        ``normals``: h x w x 3 float32) and return it. ``blend``: the view-dependent photo choice's
+        blend records (:class:`dmrt.runtime.view_choice.ViewChoice`), mixed by the texturing pass.
 
         Returns
         -------
@@ -185,7 +190,7 @@ class FrameShading:
             wanted = self.status.wanted()
         cpu_ms = {"status_read": (time.perf_counter() - t0) * 1e3}
         cpu_ms["image_management"] = texture_frame(ctx, timer, self.images, wanted, hits, colors, self.photos,
-                                                   cam_uniforms, self.gains)
+                                                   cam_uniforms, self.gains, blend)
         if self.leveler is not None:  # its seams compare the photos' colours after the gains
             self.gains.bind_to_storage_buffer(abi.B_PHOTO_GAINS)
             cpu_ms["leveling"] = self.leveler.run(timer, hits, colors, self.photos, self.images, depthmaps,

@@ -36,6 +36,7 @@ from dmrt.io.bundle import Bundle
 from dmrt.errors import InputError
 from dmrt.gl import abi
 from dmrt.gl.shaders import load_program, set_uniforms
+from dmrt.runtime.view_choice import MAX_BLEND
 
 
 class ImageCache:
@@ -263,7 +264,7 @@ def gains_buffer_data(gains: np.ndarray | None, n_photos: int) -> np.ndarray:
 
 
 def texture_frame(ctx, timer, images: ImageCache, wanted: np.ndarray, hits, colors, photos, cam_uniforms: dict,
-                  gains=None) -> float:
+                  gains=None, blend=None) -> float:
     """Image management after the label histogram, then the texturing pass; shared by the DMRT and
     DMT renderers (both write the ``Hit`` records of ``shaders/dmrt_frame.glsl``).
 
@@ -278,6 +279,9 @@ def texture_frame(ctx, timer, images: ImageCache, wanted: np.ndarray, hits, colo
     cam_uniforms : dict, ``u_R, u_t, u_K, u_size`` of the frame
     gains : moderngl.Buffer, the photos' gains (:func:`gains_buffer_data`), bound to
         ``abi.B_PHOTO_GAINS``; None keeps what is bound there
+    blend : moderngl.Buffer, optional
+        The view-dependent choice's per-pixel blend records (:class:`dmrt.runtime.view_choice.ViewChoice`
+        with ``blend`` > 1): each pixel mixes its photos
 
     Returns
     -------
@@ -292,7 +296,7 @@ def texture_frame(ctx, timer, images: ImageCache, wanted: np.ndarray, hits, colo
         images.update(wanted)
     t2 = time.perf_counter()
     w, h = cam_uniforms["u_size"]
-    program = load_program(ctx, "dmrt_texturing")
+    program = load_program(ctx, "dmrt_texturing", {"BLEND": MAX_BLEND} if blend is not None else None)
     with timer.section("texturing"):
         hits.bind_to_storage_buffer(abi.B_HITS)
         photos.bind_to_storage_buffer(abi.B_PHOTOS)
@@ -300,6 +304,8 @@ def texture_frame(ctx, timer, images: ImageCache, wanted: np.ndarray, hits, colo
         colors.bind_to_storage_buffer(abi.B_COLORS)
         if gains is not None:
             gains.bind_to_storage_buffer(abi.B_PHOTO_GAINS)
+        if blend is not None:
+            blend.bind_to_storage_buffer(abi.B_VIEW_BLEND)
         images.low.use(1)
         images.high.use(2)
         set_uniforms(program, u_low=1, u_high=2, u_low_dims=images.low_dims,

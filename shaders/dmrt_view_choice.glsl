@@ -1,0 +1,96 @@
+// View-dependent photo choice, per pixel (an addition to the paper; dmrt/runtime/view_choice.py).
+// Candidates: the pixel's final label (the paper's, from the labeling pass) and the frame's
+// preselected photos (dmrt_view_scores.glsl, ranked by dmrt_photo_choice.glsl into
+// B_VIEW_CANDIDATES). Each candidate in front of whose camera the point lies is ranked by its
+// penalty (dmrt_view_common.glsl: the angle between the view ray and the photo's ray, plus the
+// resolution term); the depth map is fetched only for a penalty that would make the BLEND best, and a
+// photo whose map does not hold the point (an occluder in front of it, or no surface) is dropped.
+//
+// The BLEND best get the weights of unstructured lumigraph rendering: w_i = (1 - p_i / p_t) / p_i,
+// with p_t the penalty of the next best visible candidate (pi when there is none), normalised; a
+// photo's weight falls to 0 as it is overtaken, so the colours change smoothly as the camera moves.
+// The best photo becomes the pixel's final label (the label histogram, the photo cache and the
+// leveling follow it); with BLEND > 1 the others and all weights go to B_VIEW_BLEND for the
+// texturing pass. Nothing visible (all candidates fail the test): the final label stays, alone.
+#include "splat_depth_common.glsl"
+#include "dmrt_frame.glsl"
+#include "dmrt_photos.glsl"
+#include "dmrt_view_common.glsl"
+
+#if defined COMPUTE_SHADER
+
+#ifndef BLEND
+#define BLEND 1
+#endif
+
+layout(local_size_x = 8, local_size_y = 8) in;
+
+layout(std430, binding = B_VIEW_CANDIDATES) readonly buffer Candidates {
+    uint header[STATUS_HEADER_WORDS];  // header[1]: the number of candidates (dmrt_photo_choice.glsl)
+    int candidates[];
+};
+#if BLEND > 1
+// Per pixel: x, y, z = the 2nd to 4th photo (-1 = none), w = the weights of the 1st to 4th
+// (packUnorm4x8, summing to ~1).
+layout(std430, binding = B_VIEW_BLEND) writeonly buffer Blend { ivec4 blend[]; };
+#endif
+
+const float NONE = 1e30;
+
+void main() {
+    ivec2 p = ivec2(gl_GlobalInvocationID.xy);
+    if (p.x >= u_size.x || p.y >= u_size.y) return;
+    uint pix = uint(p.y * u_size.x + p.x);
+    Hit hit = hits[pix];
+    if (hit.depth <= 0.0 || hit.final_label < 0) {  // background (texturing writes it)
+#if BLEND > 1
+        blend[pix] = ivec4(-1, -1, -1, 0);
+#endif
+        return;
+    }
+    vec3 q, dir;
+    float footprint;
+    view_ray(p, hit.depth, q, dir, footprint);
+
+    // the BLEND + 1 lowest penalties so far, ascending; fixed-size arrays indexed by unrolled
+    // loops only, so that they stay in registers
+    float pen[BLEND + 1];
+    int lab[BLEND + 1];
+    for (int k = 0; k <= BLEND; ++k) { pen[k] = NONE; lab[k] = -1; }
+    int n = int(header[1]);
+    for (int i = -1; i < n; ++i) {
+        int l = i < 0 ? hit.final_label : candidates[i];
+        if (i >= 0 && l == hit.final_label) continue;
+        Photo ph = photos[l];
+        vec3 pc = to_photo(ph, q);
+        float penalty = view_penalty(ph, pc, dir, footprint);
+        if (penalty < 0.0 || penalty >= pen[BLEND] || !view_sees(l, ph, pc)) continue;
+        pen[BLEND] = penalty;
+        lab[BLEND] = l;
+        for (int k = BLEND; k > 0; --k) {
+            if (pen[k] < pen[k - 1]) {
+                float tp = pen[k]; pen[k] = pen[k - 1]; pen[k - 1] = tp;
+                int tl = lab[k]; lab[k] = lab[k - 1]; lab[k - 1] = tl;
+            }
+        }
+    }
+    if (lab[0] < 0) {  // no candidate sees the point: the paper's label, alone
+        lab[0] = hit.final_label;
+        pen[0] = MIN_PENALTY;
+    }
+    hits[pix].final_label = lab[0];
+#if BLEND > 1
+    float threshold = lab[BLEND] >= 0 ? pen[BLEND] : 3.14159265;
+    vec4 w = vec4(0.0);
+    for (int k = 0; k < BLEND; ++k)
+        if (lab[k] >= 0) w[k] = max(1.0 - pen[k] / threshold, 0.0) / pen[k];
+    float total = w.x + w.y + w.z + w.w;
+    w = total > 0.0 ? w / total : vec4(1.0, 0.0, 0.0, 0.0);
+    ivec4 others = ivec4(-1);
+    for (int k = 1; k < BLEND; ++k) others[k - 1] = w[k] > 0.0 ? lab[k] : -1;
+    others.w = int(packUnorm4x8(w));
+    blend[pix] = others;
+#endif
+}
+
+#endif
