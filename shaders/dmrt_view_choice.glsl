@@ -3,8 +3,8 @@
 // preselected photos (dmrt_view_scores.glsl, ranked by dmrt_photo_choice.glsl into
 // B_VIEW_CANDIDATES). Each candidate in front of whose camera the point lies is ranked by its
 // penalty (dmrt_view_common.glsl: the angle between the view ray and the photo's ray, plus the
-// resolution term); the depth map is fetched only for a penalty that would make the BLEND best, and a
-// photo whose map does not hold the point (an occluder in front of it, or no surface) is dropped.
+// resolution term); the depth maps are then fetched in ascending penalty order until BLEND + 1 see
+// the point; a photo whose map does not hold it (an occluder in front of it, or no surface) is dropped.
 //
 // The BLEND best get the weights of unstructured lumigraph rendering: w_i = (1 - p_i / p_t) / p_i,
 // with p_t the penalty of the next best visible candidate (pi when there is none), normalised; a
@@ -21,6 +21,9 @@
 
 #ifndef BLEND
 #define BLEND 1
+#endif
+#ifndef CANDIDATES  // RenderConfig.view_candidates: the list's length at most
+#define CANDIDATES 16
 #endif
 
 layout(local_size_x = 8, local_size_y = 8) in;
@@ -52,27 +55,38 @@ void main() {
     float footprint;
     view_ray(p, hit.depth, q, dir, footprint);
 
-    // the BLEND + 1 lowest penalties so far, ascending; fixed-size arrays indexed by unrolled
-    // loops only, so that they stay in registers
+    // every candidate's penalty first (arithmetic only: index 0 = the label, i = candidates[i - 1]);
+    // then the depth maps of the lowest ones, in ascending order, until BLEND + 1 see the point: about
+    // BLEND + 1 fetches a pixel whatever the candidates' order. Fixed-size arrays indexed only by
+    // unrolled loops with constant bounds, so that they stay in registers.
+    float cpen[CANDIDATES + 1];
+    int n = min(int(header[1]), CANDIDATES);
+    for (int i = 0; i <= CANDIDATES; ++i) {
+        cpen[i] = NONE;
+        int l = i == 0 ? hit.final_label : (i <= n ? candidates[i - 1] : -1);
+        if (l < 0 || (i > 0 && l == hit.final_label)) continue;
+        Photo ph = photos[l];
+        float penalty = view_penalty(ph, to_photo(ph, q), dir, footprint);
+        if (penalty >= 0.0) cpen[i] = penalty;
+    }
     float pen[BLEND + 1];
     int lab[BLEND + 1];
     for (int k = 0; k <= BLEND; ++k) { pen[k] = NONE; lab[k] = -1; }
-    int n = int(header[1]);
-    for (int i = -1; i < n; ++i) {
-        int l = i < 0 ? hit.final_label : candidates[i];
-        if (i >= 0 && l == hit.final_label) continue;
+    int found = 0;
+    for (int tries = 0; tries <= CANDIDATES && found <= BLEND; ++tries) {
+        float best = NONE;
+        int bi = -1;
+        for (int i = 0; i <= CANDIDATES; ++i)  // the lowest left; equal ones: the label, then list order
+            if (cpen[i] < best) { best = cpen[i]; bi = i; }
+        if (bi < 0) break;
+        for (int i = 0; i <= CANDIDATES; ++i)
+            if (i == bi) cpen[i] = NONE;
+        int l = bi == 0 ? hit.final_label : candidates[bi - 1];
         Photo ph = photos[l];
-        vec3 pc = to_photo(ph, q);
-        float penalty = view_penalty(ph, pc, dir, footprint);
-        if (penalty < 0.0 || penalty >= pen[BLEND] || !view_sees(l, ph, pc)) continue;
-        pen[BLEND] = penalty;
-        lab[BLEND] = l;
-        for (int k = BLEND; k > 0; --k) {
-            if (pen[k] < pen[k - 1]) {
-                float tp = pen[k]; pen[k] = pen[k - 1]; pen[k - 1] = tp;
-                int tl = lab[k]; lab[k] = lab[k - 1]; lab[k - 1] = tl;
-            }
-        }
+        if (!view_sees(l, ph, to_photo(ph, q))) continue;
+        for (int k = 0; k <= BLEND; ++k)
+            if (k == found) { pen[k] = best; lab[k] = l; }
+        ++found;
     }
     if (lab[0] < 0) {  // no candidate sees the point: the paper's label, alone
         lab[0] = hit.final_label;

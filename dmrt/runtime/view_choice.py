@@ -87,7 +87,7 @@ class ViewChoice:
         self._scores = load_program(ctx, "dmrt_view_scores")
         self._rank = load_program(ctx, "dmrt_photo_choice", {
             "N_PHOTOS": self.n_photos, "COUNTS_BINDING": "B_VIEW_SCORES", "STATUS_BINDING": "B_VIEW_CANDIDATES"})
-        self._choice = load_program(ctx, "dmrt_view_choice", {"BLEND": self.blend})
+        self._choice = load_program(ctx, "dmrt_view_choice", {"BLEND": self.blend, "CANDIDATES": self.n_candidates})
         self.blend_buffer: moderngl.Buffer | None = None
 
     @property
