@@ -16,7 +16,7 @@ rm -f "$out/done.txt"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.max.sm,memory.total --format=csv >"$out/results/gpus.csv" 2>&1
 t0=$(date +%s)
 python3 -m bench.bench_render --preset paper --write-normals --work "$out/work" --out "$out/results" --layers 5 \
-    --methods tiles --sizes 1280x720 3840x2160 --frames 30 --no-leveling --photo-choice labels view \
+    --methods tiles --sizes ${SIZES:-1280x720 3840x2160} --frames 30 --no-leveling --photo-choice labels view \
     2>&1 | tr '\r' '\n' | grep -v 'frame/s' >>"$out/log.txt"
 echo "render rc=${PIPESTATUS[0]} $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
 tar czf "$out/results.tgz" -C "$out" results log.txt
