@@ -73,38 +73,20 @@ void main() {
     int lab[BLEND + 1];
     for (int k = 0; k <= BLEND; ++k) { pen[k] = NONE; lab[k] = -1; }
     int found = 0;
-    // Round 1: the BLEND + 1 lowest at once, their depth maps fetched side by side (independent
-    // fetches in flight together: most pixels need no more); later rounds one at a time, for the
-    // pixels where some of them do not see the point.
-    for (int round = 0; round <= CANDIDATES && found <= BLEND; ++round) {
-        int pick[BLEND + 1];
-        float pick_pen[BLEND + 1];
-        for (int k = 0; k <= BLEND; ++k) {
-            pick[k] = -1;
-            pick_pen[k] = NONE;
-            if (round > 0 && k > 0) continue;
-            for (int i = 0; i <= CANDIDATES; ++i)  // the lowest left; equal ones: the label, then list order
-                if (cpen[i] < pick_pen[k]) { pick_pen[k] = cpen[i]; pick[k] = i; }
-            for (int i = 0; i <= CANDIDATES; ++i)
-                if (i == pick[k]) cpen[i] = NONE;
-        }
-        if (pick[0] < 0) break;
-        bool seen[BLEND + 1];
-        int picked[BLEND + 1];
-        for (int k = 0; k <= BLEND; ++k) {
-            picked[k] = pick[k] <= 0 ? (pick[k] == 0 ? hit.final_label : -1) : candidates[pick[k] - 1];
-            seen[k] = false;
-            if (picked[k] >= 0) {
-                Photo ph = photos[picked[k]];
-                seen[k] = view_sees(picked[k], ph, to_photo(ph, q));
-            }
-        }
-        for (int k = 0; k <= BLEND; ++k) {
-            if (!seen[k]) continue;
-            for (int m = 0; m <= BLEND; ++m)
-                if (m == found) { pen[m] = pick_pen[k]; lab[m] = picked[k]; }
-            ++found;
-        }
+    for (int tries = 0; tries <= CANDIDATES && found <= BLEND; ++tries) {
+        float best = NONE;
+        int bi = -1;
+        for (int i = 0; i <= CANDIDATES; ++i)  // the lowest left; equal ones: the label, then list order
+            if (cpen[i] < best) { best = cpen[i]; bi = i; }
+        if (bi < 0) break;
+        for (int i = 0; i <= CANDIDATES; ++i)
+            if (i == bi) cpen[i] = NONE;
+        int l = bi == 0 ? hit.final_label : candidates[bi - 1];
+        Photo ph = photos[l];
+        if (!view_sees(l, ph, to_photo(ph, q))) continue;
+        for (int k = 0; k <= BLEND; ++k)
+            if (k == found) { pen[k] = best; lab[k] = l; }
+        ++found;
     }
     if (lab[0] < 0) {  // no candidate sees the point: the paper's label, alone
         lab[0] = hit.final_label;
