@@ -402,6 +402,24 @@ def test_bad_scene_preprocess(case, tmp_path, out_dir, capfd):
     assert re.search(pattern, line), (pattern, line)
 
 
+@pytest.mark.parametrize("model, coefficients", [("SIMPLE_RADIAL", "-1.0"), ("OPENCV_FISHEYE", "-0.9 0 0 0")])
+def test_lens_that_folds_the_photo(model, coefficients, tmp_path, out_dir, capfd):
+    """A distorted camera whose coefficients have no inverse out to the photo's border (the
+    distortion folds it) cannot be undistorted: one line naming cameras.txt and the camera."""
+    from test_scene_errors import make_scene
+
+    scene = tmp_path / "scene"
+    make_scene(scene)
+    cameras = scene / "sparse" / "cameras.txt"
+    lines = cameras.read_text().splitlines()
+    cid, _, w, h, fx, fy, cx, cy = next(ln for ln in lines if ln.startswith("2 ")).split()
+    head = f"{fx} {cx} {cy}" if model == "SIMPLE_RADIAL" else f"{fx} {fy} {cx} {cy}"
+    cameras.write_text("\n".join(ln if not ln.startswith("2 ") else f"2 {model} {w} {h} {head} {coefficients}"
+                                 for ln in lines) + "\n")
+    assert_bad_input(["preprocess", scene, "--out", out_dir / "b", "--quiet"], capfd,
+                     [cameras, f"camera 2 (line {len(lines)})", "fold"], out_dir)
+
+
 def test_scene_missing_and_bundle_exists(tiny_scene, tiny_bundle, tmp_path, out_dir, capfd):
     assert_bad_input(["preprocess", tmp_path / "nowhere", "--out", out_dir / "b", "--quiet"], capfd,
                      [tmp_path / "nowhere"], out_dir)

@@ -3,9 +3,13 @@
 Layout::
 
     SCENE/points.ply | .las | .laz | .e57        point cloud (first found, in that order)
-    SCENE/sparse/  (or sparse/0/)                 COLMAP model, PINHOLE / SIMPLE_PINHOLE
+    SCENE/sparse/  (or sparse/0/)                 COLMAP model: PINHOLE, SIMPLE_PINHOLE, or a
+                                                  distorted model dmrt.io.undistort handles
     SCENE/images/<name>                           one photo per registered image
     SCENE/mesh.ply                                optional reference mesh (Embree ground truth)
+
+Every photo is a pinhole photo from here on: :meth:`Scene.read_image` undistorts it where its
+camera is distorted, and ``cameras`` are the pinhole cameras of the photos it returns.
 
 ``load_scene`` checks everything a later stage would trip over (and streams the cloud once to
 find its bounds), so bad input fails here with an ``InputError`` naming the file.
@@ -17,7 +21,7 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -25,9 +29,46 @@ from dmrt.io import colmap, e57, pointcloud
 from dmrt.camera import Camera
 from dmrt.errors import InputError
 from dmrt.io.pointcloud import PointCloud
+from dmrt.io.undistort import Undistortion
 
 _POINT_FILES = ("points.ply", "points.las", "points.laz", "points.e57")
 _MODEL_FILES = ("cameras.bin", "cameras.txt", "images.bin", "images.txt")
+
+
+def _decode_file(path: Path) -> np.ndarray:
+    """The image file ``path`` as (height, width, 3) uint8 RGB (greyscale and alpha converted)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im.convert("RGB"), dtype=np.uint8)
+    except (OSError, ValueError) as e:
+        raise InputError(path, f"cannot decode image: {e}") from None
+
+
+@dataclass
+class PhotoSource:
+    """How a photo's pinhole pixels are made when they are not its image file as it is.
+
+    Attributes
+    ----------
+    path : Path
+        The image file holding the source pixels; errors name it.
+    warp : callable or None
+        (h, w, 3) uint8 source pixels -> (H, W, 3) uint8 pinhole photo (an
+        :class:`~dmrt.io.undistort.Undistortion`); None: the source pixels are the photo.
+    about : dict
+        What ``bundle.json`` records of it (``photo_sources``).
+    """
+
+    path: Path
+    warp: Callable[[np.ndarray], np.ndarray] | None
+    about: dict
+
+    def read(self) -> np.ndarray:
+        """The photo: (H, W, 3) uint8 RGB."""
+        src = _decode_file(self.path)
+        return src if self.warp is None else self.warp(src)
 
 
 @dataclass
@@ -41,7 +82,8 @@ class Scene:
     points_path : Path
         The point cloud file.
     cameras : list of Camera
-        One per registered image, in COLMAP image-id order.
+        One pinhole camera per registered image, in COLMAP image-id order; undistorted where the
+        model is distorted.
     image_paths : list of Path
         ``root / "images" / camera.name``, parallel to ``cameras``.
     mesh_path : Path or None
@@ -57,6 +99,8 @@ class Scene:
     scanner_positions : (n_scans, 3) float64 or None
         World positions of the scanners, metres, indexed by ``PointCloud.scan_index``; what
         normals should face. Given for E57 (one per scan), None for formats without them.
+    photos : list of (PhotoSource or None), or None
+        How each photo's pixels are made where they are not its file as it is (None: all are).
     """
 
     root: Path
@@ -68,6 +112,7 @@ class Scene:
     n_points: int
     scanner_positions: np.ndarray | None = None
     bounds: tuple[np.ndarray, np.ndarray] | None = None
+    photos: list[PhotoSource | None] | None = None
 
     def iter_points(self, chunk_size: int = 1_000_000) -> Iterator[PointCloud]:
         """Stream the cloud (world coordinates, float64) in chunks of at most ``chunk_size``."""
@@ -82,15 +127,14 @@ class Scene:
         return pointcloud.read_points(self.points_path)
 
     def read_image(self, i: int) -> np.ndarray:
-        """Photo ``i`` as (height, width, 3) uint8 RGB (greyscale and alpha images converted)."""
-        from PIL import Image
+        """Photo ``i`` as (height, width, 3) uint8 RGB (greyscale and alpha images converted):
+        the pinhole photo of ``cameras[i]``, undistorted where its camera is distorted."""
+        source = self.photo_source(i)
+        return _decode_file(self.image_paths[i]) if source is None else source.read()
 
-        path = self.image_paths[i]
-        try:
-            with Image.open(path) as im:
-                return np.asarray(im.convert("RGB"), dtype=np.uint8)
-        except (OSError, ValueError) as e:
-            raise InputError(path, f"cannot decode image: {e}") from None
+    def photo_source(self, i: int) -> PhotoSource | None:
+        """How photo ``i`` is made; None when it is its image file as it is."""
+        return None if self.photos is None else self.photos[i]
 
     def camera_index(self, name: str) -> int:
         """Index of the camera whose image is ``name``."""
@@ -138,6 +182,37 @@ def _check_mesh(path: Path) -> None:
         raise InputError(path, "reference mesh is empty (no triangles)")
 
 
+def _colmap_photos(root: Path, check_images: bool) -> tuple[list[Camera], list[Path], list[PhotoSource | None] | None]:
+    """The COLMAP model's pinhole cameras, their image files, and their sources (None where the
+    file is the photo; None for all when no camera is distorted)."""
+    model = _model_dir(root)
+    cameras, distorted = colmap.read_model_lenses(model)
+    for c in cameras:
+        if not (np.isfinite(c.R).all() and np.isfinite(c.t).all()
+                and np.isfinite([c.fx, c.fy, c.cx, c.cy]).all()):
+            raise InputError(model, f"camera {c.name!r} has non-finite (NaN/inf) pose or intrinsics")
+    images_dir = root / "images"
+    image_paths = [images_dir / c.name for c in cameras]
+    if check_images:
+        if not images_dir.is_dir():
+            raise InputError(images_dir, "image directory 'images/' is missing")
+        for p, c in zip(image_paths, cameras):
+            _check_image(p, c)  # undistortion keeps the size
+    if not any(distorted):
+        return cameras, image_paths, None
+    photos = []
+    for path, cam, d in zip(image_paths, cameras, distorted):
+        if d is None:
+            photos.append(None)
+            continue
+        given, lens = d
+        about = {"source": f"images/{cam.name}", "undistorted_from": {
+            "model": lens.model, "fx": given.fx, "fy": given.fy, "cx": given.cx, "cy": given.cy,
+            "coefficients": list(lens.coeffs)}}
+        photos.append(PhotoSource(path, Undistortion(given, lens, cam), about))
+    return cameras, image_paths, photos
+
+
 def load_scene(root, check_images: bool = True, chunk_size: int = 1_000_000) -> Scene:
     """Load and validate a scene directory.
 
@@ -147,14 +222,16 @@ def load_scene(root, check_images: bool = True, chunk_size: int = 1_000_000) -> 
         The scene directory.
     check_images : bool
         Check that every camera's image exists, decodes its header, and matches the camera's size.
-        Off, neither the images nor ``images/`` need exist (geometry-only use).
+        Off, neither the images nor
+        ``images/`` need exist (geometry-only use).
 
     Raises
     ------
     InputError
         Naming the offending file: missing directory / point cloud / model / images, malformed or
-        empty or non-finite cloud, bad COLMAP model, missing / corrupt / wrongly sized image,
-        non-finite camera, unreadable or empty mesh.
+        empty or non-finite cloud, bad COLMAP model (a camera model it cannot undistort among
+        them), missing / corrupt / wrongly sized image, non-finite camera, unreadable or empty
+        mesh.
     """
     root = Path(root)
     if not root.is_dir():
@@ -163,20 +240,7 @@ def load_scene(root, check_images: bool = True, chunk_size: int = 1_000_000) -> 
     if points_path is None:
         raise InputError(root, f"no point cloud: expected one of {', '.join(_POINT_FILES)}")
 
-    model = _model_dir(root)
-    cameras = colmap.read_model(model)
-    for c in cameras:
-        if not (np.isfinite(c.R).all() and np.isfinite(c.t).all()
-                and np.isfinite([c.fx, c.fy, c.cx, c.cy]).all()):
-            raise InputError(model, f"camera {c.name!r} has non-finite (NaN/inf) pose or intrinsics")
-
-    images_dir = root / "images"
-    image_paths = [images_dir / c.name for c in cameras]
-    if check_images:
-        if not images_dir.is_dir():
-            raise InputError(images_dir, "image directory 'images/' is missing")
-        for p, c in zip(image_paths, cameras):
-            _check_image(p, c)
+    cameras, image_paths, photos = _colmap_photos(root, check_images)
 
     mesh_path = root / "mesh.ply"
     if mesh_path.exists():
@@ -200,5 +264,6 @@ def load_scene(root, check_images: bool = True, chunk_size: int = 1_000_000) -> 
     scanners = None
     if points_path.suffix.lower() == ".e57":
         scanners = e57.scanner_positions(points_path)
-    return Scene(root, points_path, cameras, image_paths, mesh_path, origin, n_points, scanners, (lo, hi))
+    return Scene(root, points_path, cameras, image_paths, mesh_path, origin, n_points, scanners, (lo, hi),
+                 photos)
 
