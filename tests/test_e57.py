@@ -629,26 +629,23 @@ def test_real_files_list_their_images(tmp_path, capfd):
     np.testing.assert_allclose([c.center for c in s.cameras], [[1, 2, 3]] * 5, atol=1e-12)
 
 
-def render_panorama(width, station, rotation_, synth, supersample=2):
-    """(width/2, width, 3) uint8: the whole-sphere panorama of the synthetic scene from
-    ``station`` (scene-local metres), its frame turned by ``rotation_``, shaded as the scene's
-    photos are (bench.scenes.synthetic.photograph) with no exposure gain."""
-    from bench.scenes.synthetic import albedo, shade
+class Equirect:
+    """The rays of a whole-sphere panorama ``width`` x ``width/2`` from ``center``, its frame turned
+    by ``rotation_``: what :func:`bench.scenes.synthetic.photograph` asks of a camera, so that it
+    renders the panorama as it renders the scene's photos."""
 
-    geom, raycaster, materials = synth
-    h, s = width // 2, supersample
-    j, i = np.meshgrid((np.arange(width * s) + 0.5) / s, (np.arange(h * s) + 0.5) / s)
-    theta, phi = (width / 2 - j.ravel()) * 2 * np.pi / width, (h / 2 - i.ravel()) * np.pi / h
-    d = np.stack([np.cos(phi) * np.cos(theta), np.cos(phi) * np.sin(theta), np.sin(phi)], 1) @ rotation_.T
-    t, face = raycaster.intersect(station, d)
-    rgb = np.zeros((len(d), 3), np.float32)
-    hit = face >= 0
-    n = raycaster.face_normals[face[hit]]
-    n[np.einsum("ij,ij->i", n, d[hit]) > 0] *= -1
-    p = station + d[hit] * t[hit, None]
-    rgb[hit] = albedo(materials, geom.face_material[face[hit]], p, n) * shade(n)[:, None]
-    img = rgb.reshape(h, s, width, s, 3).mean(axis=(1, 3))
-    return np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
+    def __init__(self, width, center, rotation_):
+        self.width, self.height, self.center, self.rotation = width, width // 2, center, rotation_
+
+    def scaled(self, width, height):
+        return Equirect(width, self.center, self.rotation)
+
+    def pixel_rays(self):
+        w, h = self.width, self.height
+        j, i = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+        theta, phi = (w / 2 - j.ravel()) * 2 * np.pi / w, (h / 2 - i.ravel()) * np.pi / h
+        d = np.stack([np.cos(phi) * np.cos(theta), np.cos(phi) * np.sin(theta), np.sin(phi)], 1)
+        return d @ self.rotation.T, self.center
 
 
 def test_panoramas_texture_the_scene_like_its_photos(tiny_scene, tmp_path, ctx):
@@ -667,7 +664,7 @@ def test_panoramas_texture_the_scene_like_its_photos(tiny_scene, tmp_path, ctx):
     import json
     import shutil
 
-    from bench.scenes.synthetic import PRESETS, build_geometry, make_materials
+    from bench.scenes.synthetic import PRESETS, build_geometry, make_materials, photograph
     from dmrt.io.bundle import read_bundle
     from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
     from dmrt.runtime.renderer import RenderConfig, Renderer
@@ -676,7 +673,7 @@ def test_panoramas_texture_the_scene_like_its_photos(tiny_scene, tmp_path, ctx):
     meta = json.loads((tiny_scene / "synthetic.json").read_text())
     offset = np.asarray(meta["config"]["offset"], float)
     geom = build_geometry(PRESETS["tiny"])
-    synth = (geom, MeshRaycaster(geom.vertices, geom.faces, origin=np.zeros(3)), make_materials())
+    raycaster, materials = MeshRaycaster(geom.vertices, geom.faces, origin=np.zeros(3)), make_materials()
     scene = load_scene(tiny_scene)
     pc = scene.read_points()
     pick = np.sort(np.random.default_rng(0).choice(len(pc), 60_000, replace=False))
@@ -684,9 +681,10 @@ def test_panoramas_texture_the_scene_like_its_photos(tiny_scene, tmp_path, ctx):
     near = np.argsort([np.linalg.norm(c.center - scene.cameras[0].center) for c in scene.cameras])[:2]
     cameras = [scene.cameras[i] for i in near]
     turn = rotation((0.1, 0.05, 1.0), 35.0)
-    panoramas = [spherical_entry(f"pano{k}", render_panorama(512, c.center - offset, turn, synth),
+    panoramas = [spherical_entry(f"pano{k}", photograph(Equirect(512, c.center - offset, turn), geom, raycaster,
+                                                        materials, 2, np.ones(3)),
                                  (quaternion((0.1, 0.05, 1.0), 35.0), c.center))
-                 for k, c in enumerate(cameras)]
+                 for k, c in enumerate(cameras)]  # no exposure gain: shaded as the photos, divided by theirs
     fields = {"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2],
               "colorRed": rgb[:, 0], "colorGreen": rgb[:, 1], "colorBlue": rgb[:, 2]}
     limits = {"limits": {c: (0, 255) for c in ("colorRed", "colorGreen", "colorBlue")}}

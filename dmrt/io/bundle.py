@@ -337,7 +337,7 @@ class BundleWriter:
 
             try:
                 Image.fromarray(pixels).save(dst, quality=95)
-            except (ValueError, KeyError, OSError):  # no writer for this suffix
+            except (ValueError, KeyError):  # PIL has no writer for this suffix
                 dst.unlink(missing_ok=True)
                 dst = dst.with_name(dst.name + ".png")
                 Image.fromarray(pixels).save(dst)

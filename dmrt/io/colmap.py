@@ -202,7 +202,7 @@ def _to_camera(img_path, intrinsics, img) -> tuple[Camera, tuple[Camera, Lens] |
                                    f"quaternion is zero (NaN/inf): qvec={q.tolist()} tvec={list(t)}")
     pose = {"name": name, "R": qvec_to_rotation(q / norm), "t": np.asarray(t, np.float64)}
     pinhole, distorted = intrinsics
-    return replace(pinhole, **pose), distorted and (replace(distorted[0], **pose), distorted[1])
+    return replace(pinhole, **pose), None if distorted is None else (replace(distorted[0], **pose), distorted[1])
 
 
 def read_model_lenses(sparse_dir) -> tuple[list[Camera], list[tuple[Camera, Lens] | None]]:

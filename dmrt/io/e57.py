@@ -460,17 +460,29 @@ def _blob_problem(node, blob: str, width: int, height: int) -> str | None:
     return None
 
 
+def _fields_problem(rep_name: str, blob: str | None, size: list[int], numbers: dict, kind: str) -> str | None:
+    """Why a projection's fields cannot make a photo (None if they can)."""
+    if blob is None:
+        return f"its {rep_name} has no jpegImage or pngImage blob"
+    if min(size) <= 0:
+        return f"its {rep_name} gives no positive imageWidth/imageHeight"
+    missing = [k for k in _NUMBERS[kind] if k not in numbers]
+    if missing:
+        return f"its {rep_name} lacks {', '.join(missing)}"
+    bad = [k for k, v in numbers.items() if not (np.isfinite(v) and (v > 0 or k.startswith("principalPoint")))]
+    return f"its {rep_name} has non-positive or non-finite {', '.join(bad)}" if bad else None
+
+
 def _image(path: Path, index: int, node, check_blobs: bool) -> E57Image:
     name = node["name"].value() if node.isDefined("name") else ""
-    projections = [k for k in _PROJECTIONS if node.isDefined(k)]
-    kind = _PROJECTIONS[projections[0]] if projections else "visual"
-    rep_name = projections[0] if projections else "visualReferenceRepresentation"
+    rep_name = next((k for k in _PROJECTIONS if node.isDefined(k)), "visualReferenceRepresentation")
+    kind = _PROJECTIONS.get(rep_name, "visual")
     rep = node[rep_name] if node.isDefined(rep_name) else None
-    blob = next((b for b in ("jpegImage", "pngImage") if rep is not None and rep.isDefined(b)), None)
-    size = [int(rep[k].value()) if rep is not None and rep.isDefined(k) else 0 for k in ("imageWidth", "imageHeight")]
-    numbers = {k: _number(rep[k]) for k in _NUMBERS.get(kind, ()) if rep.isDefined(k)}
-    image = E57Image(index, name, kind, size[0], size[1], blob, rep is not None and rep.isDefined("imageMask"),
-                     None, np.zeros(3), numbers)
+    has = (lambda k: rep is not None and rep.isDefined(k))  # noqa: E731
+    blob = next((b for b in ("jpegImage", "pngImage") if has(b)), None)
+    size = [int(rep[k].value()) if has(k) else 0 for k in ("imageWidth", "imageHeight")]
+    numbers = {k: _number(rep[k]) for k in _NUMBERS.get(kind, ()) if has(k)}
+    image = E57Image(index, name, kind, size[0], size[1], blob, has("imageMask"), None, np.zeros(3), numbers)
     if kind == "visual":
         image.problem = "a visual reference image only (no pinhole, spherical or cylindrical representation)"
     elif not node.isDefined("pose"):
@@ -480,14 +492,8 @@ def _image(path: Path, index: int, node, check_blobs: bool) -> E57Image:
             image.rotation, image.translation = _pose(path, f"image {index}", node)
         except InputError as e:
             image.problem = e.message
-    missing = [k for k in _NUMBERS.get(kind, ()) if k not in numbers]
-    bad = [k for k, v in numbers.items() if not (np.isfinite(v) and v > 0) and k not in ("principalPointX",
-                                                                                            "principalPointY")]
-    if image.problem is None and (blob is None or min(size) <= 0 or missing or bad):
-        image.problem = (f"its {rep_name} has no jpegImage or pngImage blob" if blob is None else
-                         f"its {rep_name} gives no positive imageWidth/imageHeight" if min(size) <= 0 else
-                         f"its {rep_name} lacks {', '.join(missing)}" if missing else
-                         f"its {rep_name} has non-positive or non-finite {', '.join(bad)}")
+    if image.problem is None:
+        image.problem = _fields_problem(rep_name, blob, size, numbers, kind)
     if image.problem is None and check_blobs:
         image.problem = _blob_problem(rep[blob], blob, *size)
     return image
