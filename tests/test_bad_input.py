@@ -402,6 +402,48 @@ def test_bad_scene_preprocess(case, tmp_path, out_dir, capfd):
     assert re.search(pattern, line), (pattern, line)
 
 
+@pytest.mark.parametrize("model, coefficients", [("SIMPLE_RADIAL", "-1.0"), ("OPENCV_FISHEYE", "-0.9 0 0 0")])
+def test_lens_that_folds_the_photo(model, coefficients, tmp_path, out_dir, capfd):
+    """A distorted camera whose coefficients have no inverse out to the photo's border (the
+    distortion folds it) cannot be undistorted: one line naming cameras.txt and the camera."""
+    from test_scene_errors import make_scene
+
+    scene = tmp_path / "scene"
+    make_scene(scene)
+    cameras = scene / "sparse" / "cameras.txt"
+    lines = cameras.read_text().splitlines()
+    cid, _, w, h, fx, fy, cx, cy = next(ln for ln in lines if ln.startswith("2 ")).split()
+    head = f"{fx} {cx} {cy}" if model == "SIMPLE_RADIAL" else f"{fx} {fy} {cx} {cy}"
+    cameras.write_text("\n".join(ln if not ln.startswith("2 ") else f"2 {model} {w} {h} {head} {coefficients}"
+                                 for ln in lines) + "\n")
+    assert_bad_input(["preprocess", scene, "--out", out_dir / "b", "--quiet"], capfd,
+                     [cameras, f"camera 2 (line {len(lines)})", "fold"], out_dir)
+
+
+def test_e57_scene_without_a_usable_image(tmp_path, out_dir, capfd):
+    """A points.e57 without sparse/ is a scene only with a posed image: without images2D, one line
+    naming sparse/ and the file; with only an unposed image, its warning line and then that line."""
+    from test_e57 import pinhole_entry, write_raw_scans
+
+    from dmrt.camera import Camera
+
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    xyz = {k: np.arange(3.0) for k in ("cartesianX", "cartesianY", "cartesianZ")}
+    write_raw_scans(scene / "points.e57", [(xyz, None, None)])
+    assert_bad_input(["preprocess", scene, "--out", out_dir / "b", "--quiet"], capfd,
+                     [scene / "sparse", "points.e57 holds no image usable as a photo"], out_dir)
+    cam = Camera.look_at("c", (0.0, -5.0, 1.0), (0.0, 0.0, 1.0), 16, 12)
+    write_raw_scans(scene / "points.e57", [(xyz, None, None)],
+                    [pinhole_entry("unposed", np.zeros((12, 16, 3), np.uint8), cam, pose=False)])
+    capfd.readouterr()
+    assert main(["preprocess", str(scene), "--out", str(out_dir / "b"), "--quiet"]) == 2
+    err = capfd.readouterr().err.splitlines()
+    assert err[0] == f"dmrt: warning: {scene / 'points.e57'}: image 0 ('unposed'): it has no pose; skipped"
+    assert len(err) == 2 and err[1].startswith(f"dmrt: error: {scene / 'sparse'}: ") and "see the warnings" in err[1]
+    assert not list(out_dir.iterdir())
+
+
 def test_scene_missing_and_bundle_exists(tiny_scene, tiny_bundle, tmp_path, out_dir, capfd):
     assert_bad_input(["preprocess", tmp_path / "nowhere", "--out", out_dir / "b", "--quiet"], capfd,
                      [tmp_path / "nowhere"], out_dir)

@@ -324,10 +324,24 @@ class BundleWriter:
             (self.tmp / sub).mkdir(parents=True)
         return self
 
-    def add_image(self, src: Path, name: str) -> str:
-        """Link (or copy) a photo into the bundle; returns its path relative to the bundle."""
+    def add_image(self, src: Path, name: str, pixels: np.ndarray | None = None) -> str:
+        """Link (or copy) the photo file ``src`` into the bundle as ``images/<name>``, or, given
+        ``pixels`` ((h, w, 3) uint8 RGB: a photo preprocessing made, undistorted or cut from a
+        panorama), encode them there in the format the name's suffix gives (JPEG at quality 95;
+        PNG, with ``.png`` appended, for a suffix PIL cannot write). Returns the path relative to
+        the bundle."""
         dst = self.tmp / "images" / name
         dst.parent.mkdir(parents=True, exist_ok=True)
+        if pixels is not None:
+            from PIL import Image
+
+            try:
+                Image.fromarray(pixels).save(dst, quality=95)
+            except (ValueError, KeyError):  # PIL has no writer for this suffix
+                dst.unlink(missing_ok=True)
+                dst = dst.with_name(dst.name + ".png")
+                Image.fromarray(pixels).save(dst)
+            return dst.relative_to(self.tmp).as_posix()
         try:
             os.link(src, dst)
         except OSError:  # another file system: copy

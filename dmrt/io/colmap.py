@@ -2,13 +2,15 @@
 
 Format as in COLMAP's documentation ("Output Format") and its ``scripts/python/
 read_write_model.py``: all binary values little-endian; ``qvec`` is a Hamilton quaternion
-``(w, x, y, z)`` of the world -> camera rotation, ``tvec`` its translation. Only undistorted
-pinhole models are accepted, since every renderer here projects with a plain pinhole.
+``(w, x, y, z)`` of the world -> camera rotation, ``tvec`` its translation. Besides PINHOLE and
+SIMPLE_PINHOLE, the distorted models :mod:`dmrt.io.undistort` turns into pinhole photos are read
+(:func:`read_model_lenses`); other models are refused.
 """
 
 from __future__ import annotations
 
 import struct
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +18,7 @@ import numpy as np
 from dmrt.camera import Camera
 from dmrt.errors import InputError
 from dmrt.io.atomic import write_bytes
+from dmrt.io.undistort import LENS_MODELS, Lens, split_params, undistorted_camera
 
 # model id -> (name, number of params); the counts are needed to skip cameras we cannot use
 _MODELS = {
@@ -164,36 +167,66 @@ def _read_images_binary(path: Path) -> list:
     return images
 
 
-def _to_camera(cam_path, cam, img_path, img) -> Camera:
-    iid, q, t, cid, name, where = img
-    if cam is None:
-        raise InputError(img_path, f"image {iid} ({name!r}, {where}) references unknown camera id {cid}")
+def _intrinsics(cam_path: Path, cid: int, cam) -> tuple[Camera, tuple[Camera, Lens] | None]:
+    """Camera record ``cid`` -> (its pinhole camera, undistorted where the model is distorted;
+    ``(the camera as the model gives it, its lens)`` or None), both with the identity pose."""
     model, width, height, params, cwhere = cam
-    if model not in ("PINHOLE", "SIMPLE_PINHOLE"):
-        raise InputError(cam_path, f"camera {cid} uses model {model}; undistort the images first "
+    if model not in ("PINHOLE", "SIMPLE_PINHOLE", *LENS_MODELS):
+        raise InputError(cam_path, f"camera {cid} uses model {model}, which this suite cannot undistort "
+                                   f"(it undistorts {', '.join(LENS_MODELS)}): undistort the images first "
                                    f"(e.g. colmap image_undistorter) so the model is PINHOLE")
     if len(params) != _NPARAMS[model]:
         raise InputError(cam_path, f"camera {cid} ({cwhere}): model {model} takes "
                                    f"{_NPARAMS[model]} parameters, found {len(params)}")
-    fx, fy, cx, cy = params if model == "PINHOLE" else (params[0], params[0], params[1], params[2])
+    (fx, fy, cx, cy), lens = split_params(model, params)
     if not np.all(np.isfinite(params)) or fx <= 0 or fy <= 0 or width <= 0 or height <= 0:
         raise InputError(cam_path, f"camera {cid} ({cwhere}): non-finite or non-positive intrinsics "
                                    f"(size {width}x{height}, params {params})")
+    given = Camera("", width, height, fx, fy, cx, cy)
+    if lens is None:
+        return given, None
+    try:
+        return undistorted_camera(given, lens), (given, lens)
+    except ValueError as e:
+        raise InputError(cam_path, f"camera {cid} ({cwhere}): {e}") from None
+
+
+def _to_camera(img_path, intrinsics, img) -> tuple[Camera, tuple[Camera, Lens] | None]:
+    iid, q, t, cid, name, where = img
+    if intrinsics is None:
+        raise InputError(img_path, f"image {iid} ({name!r}, {where}) references unknown camera id {cid}")
     q = np.asarray(q, dtype=np.float64)
     norm = np.linalg.norm(q)
     if not np.all(np.isfinite(q)) or not np.all(np.isfinite(t)) or not norm > 0:
         raise InputError(img_path, f"image {iid} ({name!r}, {where}): pose is not finite or the "
                                    f"quaternion is zero (NaN/inf): qvec={q.tolist()} tvec={list(t)}")
-    return Camera(name, width, height, fx, fy, cx, cy, qvec_to_rotation(q / norm), t)
+    pose = {"name": name, "R": qvec_to_rotation(q / norm), "t": np.asarray(t, np.float64)}
+    pinhole, distorted = intrinsics
+    return replace(pinhole, **pose), None if distorted is None else (replace(distorted[0], **pose), distorted[1])
 
 
-def read_model(sparse_dir) -> list[Camera]:
-    """Read a COLMAP sparse model: one ``Camera`` per registered image, ordered by image id.
+def read_model_lenses(sparse_dir) -> tuple[list[Camera], list[tuple[Camera, Lens] | None]]:
+    """Read a COLMAP sparse model: one pinhole ``Camera`` per registered image, ordered by image
+    id, and where the model is distorted, the camera it replaces.
 
     Binary files (``cameras.bin`` + ``images.bin``) are used when both exist, else the text ones.
-    ``points3D`` is not read. Raises ``InputError`` naming the offending file for a missing model,
-    truncated or malformed files, unsupported camera models, unknown camera ids, non-finite poses,
-    duplicate image names and models without images.
+    ``points3D`` is not read.
+
+    Returns
+    -------
+    cameras : list of Camera
+        Pinhole cameras: a distorted camera is replaced by the pinhole camera of its undistorted
+        photo (:func:`dmrt.io.undistort.undistorted_camera`).
+    distorted : list of (Camera, Lens) or None
+        Per image, the camera as the model gives it and its lens; None for a pinhole (zero
+        coefficients included).
+
+    Raises
+    ------
+    InputError
+        Naming the offending file: a missing model, truncated or malformed files, camera models
+        that cannot be undistorted (or coefficients that fold the image), unknown camera ids,
+        non-finite poses, duplicate image names, models without images.
     """
     d = Path(sparse_dir)
     if (d / "cameras.bin").is_file() and (d / "images.bin").is_file():
@@ -213,7 +246,22 @@ def read_model(sparse_dir) -> list[Camera]:
             raise InputError(img_path, f"duplicate image name {img[4]!r} (images {seen[img[4]]} and {img[0]})")
         seen[img[4]] = img[0]
     images.sort(key=lambda img: img[0])
-    return [_to_camera(cam_path, cams.get(img[3]), img_path, img) for img in images]
+    used = {img[3] for img in images}
+    intrinsics = {cid: _intrinsics(cam_path, cid, cam) for cid, cam in cams.items() if cid in used}
+    pairs = [_to_camera(img_path, intrinsics.get(img[3]), img) for img in images]
+    return [c for c, _ in pairs], [d for _, d in pairs]
+
+
+def read_model(sparse_dir) -> list[Camera]:
+    """:func:`read_model_lenses` for a model of pinhole cameras only (zero distortion included);
+    a camera with lens distortion is an ``InputError`` (:func:`dmrt.io.scene.load_scene`
+    undistorts such photos)."""
+    cameras, distorted = read_model_lenses(sparse_dir)
+    for c, d in zip(cameras, distorted):
+        if d is not None:
+            raise InputError(sparse_dir, f"image {c.name!r} has a {d[1].model} camera with lens distortion; "
+                                         f"dmrt.io.scene.load_scene undistorts it")
+    return cameras
 
 
 # -- writing --------------------------------------------------------------------------------------

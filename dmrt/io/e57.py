@@ -6,12 +6,17 @@ world coordinates with its pose. Scans are streamed through fixed-size buffers o
 Points whose ``cartesianInvalidState`` / ``sphericalInvalidState`` is not 0 are dropped: state 1
 keeps only a direction (no range), state 2 nothing, so neither is a surface point.
 
+The ``images2D`` entries (the scanner's photographs and panoramas) are read as headers
+(:func:`read_images`) and decoded on demand (:func:`read_image_pixels`); :mod:`dmrt.io.scene`
+makes them photos.
+
 Every failure is an ``InputError`` naming the file with a one-line message; libE57Format's own
 messages carry multi-line debug dumps, of which only the first line is kept.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Literal
@@ -119,10 +124,10 @@ def _child_names(node) -> list[str]:
     return [node.get(i).elementName() for i in range(node.childCount())]
 
 
-def _quaternion_matrix(path: Path, i: int, q: np.ndarray) -> np.ndarray:
+def _quaternion_matrix(path: Path, what: str, q: np.ndarray) -> np.ndarray:
     norm = float(np.linalg.norm(q))
     if not np.isfinite(q).all() or norm == 0.0:
-        raise InputError(path, f"scan {i}: pose rotation quaternion {q.tolist()} is zero or non-finite")
+        raise InputError(path, f"{what}: pose rotation quaternion {q.tolist()} is zero or non-finite")
     # The standard requires a unit quaternion, but writers store rounded or unnormalised ones
     # (cry-inc's test file has w=0.5, x=1): normalising gives the rotation they meant.
     w, x, y, z = q / norm
@@ -133,25 +138,27 @@ def _quaternion_matrix(path: Path, i: int, q: np.ndarray) -> np.ndarray:
     ])
 
 
-def _pose(path: Path, i: int, scan) -> tuple[np.ndarray, np.ndarray]:
+def _pose(path: Path, what: str, node) -> tuple[np.ndarray, np.ndarray]:
+    """``node``'s pose (local -> file-level): rotation (3, 3) and translation (3,) float64;
+    the identity without one. ``what`` ("scan 3") starts the error messages."""
     rotation, translation = np.eye(3), np.zeros(3)
-    if not scan.isDefined("pose"):
+    if not node.isDefined("pose"):
         return rotation, translation
-    pose = scan["pose"]
+    pose = node["pose"]
     try:
         if pose.isDefined("rotation"):
             r = pose["rotation"]
             q = np.array([_number(r[c]) for c in "wxyz"], dtype=np.float64)
-            rotation = _quaternion_matrix(path, i, q)
+            rotation = _quaternion_matrix(path, what, q)
         if pose.isDefined("translation"):
             t = pose["translation"]
             translation = np.array([_number(t[c]) for c in "xyz"], dtype=np.float64)
     except InputError:
         raise
     except Exception as e:
-        raise InputError(path, f"scan {i}: malformed pose: {_first_line(e)}") from None
+        raise InputError(path, f"{what}: malformed pose: {_first_line(e)}") from None
     if not np.isfinite(translation).all():
-        raise InputError(path, f"scan {i}: pose translation {translation.tolist()} is non-finite")
+        raise InputError(path, f"{what}: pose translation {translation.tolist()} is non-finite")
     return rotation, translation
 
 
@@ -225,7 +232,7 @@ def _scans(path: Path, imf) -> list[E57Scan]:
             else:
                 raise InputError(path, f"scan {i} has neither cartesianX/Y/Z nor sphericalRange/"
                                        f"Azimuth/Elevation coordinates (fields: {', '.join(fields)})")
-            rotation, translation = _pose(path, i, scan)
+            rotation, translation = _pose(path, f"scan {i}", scan)
             name = scan["name"].value() if scan.isDefined("name") else ""
             limits = _color_limits(scan, proto) if all(c in fields for c in _COLORS) else None
             scans.append(E57Scan(i, name, int(points.childCount()), coordinates, rotation,
@@ -371,3 +378,203 @@ def _to_cloud(scan: E57Scan, a: dict[str, np.ndarray], state: str, colors: bool,
             inten[a["isIntensityInvalid"][keep] != 0] = np.nan
     scan_index = np.full(len(positions), scan.index, dtype=np.int32)
     return PointCloud(positions, None, rgb, intensity=inten, scan_index=scan_index)
+
+
+# -- images2D: the scanner's photographs and panoramas ---------------------------------------------
+_PROJECTIONS = {"pinholeRepresentation": "pinhole", "sphericalRepresentation": "spherical",
+                "cylindricalRepresentation": "cylindrical"}
+_NUMBERS = {"pinhole": ("focalLength", "pixelWidth", "pixelHeight", "principalPointX", "principalPointY"),
+            "spherical": ("pixelWidth", "pixelHeight"),
+            "cylindrical": ("pixelWidth", "pixelHeight", "radius", "principalPointY")}
+_HEADER_BYTES_READ = 1 << 18  # a JPEG's or PNG's header (and size) lies in its first bytes
+
+
+@dataclass(eq=False)  # hashed by identity: a cache key
+class E57Image:
+    """What one ``images2D`` entry says (headers only; :func:`read_image_pixels` decodes it).
+
+    Attributes
+    ----------
+    index : int
+        Position in the file's ``images2D`` vector.
+    name : str
+        The image's ``name`` ("" if it has none).
+    representation : {"pinhole", "spherical", "cylindrical", "visual"}
+        Its projection; "visual" for a visual reference image (no projection).
+    width, height : int
+        The representation's ``imageWidth`` and ``imageHeight``, pixels (0 if absent).
+    blob : {"jpegImage", "pngImage"} or None
+        The blob that holds its pixels.
+    has_mask : bool
+        An ``imageMask`` is given (non-zero = valid pixel).
+    rotation : (3, 3) float64 or None
+        Image-local -> file-level rotation of its pose; None without a pose.
+    translation : (3,) float64
+        The pose's translation, metres: the centre of projection in the file's frame.
+    numbers : dict of str -> float
+        The representation's fields (``focalLength``, ``pixelWidth``, ...; see ASTM E2807 8.4.13-15).
+    problem : str or None
+        Why it cannot be a photo (no pose, visual reference only, no decodable blob, ...); None if
+        it can.
+    """
+
+    index: int
+    name: str
+    representation: Literal["pinhole", "spherical", "cylindrical", "visual"]
+    width: int
+    height: int
+    blob: str | None
+    has_mask: bool
+    rotation: np.ndarray | None
+    translation: np.ndarray
+    numbers: dict
+    problem: str | None = None
+
+    @property
+    def node_name(self) -> str:
+        """The representation's element name (``sphericalRepresentation``)."""
+        return f"{self.representation}{'Reference' if self.representation == 'visual' else ''}Representation"
+
+
+def _read_blob(node, limit: int | None = None) -> bytes:
+    n = int(node.byteCount()) if limit is None else min(limit, int(node.byteCount()))
+    buf = np.empty(n, np.uint8)
+    if n:
+        node.read(buf, 0, n)
+    return buf.tobytes()
+
+
+def _blob_problem(node, blob: str, width: int, height: int) -> str | None:
+    """Why the blob is not a ``width`` x ``height`` image, from its header (None if it is)."""
+    import io
+
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(_read_blob(node, _HEADER_BYTES_READ))) as im:
+            size = im.size
+    except (UnidentifiedImageError, OSError, ValueError) as e:
+        return f"its {blob} blob ({int(node.byteCount())} bytes) is not a decodable image ({_first_line(e)})"
+    if size != (width, height):
+        return f"its {blob} is {size[0]}x{size[1]} pixels but the header says {width}x{height}"
+    return None
+
+
+def _fields_problem(rep_name: str, blob: str | None, size: list[int], numbers: dict, kind: str) -> str | None:
+    """Why a projection's fields cannot make a photo (None if they can)."""
+    if blob is None:
+        return f"its {rep_name} has no jpegImage or pngImage blob"
+    if min(size) <= 0:
+        return f"its {rep_name} gives no positive imageWidth/imageHeight"
+    missing = [k for k in _NUMBERS[kind] if k not in numbers]
+    if missing:
+        return f"its {rep_name} lacks {', '.join(missing)}"
+    bad = [k for k, v in numbers.items() if not (np.isfinite(v) and (v > 0 or k.startswith("principalPoint")))]
+    return f"its {rep_name} has non-positive or non-finite {', '.join(bad)}" if bad else None
+
+
+def _image(path: Path, index: int, node, check_blobs: bool) -> E57Image:
+    name = node["name"].value() if node.isDefined("name") else ""
+    rep_name = next((k for k in _PROJECTIONS if node.isDefined(k)), "visualReferenceRepresentation")
+    kind = _PROJECTIONS.get(rep_name, "visual")
+    rep = node[rep_name] if node.isDefined(rep_name) else None
+    has = (lambda k: rep is not None and rep.isDefined(k))  # noqa: E731
+    blob = next((b for b in ("jpegImage", "pngImage") if has(b)), None)
+    size = [int(rep[k].value()) if has(k) else 0 for k in ("imageWidth", "imageHeight")]
+    numbers = {k: _number(rep[k]) for k in _NUMBERS.get(kind, ()) if has(k)}
+    image = E57Image(index, name, kind, size[0], size[1], blob, has("imageMask"), None, np.zeros(3), numbers)
+    if kind == "visual":
+        image.problem = "a visual reference image only (no pinhole, spherical or cylindrical representation)"
+    elif not node.isDefined("pose"):
+        image.problem = "it has no pose"
+    else:
+        try:
+            image.rotation, image.translation = _pose(path, f"image {index}", node)
+        except InputError as e:
+            image.problem = e.message
+    if image.problem is None:
+        image.problem = _fields_problem(rep_name, blob, size, numbers, kind)
+    if image.problem is None and check_blobs:
+        image.problem = _blob_problem(rep[blob], blob, *size)
+    return image
+
+
+def read_images(path, check_blobs: bool = True) -> list[E57Image]:
+    """The file's ``images2D`` entries as its XML section describes them.
+
+    Parameters
+    ----------
+    path : path-like
+        An ``.e57`` file.
+    check_blobs : bool
+        Read each usable image's blob header: one that does not decode as an image of the
+        header's size gets a ``problem``.
+
+    Returns
+    -------
+    list of E57Image
+        One per entry, in file order (empty without ``images2D``); each either usable as a photo
+        or with its ``problem``.
+
+    Raises
+    ------
+    InputError
+        Not an E57 file, truncated, or a malformed XML section.
+    """
+    path = Path(path)
+    imf = _open(path)
+    try:
+        root = imf.root()
+        if not root.isDefined("images2D"):
+            return []
+        images = root["images2D"]
+        return [_image(path, i, images[i], check_blobs) for i in range(len(images))]
+    except InputError:
+        raise
+    except Exception as e:
+        raise InputError(path, f"malformed images2D section: {_first_line(e)}") from None
+    finally:
+        imf.close()
+
+
+def _decode_blob(path: Path, image: E57Image, blob: str, mode: str) -> np.ndarray:
+    """The ``blob`` of ``image`` decoded by PIL and converted to ``mode`` ("RGB", "L")."""
+    import io
+
+    from PIL import Image
+
+    imf = _open(path)
+    try:
+        data = _read_blob(imf.root()["images2D"][image.index][image.node_name][blob])
+        with Image.open(io.BytesIO(data)) as im:
+            return np.asarray(im.convert(mode), dtype=np.uint8)
+    except Exception as e:  # libE57Format's errors, and PIL's for an undecodable blob
+        raise InputError(path, f"image {image.index} ({image.name!r}): cannot decode its {blob}: "
+                               f"{_first_line(e)}") from None
+    finally:
+        imf.close()
+
+
+@functools.lru_cache(maxsize=2)  # the views of one panorama are read one after another
+def _cached_rgb(path: Path, mtime_ns: int, image: E57Image) -> np.ndarray:
+    rgb = _decode_blob(path, image, image.blob, "RGB")
+    rgb.flags.writeable = False  # shared by the cache
+    return rgb
+
+
+def read_image_pixels(path, image: E57Image) -> np.ndarray:
+    """``image``'s pixels: (height, width, 3) uint8 RGB, read-only (the last two are cached)."""
+    path = Path(path)
+    return _cached_rgb(path, path.stat().st_mtime_ns, image)
+
+
+def read_image_mask(path, image: E57Image) -> np.ndarray | None:
+    """(height, width) bool: ``image``'s ``imageMask`` (True = valid pixel), None without one."""
+    if not image.has_mask:
+        return None
+    path = Path(path)
+    mask = _decode_blob(path, image, "imageMask", "L") > 0
+    if mask.shape != (image.height, image.width):
+        raise InputError(path, f"image {image.index} ({image.name!r}): its imageMask is "
+                               f"{mask.shape[1]}x{mask.shape[0]}, the image {image.width}x{image.height}")
+    return mask

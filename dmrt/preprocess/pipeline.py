@@ -436,20 +436,23 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                                         progress=progress)
         tic("photometric_s", t0)
 
-        # 7. photos and their low-resolution copies
+        # 7. photos (undistorted or cut from panoramas where the scene's are not pinhole photos:
+        # Scene.read_image) and their low-resolution copies
         t0 = time.perf_counter()
-        images = [bw.add_image(scene.image_paths[j], cam.name) for j, cam in enumerate(scene.cameras)]
 
-        def low_copy(j):  # decoding, resizing and PNG encoding release the GIL: threads scale
-            cam = scene.cameras[j]
+        def photo(j):  # decoding, resampling, resizing and encoding release the GIL: threads scale
+            cam, rgb = scene.cameras[j], scene.read_image(j)
+            made = scene.photo_source(j) is not None
+            rel = bw.add_image(scene.image_paths[j], cam.name, rgb if made else None)
             low_h = max(1, round(config.lowres_width * cam.height / cam.width))
-            rel = f"images_low/{Path(cam.name).stem}.png"
-            Image.fromarray(scene.read_image(j)).resize((config.lowres_width, low_h), Image.BOX).save(bw.tmp / rel)
-            return rel
+            low = f"images_low/{Path(cam.name).stem}.png"
+            Image.fromarray(rgb).resize((config.lowres_width, low_h), Image.BOX).save(bw.tmp / low)
+            return rel, low
 
         with ThreadPoolExecutor(default_workers()) as pool:
-            images_low = list(tqdm(pool.map(low_copy, range(len(scene.cameras))), total=len(scene.cameras),
-                                   desc="photos", unit="photo", disable=not progress))
+            written = list(tqdm(pool.map(photo, range(len(scene.cameras))), total=len(scene.cameras),
+                                desc="photos", unit="photo", disable=not progress))
+        images, images_low = [rel for rel, _ in written], [low for _, low in written]
         tic("photos_s", t0)
 
         bw.write_proxy(**proxies.proxy)
@@ -463,6 +466,8 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
             "origin": origin.tolist(),
             "cameras": [camera_to_json(c) for c in scene.cameras],
             "images": images, "images_low": images_low, "depthmaps": depth_files,
+            # where a photo was undistorted or cut from a panorama: its source (cameras: the result)
+            **({"photo_sources": [src and src.about for src in scene.photos]} if scene.photos else {}),
             "depthmap_sizes": depth_sizes,
             "parameters": {"preprocess": asdict(config), "labeling": asdict(labeling)},
             "timings": timings,
