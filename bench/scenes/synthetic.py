@@ -11,7 +11,15 @@ stations in every room, with Gaussian range noise) makes P_HD: density falls off
 and occlusion shadows are real. Photographs are Embree renders of the same textured mesh, with a
 per-photo exposure and white balance that can be switched off. The output is the scene input
 format every user scene has (``points.ply``, ``sparse/``, ``images/``, ``mesh.ply``) plus
-``synthetic.json`` (the configuration and each photo's exposure) for tests.
+``synthetic.json`` (the configuration, each photo's exposure and the lights) for tests.
+
+By default the photos are matte and see exactly the scanned surface, so all photos of a point
+agree. Two options make the choice of photo matter, as it does for real photos (see
+:class:`Studio`): a glossy highlight that depends on the camera's direction (``specular``), and
+a photographed surface that lies ``photo_surface_offset`` in front of the scanned one (the mesh,
+the scan and the photos' registration stay exact; only what the photos show moves), so a photo
+reprojected through the scan drifts with the angle between it and the view. :class:`Studio` renders
+the photo any camera would take, held-out views included.
 """
 
 from __future__ import annotations
@@ -25,7 +33,7 @@ import trimesh
 from tqdm import tqdm
 
 from dmrt.camera import Camera
-from dmrt.errors import ConfigError, require
+from dmrt.errors import ConfigError, InputError, require
 from dmrt.io.atomic import atomic_dir
 from dmrt.options import option, validate
 from dmrt.preprocess.parallel import default_workers
@@ -69,6 +77,17 @@ class SynthConfig:
     exposure_range: tuple[float, float] = option((0.75, 1.25), "range of the per-photo exposure gain", minimum=0.0)
     white_balance_range: tuple[float, float] = option((0.92, 1.08), "range of the per-channel white-balance gain",
                                                       minimum=0.0)
+    # Both off by default: matte photos of exactly the scanned surface (Studio states the model).
+    specular: float = option(0.0, "strength k_s of a white Blinn-Phong highlight in the photos, from point "
+                                  "lights in every room (0: matte photos that agree)", minimum=0.0)
+    shininess: float = option(50.0, "Blinn-Phong exponent of the highlight (50: half strength 9.5 degrees "
+                                    "off the half vector)", minimum=1.0)
+    lights_per_room: int = option(2, "point lights per room (0.85 x wall height, shadowed) for the highlight",
+                                  minimum=1)
+    # bounds: -2 cm keeps the 3 cm poles solid; 10 cm is half the 0.20 m discontinuity threshold
+    photo_surface_offset: float = option(0.0, "the photographed surfaces lie this far in front of the scanned "
+                                              "ones along their outward normals, metres (negative: behind)",
+                                         minimum=-0.02, maximum=0.1)
     chunk_rays: int = option(2_000_000, "rays per Embree batch: bounds memory on big presets", minimum=1)
 
     def __post_init__(self):
@@ -96,6 +115,8 @@ PRESETS = {
 }
 
 LIGHT = np.array([0.35, 0.25, 0.9]) / np.linalg.norm([0.35, 0.25, 0.9])
+# Highlight contributions below this are not shadow-tested (skipped): 40x below one 8-bit level.
+SPECULAR_CUTOFF = 1e-4
 
 
 # ----------------------------------------------------------------------------------------------
@@ -227,8 +248,9 @@ def _wall(plan_lo, plan_hi, along: int, height: float, openings, interior_sign: 
     return [_box(a, b) for a, b in boxes]
 
 
-def build_geometry(config: SynthConfig) -> Geometry:
-    """The scene mesh, deterministic in ``config.seed``."""
+def build_geometry(config: SynthConfig, grow: float = 0.0) -> Geometry:
+    """The scene mesh, deterministic in ``config.seed``; with ``grow`` (metres) every face of every
+    part lies that far out along its outward normal (see :func:`_grow`)."""
     rng = np.random.default_rng(config.seed)
     T, H = config.wall_thickness, config.wall_height
     nx, ny = config.rooms
@@ -283,10 +305,29 @@ def build_geometry(config: SynthConfig) -> Geometry:
             x0, x1, y0, y1 = X[i] + T / 2, X[i + 1] - T / 2, Y[j] + T / 2, Y[j + 1] - T / 2
             rooms.append((x0, x1, y0, y1))
             parts.extend(_furnish(rng, (x0, x1, y0, y1), H))
-    meshes = [m for m, _ in parts]
+    meshes = [_grow(m, grow) if grow else m for m, _ in parts]
     mesh = trimesh.util.concatenate(meshes)
     face_material = np.concatenate([np.full(len(m.faces), k, np.int32) for m, k in parts])
     return Geometry(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), face_material, rooms)
+
+
+def _grow(mesh: trimesh.Trimesh, distance: float) -> trimesh.Trimesh:
+    """A closed convex part with each face moved ``distance`` metres along its outward normal.
+
+    Each vertex moves by the least-squares ``x`` of ``n_f . x = distance`` over its faces ``f``:
+    exact where at most three planes meet (boxes, the cylinders' rims and caps), within 0.03 % of
+    ``distance`` on the icospheres (measured). Every part is convex, so the union of the
+    grown parts is the scene's surface moved along its normals (doorways narrow by twice as much).
+    """
+    n = mesh.face_normals
+    A = np.zeros((len(mesh.vertices), 3, 3))
+    b = np.zeros((len(mesh.vertices), 3))
+    for k in range(3):
+        np.add.at(A, mesh.faces[:, k], n[:, :, None] * n[:, None, :])
+        np.add.at(b, mesh.faces[:, k], n)
+    # rank 1 at a cap's centre: the pseudo-inverse moves it along the cap's normal
+    x = np.einsum("vij,vj->vi", np.linalg.pinv(A, rcond=1e-6, hermitian=True), b)
+    return trimesh.Trimesh(mesh.vertices + distance * x, mesh.faces, process=False)
 
 
 def _furnish(rng, room, H):
@@ -428,48 +469,154 @@ def scan_beams(config: SynthConfig, geom: Geometry, raycaster, materials, statio
     return pos, n, np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)
 
 
+def place_lights(config: SynthConfig, geom: Geometry, raycaster) -> np.ndarray:
+    """(l, 3) float64 point lights of the highlights, scene-local metres: ``lights_per_room`` per
+    room at 0.85 x the wall height, 0.3 m clear of every surface. Their own random stream, so
+    switching the highlight on changes nothing else in the scene."""
+    rng = np.random.default_rng([config.seed, 3])
+    out = []
+    for r, (x0, x1, y0, y1) in enumerate(geom.rooms):
+        for _ in range(config.lights_per_room):
+            for _ in range(200):
+                p = np.array([rng.uniform(x0 + 0.5, x1 - 0.5), rng.uniform(y0 + 0.5, y1 - 0.5),
+                              0.85 * config.wall_height])
+                if _free(raycaster, p, 0.3):
+                    out.append(p)
+                    break
+            else:
+                raise RuntimeError(f"could not place a light in room {r}")
+    return np.array(out).reshape(-1, 3)
+
+
+class Studio:
+    """The synthetic scene as the photographs see it: renders the photo any camera would take.
+
+    The colour of a surface point ``p`` with unit normal ``n`` (facing the camera), seen from the
+    camera centre ``e``, before the photo's gain (exposure x white balance) and 8-bit rounding::
+
+        c = albedo(p) * (0.6 + 0.4 max(0, n . LIGHT))                 matte, as the scan's colours
+          + k_s * sum_l [n . l_l > 0] V_l(p) (n . h_l)^s              white Blinn-Phong highlight
+
+    with ``l_l`` the unit direction from ``p`` to light ``l`` (:func:`place_lights`), ``v`` the unit
+    direction from ``p`` to ``e``, ``h_l = (l_l + v) / |l_l + v|``, ``V_l(p)`` 1 when the segment to
+    the light is free (shadows), ``k_s = config.specular``, ``s = config.shininess``; terms below
+    ``SPECULAR_CUTOFF`` are dropped. The photographed surface is the scanned mesh grown by
+    ``config.photo_surface_offset`` along its outward normals (:func:`build_geometry`); the
+    textures stay fixed in world space (tri-planar), so a moved wall shows the same paint.
+
+    Built deterministically from the configuration, so the truth at a held-out or novel view is
+    ``Studio.from_scene(scene_dir).photograph(camera, world=True)``.
+
+    Attributes
+    ----------
+    geom : Geometry
+        The scanned surface (``mesh.ply``, the laser scan), scene-local.
+    scan_raycaster, photo_raycaster : MeshRaycaster
+        The scanned and the photographed surface (the same object when the offset is 0).
+    lights : (l, 3) float64
+        Highlight lights, scene-local metres; (0, 3) when ``specular`` is 0.
+    """
+
+    def __init__(self, config: SynthConfig):
+        self.config = config
+        self.geom = build_geometry(config)
+        self.materials = make_materials()
+        self.scan_raycaster = MeshRaycaster(self.geom.vertices, self.geom.faces, origin=np.zeros(3))
+        self.photo_geom, self.photo_raycaster = self.geom, self.scan_raycaster
+        if config.photo_surface_offset:
+            self.photo_geom = build_geometry(config, grow=config.photo_surface_offset)
+            self.photo_raycaster = MeshRaycaster(self.photo_geom.vertices, self.photo_geom.faces,
+                                                 origin=np.zeros(3))
+        self.lights = (place_lights(config, self.photo_geom, self.photo_raycaster) if config.specular > 0
+                       else np.zeros((0, 3)))
+
+    @classmethod
+    def from_scene(cls, scene_dir) -> "Studio":
+        """The studio of a generated scene, from its ``synthetic.json``.
+
+        Raises
+        ------
+        InputError
+            No ``synthetic.json`` (not a synthetic scene) or one this generator cannot read.
+        """
+        path = Path(scene_dir) / "synthetic.json"
+        try:
+            fields = json.loads(path.read_text())["config"]
+            config = SynthConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise InputError(path, f"not a synthetic scene's description ({exc})") from exc
+        return cls(config)
+
+    def specular(self, points: np.ndarray, normals: np.ndarray, eye: np.ndarray) -> np.ndarray:
+        """(n,) float32 highlight ``k_s sum_l [n . l > 0] V_l (n . h_l)^s`` (class docstring).
+
+        ``points`` (n, 3) float64 on the photographed surface, ``normals`` (n, 3) unit facing
+        ``eye`` (3,), all scene-local metres.
+        """
+        out = np.zeros(len(points), np.float32)
+        v = eye - points
+        v /= np.sqrt(np.einsum("ij,ij->i", v, v))[:, None]
+        nv = np.einsum("ij,ij->i", normals, v)
+        for light in self.lights:
+            lv = light - points
+            lv /= np.sqrt(np.einsum("ij,ij->i", lv, lv))[:, None]
+            nl = np.einsum("ij,ij->i", normals, lv)
+            lit = np.flatnonzero(nl > 0)
+            # n . h = (n . l + n . v) / |l + v|, and |l + v|^2 = 2 + 2 l . v (> 0: l and v both face n)
+            nh = (nl[lit] + nv[lit]) / np.sqrt(2 + 2 * np.einsum("ij,ij->i", lv[lit], v[lit]))
+            s = self.config.specular * nh ** self.config.shininess
+            lit, s = lit[s >= SPECULAR_CUTOFF], s[s >= SPECULAR_CUTOFF]
+            seen = self.photo_raycaster.visible(points[lit], light)
+            out[lit[seen]] += s[seen]
+        return out
+
+    def photograph(self, camera: Camera, gain=None, world: bool = False) -> np.ndarray:
+        """(h, w, 3) uint8 Embree render of the photographed surface through ``camera``.
+
+        ``gain`` (3,): exposure x white balance (default 1); ``world``: the camera is in the
+        scene's world coordinates (its ``sparse/`` model), else scene-local. Each pixel averages
+        ``supersample`` x ``supersample`` rays.
+        """
+        if world:
+            camera = camera.relative_to(self.config.offset)
+        s = self.config.supersample
+        big = camera.scaled(camera.width * s, camera.height * s)
+        dirs, center = big.pixel_rays()
+        t, face = self.photo_raycaster.intersect(center, dirs)
+        rgb = np.zeros((len(t), 3), np.float32)
+        hit = face >= 0
+        n = self.photo_raycaster.face_normals[face[hit]]
+        n[np.einsum("ij,ij->i", n, dirs[hit]) > 0] *= -1
+        p = center + dirs[hit] * t[hit, None]
+        rgb[hit] = albedo(self.materials, self.photo_geom.face_material[face[hit]], p, n) * shade(n)[:, None]
+        if len(self.lights):
+            rgb[hit] += self.specular(p, n, center)[:, None]
+        img = rgb.reshape(camera.height, s, camera.width, s, 3).mean(axis=(1, 3))
+        img = img * (np.ones(3) if gain is None else np.asarray(gain))
+        return np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
+
+
 # Each worker process builds the scene once (Embree scenes do not pickle) and serves batches.
 _WORKER: dict = {}
 
 
 def _init_worker(config: SynthConfig) -> None:
-    geom = build_geometry(config)
-    _WORKER.update(config=config, geom=geom, materials=make_materials(),
-                   raycaster=MeshRaycaster(geom.vertices, geom.faces, origin=np.zeros(3)))
+    _WORKER.update(config=config, studio=Studio(config))
 
 
 def _scan_task(args):
     k, station, dirs = args
-    w = _WORKER
+    w, st = _WORKER, _WORKER["studio"]
     rng = np.random.default_rng([w["config"].seed, 2, k])  # per batch: same points for any worker count
-    return scan_beams(w["config"], w["geom"], w["raycaster"], w["materials"], station, dirs, rng)
+    return scan_beams(w["config"], st.geom, st.scan_raycaster, st.materials, station, dirs, rng)
 
 
 def _photo_task(args):
     cam, gain, path = args
     from PIL import Image
 
-    w = _WORKER
-    Image.fromarray(photograph(cam, w["geom"], w["raycaster"], w["materials"], w["config"].supersample,
-                               gain)).save(path)
+    Image.fromarray(_WORKER["studio"].photograph(cam, gain)).save(path)
     return path
-
-
-def photograph(camera: Camera, geom: Geometry, raycaster, materials, supersample: int,
-               gain: np.ndarray) -> np.ndarray:
-    """(h, w, 3) uint8 Embree render of the textured mesh; ``gain`` (3,) = exposure x white balance."""
-    s = supersample
-    big = camera.scaled(camera.width * s, camera.height * s)
-    dirs, center = big.pixel_rays()
-    t, face = raycaster.intersect(center, dirs)
-    rgb = np.zeros((len(t), 3), np.float32)
-    hit = face >= 0
-    n = raycaster.face_normals[face[hit]]
-    n[np.einsum("ij,ij->i", n, dirs[hit]) > 0] *= -1
-    p = center + dirs[hit] * t[hit, None]
-    rgb[hit] = albedo(materials, geom.face_material[face[hit]], p, n) * shade(n)[:, None]
-    img = rgb.reshape(camera.height, s, camera.width, s, 3).mean(axis=(1, 3)) * gain
-    return np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -478,8 +625,8 @@ def photograph(camera: Camera, geom: Geometry, raycaster, materials, supersample
 class _InlinePool:
     """The pool interface, run in this process (one worker: no start-up cost)."""
 
-    def __init__(self, config):
-        _init_worker(config)
+    def __init__(self, studio: Studio):
+        _WORKER.update(config=studio.config, studio=studio)
 
     imap = imap_unordered = staticmethod(map)
 
@@ -490,13 +637,13 @@ class _InlinePool:
         _WORKER.clear()
 
 
-def _pool(config: SynthConfig, workers: int):
+def _pool(studio: Studio, workers: int):
     import multiprocessing
 
     if workers <= 1:
-        return _InlinePool(config)
+        return _InlinePool(studio)
     # spawn, not fork: the parent may hold a GL context or Embree threads
-    return multiprocessing.get_context("spawn").Pool(workers, _init_worker, (config,))
+    return multiprocessing.get_context("spawn").Pool(workers, _init_worker, (studio.config,))
 
 
 def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool = True,
@@ -519,9 +666,8 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
     offset = np.asarray(config.offset, np.float64)
     with atomic_dir(out, force=force, what="scene") as tmp:
         (tmp / "images").mkdir()
-        geom = build_geometry(config)
-        materials = make_materials()
-        raycaster = MeshRaycaster(geom.vertices, geom.faces, origin=np.zeros(3))
+        studio = Studio(config)
+        geom, raycaster = studio.geom, studio.scan_raycaster
         write_mesh_ply(tmp / "mesh.ply", geom.vertices + offset, geom.faces)
 
         stations = place_stations(config, geom, raycaster, rng)
@@ -530,7 +676,7 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
                  if config.lighting_variation else np.ones(3) for _ in cameras]
         dirs = scan_directions(config, len(stations))
         beams = [(s, d) for s in stations for d in np.array_split(dirs, -(-len(dirs) // config.chunk_rays))]
-        with _pool(config, workers) as pool:
+        with _pool(studio, workers) as pool:
             bar = tqdm(total=config.points, desc="scanning", unit="pt", unit_scale=True, disable=not progress)
             with PointWriter(tmp / "points.ply", normals=config.write_normals, colors=True,
                              float_positions=config.float_positions) as writer:
@@ -549,6 +695,7 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
         meta = {"generator": "bench.scenes.synthetic", "config": asdict(config),
                 "stations": (stations + offset).tolist(),
                 "photo_gains": [g.tolist() for g in gains],
-                "materials": [m.name for m in materials]}
+                "lights": (studio.lights + offset).tolist(),
+                "materials": [m.name for m in studio.materials]}
         (tmp / "synthetic.json").write_text(json.dumps(meta, indent=1))
     return out
