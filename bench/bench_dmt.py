@@ -333,7 +333,7 @@ def run(bundle_path, resolutions=(256, 512, 1024), frames: int = 60, width: int 
     if dmrt:
         from dmrt.runtime.renderer import RenderConfig, Renderer
 
-        renderer = Renderer(bundle, RenderConfig(layers=layers))
+        renderer = Renderer(bundle, RenderConfig(layers=layers, photo_choice="labels"))  # the paper's Table 3
         result["dmrt"] = {"layers": layers, "labeling_s": dmrt_label_s, "labeling": dmrt_lab,
                           **_walk(renderer, cameras, warmup)}
         renderer.release()

@@ -62,6 +62,9 @@ def fps_summary(totals_ms) -> dict:
 # seconds of the same. A 30-frame 1280x720 walkthrough lasts ~0.1 s, less than the GPU takes to
 # raise clocks lowered while the timed pass waited for its queries: single passes right after it
 # read 2.5 ms a frame at 1980 MHz and 4.4 ms at 1245 MHz for the same code (H200, session 10).
+# the paper's experiments texture from the labels fixed per proxy (paper 5.2); the runtime's default
+# is the view-dependent choice (dmrt/runtime/view_choice.py), measured in real_views
+PAPER_CHOICE = "labels"
 WARM_UP_S = 0.5
 SUSTAINED_S = 1.0
 
@@ -300,7 +303,7 @@ def quality_config(**kw):
     from dmrt.runtime.renderer import RenderConfig
 
     return RenderConfig(**{"async_photos": False, "max_uploads_per_frame": 0, "leveling": False,
-                           "photometric": False, "fill_passes": 0, **kw})
+                           "photometric": False, "fill_passes": 0, "photo_choice": PAPER_CHOICE, **kw})
 
 
 def scaled_radii(bundle, scale: float):
@@ -451,7 +454,8 @@ def run_table2(ws: Workspace, p: Table2Params, out: Path) -> dict:
     cams = walkthrough_cameras(ws, p.walk)
 
     def measure(method, k, cameras):
-        r = measure_walkthrough(b, RenderConfig(layers=k, method=method, leveling=p.leveling), cameras,
+        r = measure_walkthrough(b, RenderConfig(layers=k, method=method, leveling=p.leveling,
+                                                photo_choice=PAPER_CHOICE), cameras,
                                 f"{method} k={k}", progress=ws.progress)
         w, h = r["frame_size"]
         print(f"  {method:8s} k={k:2d} {w}x{h} " + " ".join(f"{s} {v:.3f}" for s, v in r["median_ms"].items())
@@ -560,7 +564,8 @@ def run_fig7(ws: Workspace, p: Fig7Params, out: Path) -> dict:
         converged = next(k for k in range(1, p.max_layers + 1) if rate[k - 1] <= rate[-1] + p.converge_tolerance)
         fps = {}
         for k in sorted(set(p.fps_layers) | {needed or converged}):
-            r = measure_walkthrough(b, RenderConfig(layers=k), path, f"LOD {levels} k={k}", progress=ws.progress)
+            r = measure_walkthrough(b, RenderConfig(layers=k, photo_choice=PAPER_CHOICE), path, f"LOD {levels} k={k}",
+                                    progress=ws.progress)
             fps[str(k)] = {key: r[key] for key in ("median_total_ms", "fps_min_avg_max", "fps_median",
                                                    "median_ms", "total_ms_per_frame", "median_wall_ms")}
         sets.append({**bundle_summary(b), "candidates_s": t.get("candidates_s"), "labeling_s": t.get("labeling_s"),
@@ -669,7 +674,7 @@ def run_fig9_10(ws: Workspace, p: Fig9Params, out: Path) -> dict:
     cases, configs = [], []
     for name, scale, layers in p.cases:
         b = scaled_radii(ws.bundle(), scale)
-        cfg = dict(layers=layers, max_steps=p.max_steps, binary_steps=p.binary_steps)
+        cfg = dict(layers=layers, max_steps=p.max_steps, binary_steps=p.binary_steps, photo_choice=PAPER_CHOICE)
         hist = np.zeros(p.max_iterations_bin, np.int64)
         searched = []
 
@@ -800,7 +805,7 @@ def run_memory(ws: Workspace, p: MemoryParams, out: Path) -> dict:
 
     b = ws.bundle()
     cam = walkthrough_cameras(ws, Walk(p.frame_size, 2, 2, 0))[0]
-    renderer = Renderer(b, RenderConfig(layers=p.layers))
+    renderer = Renderer(b, RenderConfig(layers=p.layers, photo_choice=PAPER_CHOICE))
     try:
         renderer.render(cam)
         measured = dict(renderer.gpu_bytes)

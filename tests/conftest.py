@@ -84,11 +84,13 @@ def depthmaps(bundle):
 
 @pytest.fixture(scope="session")
 def renderers(ctx, bundle):
-    """One renderer per layer count (the same GL context), synchronous photo streaming so that
-    colours are deterministic; released at the end of the session."""
+    """One renderer per layer count (the same GL context), the fixed labels, synchronous photo
+    streaming so that colours are deterministic; released at the end of the session."""
     from dmrt.runtime.renderer import RenderConfig, Renderer
 
-    cfg = {"async_photos": False, "max_uploads_per_frame": 0}
+    # the paper's fixed labels, which the twins of the labeling and texturing passes compute
+    # (tests/test_view_choice.py tests the view-dependent choice)
+    cfg = {"async_photos": False, "max_uploads_per_frame": 0, "photo_choice": "labels"}
     out = {k: Renderer(bundle, RenderConfig(layers=k, **cfg), ctx) for k in (1, 2, 3)}
     yield out
     for r in out.values():

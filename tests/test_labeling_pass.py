@@ -27,8 +27,8 @@ def test_labeling_pass(ctx, bundle, depthmaps, reference):
     """
     from dmrt.runtime.renderer import RenderConfig, Renderer
 
-    plain = Renderer(bundle, RenderConfig(layers=3, label_check=False), ctx)
-    checked = Renderer(bundle, RenderConfig(layers=3), ctx)
+    plain = Renderer(bundle, RenderConfig(layers=3, label_check=False, photo_choice="labels"), ctx)
+    checked = Renderer(bundle, RenderConfig(layers=3, photo_choice="labels"), ctx)
     try:
         cam = bundle.cameras[4].resized(64)
         frame = plain.render(cam)

@@ -158,7 +158,8 @@ def test_leveling_balances_photo_exposures(ctx, renderers, bundle, tiny_scene):
     from dmrt.runtime.renderer import RenderConfig, Renderer
 
     truth = np.log(np.array(json.loads((tiny_scene / "synthetic.json").read_text())["photo_gains"]))
-    config = RenderConfig(layers=3, leveling=True, async_photos=False, max_uploads_per_frame=0)
+    config = RenderConfig(layers=3, leveling=True, async_photos=False, max_uploads_per_frame=0,
+                          photo_choice="labels")  # the fixed labels: a photo a region
     leveler = Renderer(bundle, config, ctx)
     n = len(bundle.cameras)
     before, after, twin_diff = [], [], []

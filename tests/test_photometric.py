@@ -164,8 +164,9 @@ def test_texturing_multiplies_by_the_gains(ctx, tiny_bundle):
     cam = b.cameras[3].resized(160)
     sync = {"async_photos": False, "max_uploads_per_frame": 0}
     frames = {}
-    for name, make in (("dmrt", lambda ph, lev=False: Renderer(b, RenderConfig(layers=3, photometric=ph,
-                                                                               leveling=lev, **sync), ctx)),
+    # the fixed labels: each pixel's colour one photo's, times that photo's gain
+    for name, make in (("dmrt", lambda ph, lev=False: Renderer(b, RenderConfig(layers=3, photometric=ph, leveling=lev,
+                                                                               photo_choice="labels", **sync), ctx)),
                        ("dmt", lambda ph, lev=False: DMTRenderer(b, DMTConfig(photometric=ph, leveling=lev,
                                                                               labeler="wta", progress=False,
                                                                               **sync), ctx))):

@@ -28,10 +28,11 @@ def test_image_cache_and_texturing(ctx, bundle):
     cam = bundle.cameras[2].resized(W)
     slot_mb = max(c.width * c.height for c in bundle.cameras) * ImageCache.SLOT_TEXEL_BYTES / 2 ** 20
     sync = {"async_photos": False, "max_uploads_per_frame": 0}
-    low = Renderer(bundle, RenderConfig(layers=3, cache_mb=0), ctx)
-    two = Renderer(bundle, RenderConfig(layers=3, cache_mb=2.5 * slot_mb, **sync), ctx)
-    full = Renderer(bundle, RenderConfig(layers=3, **sync), ctx)
-    streamed = Renderer(bundle, RenderConfig(layers=3, max_uploads_per_frame=1), ctx)  # asynchronous
+    paper = {"photo_choice": "labels"}  # the cache holds exactly the labels' photos (the histogram's)
+    low = Renderer(bundle, RenderConfig(layers=3, cache_mb=0, **paper), ctx)
+    two = Renderer(bundle, RenderConfig(layers=3, cache_mb=2.5 * slot_mb, **sync, **paper), ctx)
+    full = Renderer(bundle, RenderConfig(layers=3, **sync, **paper), ctx)
+    streamed = Renderer(bundle, RenderConfig(layers=3, max_uploads_per_frame=1, **paper), ctx)  # asynchronous
     try:
         assert low.images.n_slots == 0 and two.images.n_slots == 2
         assert full.images.n_slots == len(bundle.cameras)  # the default 1 GB holds them all

@@ -5,6 +5,7 @@ synchronous and unbounded (``async_photos=False, max_uploads_per_frame=0``) so t
 colours depend only on its camera: recorded paths then replay to the same images.
 """
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -24,10 +25,10 @@ W, H = 160, 107
 DETERMINISTIC = RenderConfig(async_photos=False, max_uploads_per_frame=0)
 
 
-def make_viewer(bundle_path, tmp_path, **kw) -> Viewer:
+def make_viewer(bundle_path, tmp_path, render: RenderConfig = DETERMINISTIC, **kw) -> Viewer:
     config = ViewerConfig(width=W, height=H, layers=3, photo=1, overlay=False, max_renderers=2,
                           path_file=tmp_path / "path.json", screenshot_file=tmp_path / "shot.png", **kw)
-    return Viewer(read_bundle(bundle_path), config, DETERMINISTIC)
+    return Viewer(read_bundle(bundle_path), config, render)
 
 
 def centre_depth(frame) -> float:
@@ -309,7 +310,8 @@ def test_proxy_set_switch(tiny_scene, ctx, tmp_path):
 
     path = preprocess(tiny_scene, tmp_path / "two-levels", PreprocessConfig(depthmap_width=128, proxy_levels=2),
                       progress=False)
-    v = make_viewer(path, tmp_path)
+    # the fixed labels: the proxies' labels texture the frame, so their set shows in its colours
+    v = make_viewer(path, tmp_path, dataclasses.replace(DETERMINISTIC, photo_choice="labels"))
     full = v.bundle.proxy
     assert v.max_proxy_levels == v.proxy_levels == 2
     fine = v.render().copy()
