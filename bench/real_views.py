@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.workspace import Workspace, _stamp_ok, write_json
+from dmrt.runtime.renderer import RenderConfig
 
 # name -> (renderer, options): "dmrt" (RenderConfig), "dmt" (DMTConfig) or "splats" (RenderConfig,
 # raytrace off). "dmrt" is the paper's DMRT with colours the photos' own: the "before" of the
@@ -52,8 +53,26 @@ VARIANTS = {
     "splats": ("splats", {"photometric": False}),
     "splats+gains": ("splats", {"photometric": True}),
 }
-# the variants whose frames the report shows (and whose error images it draws)
-SHOWN = ("dmrt", "dmrt+gains", "dmrt+gains+leveling", "dmt+gains", "splats+gains")
+if "photo_choice" in RenderConfig.__dataclass_fields__:
+    # the runtime's view-dependent photo choice (issue 37); the other DMRT variants keep the
+    # paper's fixed labels whatever the default becomes
+    for _kind, _options in VARIANTS.values():
+        if _kind != "dmt":
+            _options["photo_choice"] = "labels"
+    VARIANTS["dmrt-view"] = ("dmrt", {"photometric": False, "photo_choice": "view"})
+    VARIANTS["dmrt-view+gains"] = ("dmrt", {"photometric": True, "photo_choice": "view"})
+# What a variant costs, by renderer (``dmrt bench --variants`` says it; the result records each
+# variant's seconds): DMT labels every kept depth map by graph cuts before its first frame.
+COSTS = {"dmrt": "seconds: a frame per view (the kitchen's 25 views at 512 px: ~8 s on 2 CPU cores)",
+         "splats": "seconds: as dmrt, less the raytracing",
+         "dmt": "minutes: DMT's graph-cut labeling of every kept depth map, once per bundle (cached in it; "
+                "the kitchen's 175 maps: > 15 min on 2 CPU cores), then a frame per view"}
+# the variants whose frames the report shows (and whose FLIP maps it draws), where run
+SHOWN = ("dmrt", "dmrt-view", "dmrt+gains", "dmrt+gains+leveling", "dmt+gains", "splats+gains")
+# the variants whose per-photo source breakdown the result keeps, where run
+SOURCES = ("dmrt", "dmrt-view", "dmrt+gains")
+# the data's own bounds: the kept photos reprojected through the geometry (reference/reprojection.py)
+BOUNDS = ("best_single", "view_closest")
 
 
 @dataclass
@@ -68,6 +87,43 @@ class RealViewsParams:
     dmt_labeler: str = "graphcut"
     # held-out views whose frames, photos and error images are kept for the report
     shown_views: int = 2
+    # the variants run: names or shell patterns of VARIANTS (``dmrt bench --variants 'dmrt*'``);
+    # empty = all
+    variants: tuple[str, ...] = ()
+    # the bounds: the best single kept photo, among those that see at least this share of the
+    # pixels some kept photo sees (one photo that sees a corner alone must not win), and the
+    # per-pixel view-closest kept photo, both reprojected through the reference mesh (Embree) when
+    # the scene has one, else through DMRT's depth with the kept photos' depth maps
+    bounds: bool = True
+    best_single_min_share: float = 0.5
+    # temporal stability: a slow walkthrough of this many frames (0: none), this wide, through the
+    # cameras of the first walk_keys kept photos (consecutive photos of a capture are near)
+    walk_frames: int = 24
+    walk_keys: int = 2
+    walk_width: int = 256
+
+    def __post_init__(self):
+        self.variants = tuple(self.variants)
+        select_variants(self.variants)  # an unknown name fails before anything runs
+
+
+def select_variants(patterns) -> list[str]:
+    """The names of :data:`VARIANTS` that ``patterns`` (names or :mod:`fnmatch` patterns such as
+    ``dmrt*``) select, in :data:`VARIANTS`' order; all of them for no pattern.
+
+    Raises
+    ------
+    ValueError
+        A pattern that selects nothing, naming it and the variants.
+    """
+    from fnmatch import fnmatchcase
+
+    patterns = list(patterns)
+    for pat in patterns:
+        if not any(fnmatchcase(v, pat) for v in VARIANTS):
+            raise ValueError(f"--variants {pat}: no such real_views variant (choose from {', '.join(VARIANTS)}, "
+                             f"or a pattern such as 'dmrt*')")
+    return [v for v in VARIANTS if not patterns or any(fnmatchcase(v, pat) for pat in patterns)]
 
 
 def holdout_indices(n_photos: int, every: int) -> list[int]:
@@ -228,8 +284,88 @@ def gain_recovery(scene_dir: Path, kept: list[int], gains: np.ndarray) -> dict |
             "log_spread_after": float(corrected.std(axis=0).mean())}
 
 
+def quality(rendered: np.ndarray, photo: np.ndarray, mask: np.ndarray) -> tuple[dict, np.ndarray]:
+    """PSNR (dB), SSIM and FLIP of ``rendered`` against ``photo`` over ``mask``, and FLIP's error map
+    ((h, w) float32, 0..1; :func:`reference.metrics.flip`)."""
+    from reference.metrics import flip
+
+    f, fmap = flip(rendered, photo, mask)
+    return {"psnr_db": psnr(rendered, photo, mask), "ssim": ssim(rendered, photo, mask), "flip": f}, fmap
+
+
+def view_geometry(raycaster, bundle, cam, dmrt_depth: np.ndarray | None):
+    """The surface the bounds reproject through at held-out camera ``cam`` and the kept photos'
+    occlusion tests: the reference mesh's Embree cast and occlusion rays when ``raycaster`` (a
+    :class:`reference.raycast.MeshRaycaster`) is given, else DMRT's depth there and the bundle's
+    depth maps. Returns ``(depth (h, w) float32 camera z, visibility(j) -> Visibility)``."""
+    from reference.reprojection import depth_map_visibility
+
+    if raycaster is not None:
+        cams = bundle.cameras
+        return raycaster.cast_camera(cam)[0], lambda j: lambda pts: raycaster.visible(pts, cams[j].center)
+    return dmrt_depth, lambda j: depth_map_visibility(bundle.cameras[j], bundle.depth_map(j))
+
+
+def data_bounds(bundle, cam, photo: np.ndarray, mask: np.ndarray, depth: np.ndarray, visibility,
+                min_share: float) -> dict:
+    """The data's own bounds at held-out camera ``cam`` (its ``photo`` at the frame size), over
+    ``mask`` (the pixels the renderers cover) and the surface ``depth`` ((h, w) camera z): every
+    kept photo reprojected through it (:mod:`reference.reprojection`).
+
+    Returns
+    -------
+    dict of :data:`BOUNDS` -> ``color`` (h, w, 3) uint8, ``pixels`` (h, w) bool (``mask`` where the
+    bound has a colour) and ``photo`` (best_single: the photo's name; view_closest: None), plus
+    ``photos`` (per kept photo that sees the view: ``photo``, ``share`` of ``mask``, ``psnr_db`` on
+    it) and ``seconds``.
+    """
+    from reference.reprojection import ViewClosest, reproject, reproject_photos
+
+    t0 = time.perf_counter()
+    mask = mask & (depth > 0)
+    total = max(int(mask.sum()), 1)
+    closest = ViewClosest(cam.height, cam.width)
+    rows = []
+    for r in reproject_photos(cam, depth, bundle.cameras, bundle.image, visibility):
+        closest.add(r)
+        m = mask & r.seen
+        if m.any():
+            rows.append({"index": r.photo, "photo": bundle.cameras[r.photo].name, "share": float(m.sum() / total),
+                         "psnr_db": psnr(_u8(r.color), photo, m)})
+    any_share = float((mask & closest.seen).sum() / total)
+    eligible = [x for x in rows if x["share"] >= min_share * any_share]
+    out = {"view_closest": {"color": _u8(closest.color), "pixels": mask & closest.seen, "photo": None}}
+    best = max(eligible, key=lambda x: x["psnr_db"], default=None)
+    if best is not None:
+        j = best["index"]
+        r = reproject(cam, depth, j, bundle.cameras[j], bundle.image(j), visibility(j))
+        out["best_single"] = {"color": _u8(r.color), "pixels": mask & r.seen, "photo": best["photo"]}
+    out["photos"] = sorted(({k: v for k, v in x.items() if k != "index"} for x in rows), key=lambda x: -x["share"])
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def _u8(color: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint(color), 0, 255).astype(np.uint8)
+
+
+def walk_cameras(scene, kept: list[int], p: RealViewsParams) -> list:
+    """The stability walkthrough: ``p.walk_frames`` cameras gliding through the first
+    ``p.walk_keys`` (at least 2) kept photos' cameras, at ``p.walk_width`` with the first key's
+    field of view and aspect; [] when there are none."""
+    from dmrt.runtime.walkthrough import camera_path
+
+    keys = [scene.cameras[i] for i in kept[:max(p.walk_keys, 2)]]
+    if p.walk_frames < 2 or len(keys) < 2:
+        return []
+    k = keys[0]
+    fov = float(np.degrees(2 * np.arctan(0.5 * k.width / k.fx)))
+    return camera_path(keys, p.walk_frames, p.walk_width, max(1, round(p.walk_width * k.height / k.width)), fov)
+
+
 def run_real_views(ws: Workspace, p: RealViewsParams, out: Path) -> dict:
     from dmrt.io.bundle import read_bundle
+    from reference.stability import walkthrough_change
 
     path, held, kept, prep_s, scene = holdout_bundle(ws, p.holdout_every)
     bundle = read_bundle(path)
@@ -243,51 +379,110 @@ def run_real_views(ws: Workspace, p: RealViewsParams, out: Path) -> dict:
         cam = scene.cameras[i].resized(min(p.width, scene.cameras[i].width), None)
         cams.append(cam)
         photos.append(photo_at(scene.read_image(i), cam.width, cam.height))
+    chosen = select_variants(p.variants)
+    walk = walk_cameras(scene, kept, p)
 
+    # the depth the bounds reproject through where the scene has no mesh: the first DMRT variant's
+    depth_of = next((v for v in chosen if VARIANTS[v][0] == "dmrt"), chosen[0])
     frames: dict[str, list] = {}
-    rows = []
-    for name, (kind, options) in VARIANTS.items():
-        renderer = make_renderer(bundle, kind, options, p)
+    depths, stability, seconds = [], {}, {}
+    for name in chosen:
+        kind, options = VARIANTS[name]
         t0 = time.perf_counter()
+        renderer = make_renderer(bundle, kind, options, p)
         try:
             # only what is measured: a frame's other buffers would take GBs at the paper's scale
-            frames[name] = [{"color": f["color"], "label": f["label"], "mask": f["depth"] > 0}
-                            for f in (renderer.render(cam) for cam in cams)]
+            frames[name] = []
+            for cam in cams:
+                f = renderer.render(cam)
+                frames[name].append({"color": f["color"], "label": f["label"], "mask": f["depth"] > 0})
+                if name == depth_of:
+                    depths.append(f["depth"])
+            if walk:
+                path_frames = [{"color": f["color"], "depth": f["depth"]} for f in map(renderer.render, walk)]
+                stability[name] = walkthrough_change(path_frames, walk)
         finally:
             renderer.release()
-        print(f"  {name}: {len(cams)} views in {time.perf_counter() - t0:.1f} s", flush=True)
+        seconds[name] = time.perf_counter() - t0
+        print(f"  {name}: {len(cams)} views + {len(walk)} walkthrough frames in {seconds[name]:.1f} s", flush=True)
 
-    views = []
-    common = [np.logical_and.reduce([frames[v][k]["mask"] for v in VARIANTS]) for k in range(len(cams))]
-    for name in VARIANTS:
-        per = []
-        for k, (cam, photo) in enumerate(zip(cams, photos)):
-            f = frames[name][k]
-            mask = f["mask"]
-            per.append({"psnr_db": psnr(f["color"], photo, mask), "ssim": ssim(f["color"], photo, mask),
-                        "surface_share": float(mask.mean()), "psnr_common_db": psnr(f["color"], photo, common[k]),
-                        "psnr_matched_db": psnr_matched(f["color"], photo, mask)})
-        rows.append({"variant": name, "renderer": VARIANTS[name][0], **VARIANTS[name][1], "views": per,
-                     **{f"mean_{key}": _nanmean([v[key] for v in per])
-                        for key in ("psnr_db", "ssim", "surface_share", "psnr_common_db", "psnr_matched_db")}})
-        r = {k: (np.nan if v is None else v) for k, v in rows[-1].items() if k.startswith("mean_")}
-        print(f"  {name:20s} PSNR {r['mean_psnr_db']:.2f} dB, SSIM {r['mean_ssim']:.3f}, surface "
-              f"{r['mean_surface_share']:.1%} (pixels every variant covers: {r['mean_psnr_common_db']:.2f} dB; "
-              f"exposure-matched {r['mean_psnr_matched_db']:.2f} dB)",
-              flush=True)
-    for k, cam in enumerate(cams):
-        views.append({"photo": cam.name, "frame_size": [cam.width, cam.height],
-                      "common_share": float(common[k].mean()),
-                      "sources": {v: source_breakdown(frames[v][k], photos[k], names) for v in ("dmrt", "dmrt+gains")}})
+    common = [np.logical_and.reduce([frames[v][k]["mask"] for v in chosen]) for k in range(len(cams))]
+    bounds, raycaster = [], None
+    if p.bounds and scene.mesh_path is not None:
+        from reference.raycast import MeshRaycaster
 
-    # the report's pictures: the views with the most common surface first
+        raycaster = MeshRaycaster.from_file(scene.mesh_path, origin=scene.origin)
+    for k, cam in enumerate(cams if p.bounds else []):
+        depth, visibility = view_geometry(raycaster, bundle, cam, depths[k])
+        bounds.append(data_bounds(bundle, cam, photos[k], common[k], depth, visibility, p.best_single_min_share))
+
     shown = sorted(range(len(cams)), key=lambda k: -common[k].mean())[:max(0, p.shown_views)]
     maps = {}
+    rows = []
+    keys = ("psnr_db", "ssim", "flip", "surface_share", "psnr_common_db", "psnr_matched_db")
+    for name in chosen:
+        per = []
+        for k, photo in enumerate(photos):
+            f = frames[name][k]
+            q, fmap = quality(f["color"], photo, f["mask"])
+            row = {**q, "surface_share": float(f["mask"].mean()), "psnr_common_db": psnr(f["color"], photo, common[k]),
+                   "psnr_matched_db": psnr_matched(f["color"], photo, f["mask"])}
+            # this variant on each bound's own pixels, like against like (FLIP: its map over its
+            # surface, averaged over them)
+            for b in (BOUNDS if bounds else ()):
+                if b in bounds[k]:
+                    px = bounds[k][b]["pixels"]
+                    row[f"{b}_pixels"] = {"psnr_db": psnr(f["color"], photo, px),
+                                          "flip": float(fmap[px].mean()) if px.any() else float("nan")}
+            per.append(row)
+            if k in shown and name in SHOWN:
+                maps[f"{name}_flip_{k}"] = fmap.astype(np.float16)
+        rows.append({"variant": name, "renderer": VARIANTS[name][0], **VARIANTS[name][1], "seconds": seconds[name],
+                     "cost": COSTS[VARIANTS[name][0]], "views": per, "stability": stability.get(name),
+                     **{f"mean_{key}": _nanmean([v[key] for v in per]) for key in keys},
+                     **{f"mean_{b}_pixels_{key}": _nanmean([v.get(f"{b}_pixels", {}).get(key) for v in per])
+                        for b in (BOUNDS if bounds else ()) for key in ("psnr_db", "flip")}})
+        r = {k: (np.nan if v is None else v) for k, v in rows[-1].items() if k.startswith("mean_")}
+        st = stability.get(name) or {}
+        print(f"  {name:20s} PSNR {r['mean_psnr_db']:.2f} dB, SSIM {r['mean_ssim']:.3f}, FLIP {r['mean_flip']:.3f}, "
+              f"surface {r['mean_surface_share']:.1%} (pixels every variant covers: {r['mean_psnr_common_db']:.2f} dB; "
+              f"exposure-matched {r['mean_psnr_matched_db']:.2f} dB); walkthrough change "
+              f"{st.get('mean', np.nan):.2f} levels (max {st.get('max', np.nan):.2f})", flush=True)
+
+    views, bound_rows = [], {b: [] for b in BOUNDS}
+    for k, cam in enumerate(cams):
+        view = {"photo": cam.name, "frame_size": [cam.width, cam.height], "common_share": float(common[k].mean()),
+                "sources": {v: source_breakdown(frames[v][k], photos[k], names) for v in SOURCES if v in frames}}
+        if bounds:
+            view["bounds"] = {}
+            for b in BOUNDS:
+                if b not in bounds[k]:
+                    view["bounds"][b] = None
+                    continue
+                got = bounds[k][b]
+                q, fmap = quality(got["color"], photos[k], got["pixels"])
+                view["bounds"][b] = {**q, "photo": got["photo"], "share": float(got["pixels"].sum() / max(common[k].sum(), 1))}
+                bound_rows[b].append(view["bounds"][b])
+                if k in shown:
+                    maps[f"{b}_color_{k}"], maps[f"{b}_mask_{k}"] = got["color"], got["pixels"]
+                    maps[f"{b}_flip_{k}"] = fmap.astype(np.float16)
+            view["bounds"]["photos"] = bounds[k]["photos"]
+            view["bounds"]["seconds"] = bounds[k]["seconds"]
+        views.append(view)
+    for b in BOUNDS:
+        if bounds:
+            mb = {f"mean_{key}": _nanmean([x[key] for x in bound_rows[b]]) for key in ("psnr_db", "ssim", "flip", "share")}
+            print(f"  bound {b:13s} PSNR {_fmt(mb['mean_psnr_db'])} dB, FLIP {_fmt(mb['mean_flip'], 3)} on "
+                  f"{_fmt(100 * (mb['mean_share'] or np.nan), 1)} % of the common pixels "
+                  f"({len(bound_rows[b])} of {len(cams)} views)", flush=True)
+
+    # the report's pictures: the views with the most common surface first
     for k in shown:
         maps[f"photo_{k}"] = photos[k]
         for v in SHOWN:
-            maps[f"{v}_color_{k}"] = frames[v][k]["color"]
-            maps[f"{v}_mask_{k}"] = frames[v][k]["mask"]
+            if v in frames:
+                maps[f"{v}_color_{k}"] = frames[v][k]["color"]
+                maps[f"{v}_mask_{k}"] = frames[v][k]["mask"]
     if maps:
         Path(out).mkdir(parents=True, exist_ok=True)
         np.savez_compressed(Path(out) / "real_views.npz", **maps)
@@ -298,8 +493,22 @@ def run_real_views(ws: Workspace, p: RealViewsParams, out: Path) -> dict:
             "preprocess_s": prep_s, "photometric": meta.get("photometric"),
             "photo_gains": bundle.photo_gains.tolist(),
             "gain_recovery": gain_recovery(ws.scene_dir, kept, bundle.photo_gains),
-            "variants": rows, "views": views, "shown_views": shown, "shown_variants": list(SHOWN),
+            "variants": rows, "views": views, "shown_views": shown,
+            "shown_variants": [v for v in SHOWN if v in frames],
+            "bounds": None if not bounds else {
+                "geometry": "the reference mesh, Embree" if raycaster is not None
+                else f"{depth_of}'s depth and the kept photos' depth maps",
+                "best_single_min_share": p.best_single_min_share,
+                **{b: {f"mean_{key}": _nanmean([x[key] for x in bound_rows[b]])
+                       for key in ("psnr_db", "ssim", "flip", "share")} | {"views": len(bound_rows[b])}
+                   for b in BOUNDS}},
+            "walkthrough": None if not walk else {"frames": len(walk), "keys": [scene.cameras[i].name for i in kept[:p.walk_keys]],
+                                                  "frame_size": [walk[0].width, walk[0].height]},
             "maps_file": "real_views.npz" if maps else None, "maps": sorted(maps)}
+
+
+def _fmt(v, digits: int = 2) -> str:
+    return "nan" if v is None or not np.isfinite(v) else f"{v:.{digits}f}"
 
 
 def _nanmean(values) -> float | None:
