@@ -2,23 +2,32 @@
 
 Users judge a textured scan by how close its renders look to their photographs, and the field
 measures that on held-out views: photos left out of the input, rendered at their cameras and
-compared with them (PSNR, SSIM). This experiment does the same for any scene with photos (no
-reference mesh needed, so real scenes too):
+compared with them (PSNR, SSIM, FLIP). This experiment does the same for any scene with photos
+(no reference mesh needed, so real scenes too):
 
 1. hold out every ``holdout_every``-th photo (indices 0, N, 2N, ... of the scene's COLMAP image
    order; N = 8 is the field's habit) and preprocess the scene once without them: a derived scene
    in the work folder whose model and ``images/`` hold only the other photos (so the bundle has
    no camera, photo or depth map of a held-out one);
-2. render each held-out camera (its intrinsics at the frame width, at most the photo's) with DMRT,
-   DMT and the coarse splats (``RenderConfig(raytrace=False)``), each with the photometric gains
-   off and on, and DMRT also with screen-space leveling;
+2. render each held-out camera (its intrinsics at the frame width, at most the photo's) with the
+   chosen :data:`VARIANTS` (``dmrt bench --variants``; all by default): DMRT, DMT and the coarse
+   splats (``RenderConfig(raytrace=False)``), each with the photometric gains off and on, and DMRT
+   also with screen-space leveling;
 3. compare each frame with the photo (area-resampled to the frame size) over the pixels the
-   frame has a surface at: PSNR (dB, 8-bit), SSIM (scikit-image; both images masked to black
-   outside that surface, its map averaged over the surface) and the share of pixels with a
-   surface, per photo and as means over the photos; and PSNR over the pixels *every* variant
-   covers (``common``), which compares variants on the same pixels; and, as a diagnostic, PSNR
-   after the per-channel gain that best maps the frame onto the photo (``matched``: what is left
-   once the held-out photo's own exposure, which no renderer can know, is taken out).
+   frame has a surface at: PSNR (dB, 8-bit), SSIM (scikit-image) and FLIP (NVIDIA's perceptual
+   difference; both images masked to black outside that surface, their maps averaged over the
+   surface) and the share of pixels with a surface, per photo and as means over the photos; and
+   PSNR over the pixels *every* variant covers (``common``), which compares variants on the same
+   pixels; and, as a diagnostic, PSNR after the per-channel gain that best maps the frame onto the
+   photo (``matched``: what is left once the held-out photo's own exposure, which no renderer can
+   know, is taken out);
+4. the data's own bounds on the common pixels: the kept photos reprojected through the scene's
+   geometry (the reference mesh when there is one, else DMRT's depth and the depth maps;
+   :mod:`reference.reprojection`): the best single photo, and per pixel the photo whose ray is
+   closest in angle to the view's; each variant is measured on each bound's own pixels;
+5. temporal stability: a slow walkthrough through kept photos' cameras, rendered by each variant;
+   the colour change between consecutive frames that the motion does not explain
+   (:mod:`reference.stability`): popping seams.
 
 A source-photo breakdown per view (which photos textured how much of it, and how well each agrees
 with the held-out photo) shows where the error comes from. On a synthetic scene the solved gains
@@ -73,6 +82,8 @@ SHOWN = ("dmrt", "dmrt-view", "dmrt+gains", "dmrt+gains+leveling", "dmt+gains", 
 SOURCES = ("dmrt", "dmrt-view", "dmrt+gains")
 # the data's own bounds: the kept photos reprojected through the geometry (reference/reprojection.py)
 BOUNDS = ("best_single", "view_closest")
+# the per-view measurements each variant row averages (``mean_<key>``)
+MEANS = ("psnr_db", "ssim", "flip", "surface_share", "psnr_common_db", "psnr_matched_db")
 
 
 @dataclass
@@ -349,23 +360,73 @@ def _u8(color: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(color), 0, 255).astype(np.uint8)
 
 
-def walk_cameras(scene, kept: list[int], p: RealViewsParams) -> list:
+def walk_cameras(scene, kept: list[int], p: RealViewsParams) -> tuple[list, list[str]]:
     """The stability walkthrough: ``p.walk_frames`` cameras gliding through the first
     ``p.walk_keys`` (at least 2) kept photos' cameras, at ``p.walk_width`` with the first key's
-    field of view and aspect; [] when there are none."""
+    field of view and aspect, and the keys' names; ([], []) when there are none."""
     from dmrt.runtime.walkthrough import camera_path
 
     keys = [scene.cameras[i] for i in kept[:max(p.walk_keys, 2)]]
     if p.walk_frames < 2 or len(keys) < 2:
-        return []
+        return [], []
     k = keys[0]
     fov = float(np.degrees(2 * np.arctan(0.5 * k.width / k.fx)))
-    return camera_path(keys, p.walk_frames, p.walk_width, max(1, round(p.walk_width * k.height / k.width)), fov)
+    height = max(1, round(p.walk_width * k.height / k.width))
+    return camera_path(keys, p.walk_frames, p.walk_width, height, fov), [c.name for c in keys]
+
+
+def render_variants(bundle, chosen: list[str], cams, walk, p: RealViewsParams, depth_of: str) -> dict:
+    """Render the held-out cameras ``cams`` and the walkthrough ``walk`` with each variant of
+    ``chosen``. Returns ``frames`` {variant: per view {color, label, mask}}, ``depths`` (variant
+    ``depth_of``'s depth per view), ``stability`` {variant: :func:`reference.stability.walkthrough_change`}
+    and ``seconds`` {variant: the renderer made, the views and the walkthrough rendered}."""
+    from reference.stability import walkthrough_change
+
+    out = {"frames": {}, "depths": [], "stability": {}, "seconds": {}}
+    for name in chosen:
+        kind, options = VARIANTS[name]
+        t0 = time.perf_counter()
+        renderer = make_renderer(bundle, kind, options, p)
+        try:
+            # only what is measured: a frame's other buffers would take GBs at the paper's scale
+            views = out["frames"][name] = []
+            for cam in cams:
+                f = renderer.render(cam)
+                views.append({"color": f["color"], "label": f["label"], "mask": f["depth"] > 0})
+                if name == depth_of:
+                    out["depths"].append(f["depth"])
+            if walk:
+                path = [{"color": f["color"], "depth": f["depth"]} for f in map(renderer.render, walk)]
+                out["stability"][name] = walkthrough_change(path, walk)
+        finally:
+            renderer.release()
+        out["seconds"][name] = time.perf_counter() - t0
+        print(f"  {name}: {len(cams)} views + {len(walk)} walkthrough frames in {out['seconds'][name]:.1f} s", flush=True)
+    return out
+
+
+def variant_views(frames: list[dict], photos, common, bounds) -> tuple[list[dict], list[np.ndarray]]:
+    """Per held-out view, one variant's ``frames`` against the ``photos``: :func:`quality`, surface
+    share, PSNR on the ``common`` pixels, exposure-matched PSNR, and PSNR and FLIP on each bound's
+    own pixels (``<bound>_pixels``; FLIP: its map over the frame's surface averaged over them:
+    like against like). Returns the rows and the FLIP maps."""
+    rows, fmaps = [], []
+    for k, (f, photo) in enumerate(zip(frames, photos)):
+        q, fmap = quality(f["color"], photo, f["mask"])
+        row = {**q, "surface_share": float(f["mask"].mean()), "psnr_common_db": psnr(f["color"], photo, common[k]),
+               "psnr_matched_db": psnr_matched(f["color"], photo, f["mask"])}
+        for b in BOUNDS:
+            if bounds and b in bounds[k]:
+                px = bounds[k][b]["pixels"]
+                row[f"{b}_pixels"] = {"psnr_db": psnr(f["color"], photo, px),
+                                      "flip": float(fmap[px].mean()) if px.any() else float("nan")}
+        rows.append(row)
+        fmaps.append(fmap)
+    return rows, fmaps
 
 
 def run_real_views(ws: Workspace, p: RealViewsParams, out: Path) -> dict:
     from dmrt.io.bundle import read_bundle
-    from reference.stability import walkthrough_change
 
     path, held, kept, prep_s, scene = holdout_bundle(ws, p.holdout_every)
     bundle = read_bundle(path)
@@ -380,31 +441,11 @@ def run_real_views(ws: Workspace, p: RealViewsParams, out: Path) -> dict:
         cams.append(cam)
         photos.append(photo_at(scene.read_image(i), cam.width, cam.height))
     chosen = select_variants(p.variants)
-    walk = walk_cameras(scene, kept, p)
-
+    walk, walk_keys = walk_cameras(scene, kept, p)
     # the depth the bounds reproject through where the scene has no mesh: the first DMRT variant's
     depth_of = next((v for v in chosen if VARIANTS[v][0] == "dmrt"), chosen[0])
-    frames: dict[str, list] = {}
-    depths, stability, seconds = [], {}, {}
-    for name in chosen:
-        kind, options = VARIANTS[name]
-        t0 = time.perf_counter()
-        renderer = make_renderer(bundle, kind, options, p)
-        try:
-            # only what is measured: a frame's other buffers would take GBs at the paper's scale
-            frames[name] = []
-            for cam in cams:
-                f = renderer.render(cam)
-                frames[name].append({"color": f["color"], "label": f["label"], "mask": f["depth"] > 0})
-                if name == depth_of:
-                    depths.append(f["depth"])
-            if walk:
-                path_frames = [{"color": f["color"], "depth": f["depth"]} for f in map(renderer.render, walk)]
-                stability[name] = walkthrough_change(path_frames, walk)
-        finally:
-            renderer.release()
-        seconds[name] = time.perf_counter() - t0
-        print(f"  {name}: {len(cams)} views + {len(walk)} walkthrough frames in {seconds[name]:.1f} s", flush=True)
+    rendered = render_variants(bundle, chosen, cams, walk, p, depth_of)
+    frames = rendered["frames"]
 
     common = [np.logical_and.reduce([frames[v][k]["mask"] for v in chosen]) for k in range(len(cams))]
     bounds, raycaster = [], None
@@ -413,76 +454,65 @@ def run_real_views(ws: Workspace, p: RealViewsParams, out: Path) -> dict:
 
         raycaster = MeshRaycaster.from_file(scene.mesh_path, origin=scene.origin)
     for k, cam in enumerate(cams if p.bounds else []):
-        depth, visibility = view_geometry(raycaster, bundle, cam, depths[k])
+        depth, visibility = view_geometry(raycaster, bundle, cam, rendered["depths"][k])
         bounds.append(data_bounds(bundle, cam, photos[k], common[k], depth, visibility, p.best_single_min_share))
 
+    # the report's pictures: the views with the most common surface first
     shown = sorted(range(len(cams)), key=lambda k: -common[k].mean())[:max(0, p.shown_views)]
     maps = {}
+    for k in shown:
+        maps[f"photo_{k}"] = photos[k]
     rows = []
-    keys = ("psnr_db", "ssim", "flip", "surface_share", "psnr_common_db", "psnr_matched_db")
+    measured = [b for b in BOUNDS if bounds]
     for name in chosen:
-        per = []
-        for k, photo in enumerate(photos):
-            f = frames[name][k]
-            q, fmap = quality(f["color"], photo, f["mask"])
-            row = {**q, "surface_share": float(f["mask"].mean()), "psnr_common_db": psnr(f["color"], photo, common[k]),
-                   "psnr_matched_db": psnr_matched(f["color"], photo, f["mask"])}
-            # this variant on each bound's own pixels, like against like (FLIP: its map over its
-            # surface, averaged over them)
-            for b in (BOUNDS if bounds else ()):
-                if b in bounds[k]:
-                    px = bounds[k][b]["pixels"]
-                    row[f"{b}_pixels"] = {"psnr_db": psnr(f["color"], photo, px),
-                                          "flip": float(fmap[px].mean()) if px.any() else float("nan")}
-            per.append(row)
-            if k in shown and name in SHOWN:
-                maps[f"{name}_flip_{k}"] = fmap.astype(np.float16)
-        rows.append({"variant": name, "renderer": VARIANTS[name][0], **VARIANTS[name][1], "seconds": seconds[name],
-                     "cost": COSTS[VARIANTS[name][0]], "views": per, "stability": stability.get(name),
-                     **{f"mean_{key}": _nanmean([v[key] for v in per]) for key in keys},
+        per, fmaps = variant_views(frames[name], photos, common, bounds)
+        for k in shown if name in SHOWN else ():
+            maps[f"{name}_color_{k}"], maps[f"{name}_mask_{k}"] = frames[name][k]["color"], frames[name][k]["mask"]
+            maps[f"{name}_flip_{k}"] = fmaps[k].astype(np.float16)
+        st = rendered["stability"].get(name)
+        rows.append({"variant": name, "renderer": VARIANTS[name][0], **VARIANTS[name][1],
+                     "seconds": rendered["seconds"][name], "cost": COSTS[VARIANTS[name][0]], "views": per,
+                     "stability": st, **{f"mean_{key}": _nanmean([v[key] for v in per]) for key in MEANS},
                      **{f"mean_{b}_pixels_{key}": _nanmean([v.get(f"{b}_pixels", {}).get(key) for v in per])
-                        for b in (BOUNDS if bounds else ()) for key in ("psnr_db", "flip")}})
+                        for b in measured for key in ("psnr_db", "flip")}})
         r = {k: (np.nan if v is None else v) for k, v in rows[-1].items() if k.startswith("mean_")}
-        st = stability.get(name) or {}
         print(f"  {name:20s} PSNR {r['mean_psnr_db']:.2f} dB, SSIM {r['mean_ssim']:.3f}, FLIP {r['mean_flip']:.3f}, "
               f"surface {r['mean_surface_share']:.1%} (pixels every variant covers: {r['mean_psnr_common_db']:.2f} dB; "
               f"exposure-matched {r['mean_psnr_matched_db']:.2f} dB); walkthrough change "
-              f"{st.get('mean', np.nan):.2f} levels (max {st.get('max', np.nan):.2f})", flush=True)
+              f"{_fmt((st or {}).get('mean'))} levels (max {_fmt((st or {}).get('max'))})", flush=True)
 
-    views, bound_rows = [], {b: [] for b in BOUNDS}
+    views, bound_rows = [], {b: [] for b in measured}
     for k, cam in enumerate(cams):
         view = {"photo": cam.name, "frame_size": [cam.width, cam.height], "common_share": float(common[k].mean()),
                 "sources": {v: source_breakdown(frames[v][k], photos[k], names) for v in SOURCES if v in frames}}
         if bounds:
-            view["bounds"] = {}
-            for b in BOUNDS:
-                if b not in bounds[k]:
-                    view["bounds"][b] = None
+            view["bounds"] = {"photos": bounds[k]["photos"], "seconds": bounds[k]["seconds"]}
+            for b in measured:
+                got = bounds[k].get(b)
+                view["bounds"][b] = None
+                if got is None:
                     continue
-                got = bounds[k][b]
                 q, fmap = quality(got["color"], photos[k], got["pixels"])
-                view["bounds"][b] = {**q, "photo": got["photo"], "share": float(got["pixels"].sum() / max(common[k].sum(), 1))}
+                view["bounds"][b] = {**q, "photo": got["photo"],
+                                     "share": float(got["pixels"].sum() / max(common[k].sum(), 1))}
                 bound_rows[b].append(view["bounds"][b])
                 if k in shown:
                     maps[f"{b}_color_{k}"], maps[f"{b}_mask_{k}"] = got["color"], got["pixels"]
                     maps[f"{b}_flip_{k}"] = fmap.astype(np.float16)
-            view["bounds"]["photos"] = bounds[k]["photos"]
-            view["bounds"]["seconds"] = bounds[k]["seconds"]
         views.append(view)
-    for b in BOUNDS:
-        if bounds:
-            mb = {f"mean_{key}": _nanmean([x[key] for x in bound_rows[b]]) for key in ("psnr_db", "ssim", "flip", "share")}
+    summary = None
+    if bounds:
+        summary = {"geometry": "the reference mesh, Embree" if raycaster is not None
+                   else f"{depth_of}'s depth and the kept photos' depth maps",
+                   "best_single_min_share": p.best_single_min_share}
+        for b in measured:
+            summary[b] = {f"mean_{key}": _nanmean([x[key] for x in bound_rows[b]])
+                          for key in ("psnr_db", "ssim", "flip", "share")} | {"views": len(bound_rows[b])}
+            mb = summary[b]
             print(f"  bound {b:13s} PSNR {_fmt(mb['mean_psnr_db'])} dB, FLIP {_fmt(mb['mean_flip'], 3)} on "
                   f"{_fmt(100 * (mb['mean_share'] or np.nan), 1)} % of the common pixels "
-                  f"({len(bound_rows[b])} of {len(cams)} views)", flush=True)
+                  f"({mb['views']} of {len(cams)} views)", flush=True)
 
-    # the report's pictures: the views with the most common surface first
-    for k in shown:
-        maps[f"photo_{k}"] = photos[k]
-        for v in SHOWN:
-            if v in frames:
-                maps[f"{v}_color_{k}"] = frames[v][k]["color"]
-                maps[f"{v}_mask_{k}"] = frames[v][k]["mask"]
     if maps:
         Path(out).mkdir(parents=True, exist_ok=True)
         np.savez_compressed(Path(out) / "real_views.npz", **maps)
@@ -494,16 +524,9 @@ def run_real_views(ws: Workspace, p: RealViewsParams, out: Path) -> dict:
             "photo_gains": bundle.photo_gains.tolist(),
             "gain_recovery": gain_recovery(ws.scene_dir, kept, bundle.photo_gains),
             "variants": rows, "views": views, "shown_views": shown,
-            "shown_variants": [v for v in SHOWN if v in frames],
-            "bounds": None if not bounds else {
-                "geometry": "the reference mesh, Embree" if raycaster is not None
-                else f"{depth_of}'s depth and the kept photos' depth maps",
-                "best_single_min_share": p.best_single_min_share,
-                **{b: {f"mean_{key}": _nanmean([x[key] for x in bound_rows[b]])
-                       for key in ("psnr_db", "ssim", "flip", "share")} | {"views": len(bound_rows[b])}
-                   for b in BOUNDS}},
-            "walkthrough": None if not walk else {"frames": len(walk), "keys": [scene.cameras[i].name for i in kept[:p.walk_keys]],
-                                                  "frame_size": [walk[0].width, walk[0].height]},
+            "shown_variants": [v for v in SHOWN if v in frames], "bounds": summary,
+            "walkthrough": {"frames": len(walk), "keys": walk_keys, "frame_size": [walk[0].width, walk[0].height]}
+            if walk else None,
             "maps_file": "real_views.npz" if maps else None, "maps": sorted(maps)}
 
 
