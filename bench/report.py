@@ -908,8 +908,8 @@ def _real_views_bounds(s: Section, m: dict) -> None:
         return
     if b:
         s.text(f"What the photos allow: at each held-out view the kept photos are reprojected through the scene's "
-               f"geometry ({b['geometry']}: a photo sees a point where the mesh does not occlude it, or where its "
-               f"depth map agrees within 2 % + 2 texels), on the pixels every variant covers. **Best single photo**: "
+               f"geometry ({b['geometry']}: a photo sees a point where its depth map agrees within 2 % + 2 texels), "
+               f"on the pixels every variant covers ({fmt(b.get('seconds_per_view'))} s per view). **Best single photo**: "
                f"the kept photo with the highest PSNR among those that see at least "
                f"{_pct(b['best_single_min_share'])} % of the pixels some kept photo sees, alone (on the pixels it "
                f"sees). **View-closest photo per pixel**: at each pixel, of the kept photos that see the point, the "
