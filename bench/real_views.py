@@ -438,6 +438,7 @@ def variant_views(frames: list[dict], photos, common, bounds) -> tuple[list[dict
 
 def run_real_views(ws: Workspace, p: RealViewsParams, out: Path) -> dict:
     from dmrt.io.bundle import read_bundle
+    from reference.reprojection import DEPTH_TOLERANCE_REL, DEPTH_TOLERANCE_TEXELS
 
     path, held, kept, prep_s, scene = holdout_bundle(ws, p.holdout_every)
     bundle = read_bundle(path)
@@ -517,6 +518,7 @@ def run_real_views(ws: Workspace, p: RealViewsParams, out: Path) -> dict:
     if bounds:
         summary = {"geometry": "the reference mesh: Embree casts at the view and at each kept photo"
                    if raycaster is not None else f"{depth_of}'s depth and the bundle's depth maps",
+                   "depth_tolerance": {"relative": DEPTH_TOLERANCE_REL, "texels": DEPTH_TOLERANCE_TEXELS},
                    "best_single_min_share": p.best_single_min_share,
                    "seconds_per_view": float(np.mean([x["seconds"] for x in bounds]))}
         for b in measured:

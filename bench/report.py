@@ -907,8 +907,10 @@ def _real_views_bounds(s: Section, m: dict) -> None:
     if not b and not walk:
         return
     if b:
+        tol = b.get("depth_tolerance") or {}
         s.text(f"What the photos allow: at each held-out view the kept photos are reprojected through the scene's "
-               f"geometry ({b['geometry']}: a photo sees a point where its depth map agrees within 2 % + 2 texels), "
+               f"geometry ({b['geometry']}: a photo sees a point where its depth map agrees within "
+               f"{_pct(tol.get('relative'))} % of its depth + {fmt(tol.get('texels'))} texels), "
                f"on the pixels every variant covers ({fmt(b.get('seconds_per_view'))} s per view). **Best single photo**: "
                f"the kept photo with the highest PSNR among those that see at least "
                f"{_pct(b['best_single_min_share'])} % of the pixels some kept photo sees, alone (on the pixels it "
