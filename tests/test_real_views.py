@@ -85,20 +85,19 @@ def test_select_variants():
 
 def test_report_reads_a_result_before_the_bounds(tmp_path):
     """A real_views result of version 1 (no FLIP, bounds or walkthrough: reports/history keeps
-    them) still gives its section."""
+    them) still gives its section, without the bounds' tables."""
     from pathlib import Path
 
-    from dmrt.app.cli import main
+    from bench.report import ResultSet, Table, section_real_views
 
     old = Path(__file__).parents[1] / "reports/history/nvidia-h200-pcie-sse2/fdb23828dc27-paper/real_views.json"
     if not old.is_file():
         pytest.skip(f"{old} is not in this checkout")
-    results = tmp_path / "results" / "machine" / "abc-paper"
-    results.mkdir(parents=True)
-    (results / "real_views.json").write_bytes(old.read_bytes())
-    assert main(["report", str(tmp_path / "results"), "--out", str(tmp_path / "report")]) == 0
-    md = (tmp_path / "report" / "REPORT.md").read_text()
-    assert "## Real views" in md and "csv/real_views.csv" in md and "real_views_vs_bounds" not in md
+    rs = ResultSet(tmp_path, "machine", "abc", "paper", experiments={"real_views": json.loads(old.read_text())})
+    s = section_real_views(rs, tmp_path)
+    tables = [b.name for b in s.blocks if isinstance(b, Table)]
+    assert tables == ["real_views", "real_views_per_photo", "real_views_sources"]
+    assert s.blocks[-1] == "No figure: real_views's image maps (.npz) are not in the results folder."
 
 
 def test_holdout_indices():
