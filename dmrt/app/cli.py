@@ -417,7 +417,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "habit; a scene of few photos needs a smaller N to hold out more than photo 0)")
     from bench.real_views import COSTS, VARIANTS
 
-    costs = "; ".join(f"{k}*: {v}" for k, v in COSTS.items())
+    costs = "; ".join(f"{k}*: {v}" for k, v in COSTS.items())  # by renderer: a variant's name starts with it
     bench.add_argument("--variants", nargs="+", metavar="NAME",
                        help=f"real_views: run only these renderer variants, names or patterns ({' '.join(VARIANTS)}; "
                             f"e.g. 'dmrt*'; default all). What each costs: {costs}")
