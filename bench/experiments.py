@@ -850,9 +850,10 @@ def _real_views_params(pr: BenchPreset):
     from bench.real_views import RealViewsParams
 
     # frames at least 512 wide (the photo's width if smaller): held-out photos are judged in detail;
-    # the stability walkthrough as long and as wide as the preset's
+    # the stability walkthrough as wide as the preset's and half as long (it joins two photos, not
+    # the preset's tour; a DMT frame takes ~1 s on llvmpipe)
     return RealViewsParams(width=max(pr.quality_width, 512), dmt_labeler=pr.dmt_labeler,
-                           walk_frames=pr.walkthrough_frames, walk_width=pr.frame_size[0])
+                           walk_frames=max(6, pr.walkthrough_frames // 2), walk_width=pr.frame_size[0])
 
 
 def _q(preset: BenchPreset) -> dict:
