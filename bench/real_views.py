@@ -311,8 +311,8 @@ def photo_depths(bundle, raycaster):
     """The kept photos' depth maps the bounds test visibility with: ``j -> (h, w) float32`` camera
     z. With ``raycaster`` (a :class:`reference.raycast.MeshRaycaster` of the reference mesh) Embree
     casts of the mesh at the bundle's depth-map sizes, each cast once and kept (a cast per photo
-    costs far less than occlusion rays per photo and view: 8 kitchen views x 192 photos took over
-    10 minutes that way on 2 cores); else the bundle's own depth maps."""
+    costs far less than occlusion rays per photo and view: 8 kitchen views x 192 photos were not
+    done after 17 minutes that way on 2 shared cores); else the bundle's own depth maps."""
     if raycaster is None:
         return bundle.depth_map
     sizes = bundle.meta.get("depthmap_sizes") or [[c.width, c.height] for c in bundle.cameras]
