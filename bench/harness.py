@@ -31,7 +31,8 @@ from bench.workspace import (PRESETS, RESULTS_FORMAT, BenchPreset, Workspace, co
 
 
 def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, progress: bool = True,
-              machine_name: str | None = None, holdout_every: int | None = None) -> dict:
+              machine_name: str | None = None, holdout_every: int | None = None,
+              variants: list[str] | None = None) -> dict:
     """Run the experiments of ``preset`` and write their results under ``out``.
 
     Parameters
@@ -44,6 +45,8 @@ def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, 
     machine_name : results folder name of the machine (default: from the GL renderer)
     holdout_every : the experiments that hold photos out (``real_views``) hold out photos 0, N,
         2N, ... (default: theirs, 8)
+    variants : the experiments that compare renderer variants (``real_views``) run only these
+        (names or patterns, e.g. ``dmrt*``; default: all)
 
     Returns
     -------
@@ -61,6 +64,14 @@ def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, 
     unknown = [n for n in names if n not in EXPERIMENTS]
     if unknown:
         raise ValueError(f"unknown experiment(s) {', '.join(unknown)} (choose from {', '.join(EXPERIMENTS)})")
+    # the options an experiment takes when its parameters have the field; made before anything
+    # runs, so that a bad value (its dataclass checks it) costs no experiment
+    overrides = {k: v for k, v in (("holdout_every", holdout_every), ("variants", variants)) if v is not None}
+    params_of = {}
+    for name in names:
+        params = EXPERIMENTS[name].params(preset)
+        fields = {f.name for f in dataclasses.fields(params)}
+        params_of[name] = dataclasses.replace(params, **{k: v for k, v in overrides.items() if k in fields})
     machine = machine_info()
     if machine_name:
         machine["name"] = machine_name
@@ -75,9 +86,7 @@ def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, 
     t_all = time.perf_counter()
     for n, name in enumerate(names, 1):
         exp = EXPERIMENTS[name]
-        params = exp.params(preset)
-        if holdout_every is not None and "holdout_every" in {f.name for f in dataclasses.fields(params)}:
-            params = dataclasses.replace(params, holdout_every=holdout_every)
+        params = params_of[name]
         print(f"[bench] {n}/{len(names)} {name}: {exp.title}", flush=True)
         t0 = time.perf_counter()
         (rdir / f"{name}.failed.json").unlink(missing_ok=True)

@@ -2,23 +2,32 @@
 
 Users judge a textured scan by how close its renders look to their photographs, and the field
 measures that on held-out views: photos left out of the input, rendered at their cameras and
-compared with them (PSNR, SSIM). This experiment does the same for any scene with photos (no
-reference mesh needed, so real scenes too):
+compared with them (PSNR, SSIM, FLIP). This experiment does the same for any scene with photos
+(no reference mesh needed, so real scenes too):
 
 1. hold out every ``holdout_every``-th photo (indices 0, N, 2N, ... of the scene's COLMAP image
    order; N = 8 is the field's habit) and preprocess the scene once without them: a derived scene
    in the work folder whose model and ``images/`` hold only the other photos (so the bundle has
    no camera, photo or depth map of a held-out one);
-2. render each held-out camera (its intrinsics at the frame width, at most the photo's) with DMRT,
-   DMT and the coarse splats (``RenderConfig(raytrace=False)``), each with the photometric gains
-   off and on, and DMRT also with screen-space leveling;
+2. render each held-out camera (its intrinsics at the frame width, at most the photo's) with the
+   chosen :data:`VARIANTS` (``dmrt bench --variants``; all by default): DMRT, DMT and the coarse
+   splats (``RenderConfig(raytrace=False)``), each with the photometric gains off and on, and DMRT
+   also with screen-space leveling;
 3. compare each frame with the photo (area-resampled to the frame size) over the pixels the
-   frame has a surface at: PSNR (dB, 8-bit), SSIM (scikit-image; both images masked to black
-   outside that surface, its map averaged over the surface) and the share of pixels with a
-   surface, per photo and as means over the photos; and PSNR over the pixels *every* variant
-   covers (``common``), which compares variants on the same pixels; and, as a diagnostic, PSNR
-   after the per-channel gain that best maps the frame onto the photo (``matched``: what is left
-   once the held-out photo's own exposure, which no renderer can know, is taken out).
+   frame has a surface at: PSNR (dB, 8-bit), SSIM (scikit-image) and FLIP (NVIDIA's perceptual
+   difference; both images masked to black outside that surface, their maps averaged over the
+   surface) and the share of pixels with a surface, per photo and as means over the photos; and
+   PSNR over the pixels *every* variant covers (``common``), which compares variants on the same
+   pixels; and, as a diagnostic, PSNR after the per-channel gain that best maps the frame onto the
+   photo (``matched``: what is left once the held-out photo's own exposure, which no renderer can
+   know, is taken out);
+4. the data's own bounds on the common pixels: the kept photos reprojected through the scene's
+   geometry (the reference mesh when there is one, else DMRT's depth and the depth maps;
+   :mod:`reference.reprojection`): the best single photo, and per pixel the photo whose ray is
+   closest in angle to the view's; each variant is measured on each bound's own pixels;
+5. temporal stability: a slow walkthrough through kept photos' cameras, rendered by each variant;
+   the colour change between consecutive frames that the motion does not explain
+   (:mod:`reference.stability`): popping seams.
 
 A source-photo breakdown per view (which photos textured how much of it, and how well each agrees
 with the held-out photo) shows where the error comes from. On a synthetic scene the solved gains
@@ -38,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.workspace import Workspace, _stamp_ok, write_json
+from dmrt.runtime.renderer import RenderConfig
 
 # name -> (renderer, options): "dmrt" (RenderConfig), "dmt" (DMTConfig) or "splats" (RenderConfig,
 # raytrace off). "dmrt" is the paper's DMRT with colours the photos' own: the "before" of the
@@ -52,8 +62,29 @@ VARIANTS = {
     "splats": ("splats", {"photometric": False}),
     "splats+gains": ("splats", {"photometric": True}),
 }
-# the variants whose frames the report shows (and whose error images it draws)
-SHOWN = ("dmrt", "dmrt+gains", "dmrt+gains+leveling", "dmt+gains", "splats+gains")
+if "photo_choice" in RenderConfig.__dataclass_fields__:
+    # the runtime's view-dependent photo choice (issue 37); the other DMRT variants keep the
+    # paper's fixed labels whatever the default becomes
+    for _kind, _options in VARIANTS.values():
+        if _kind != "dmt":
+            _options["photo_choice"] = "labels"
+    VARIANTS["dmrt-view"] = ("dmrt", {"photometric": False, "photo_choice": "view"})
+    VARIANTS["dmrt-view+gains"] = ("dmrt", {"photometric": True, "photo_choice": "view"})
+# What a variant costs, by renderer (``dmrt bench --variants`` says it; the result records each
+# variant's seconds): DMT labels every kept depth map by graph cuts before its first frame.
+COSTS = {"dmrt": "a frame per view and walkthrough frame (the kitchen, 2 shared CPU cores: 8 views at 512 px and "
+                 "20 frames at 640 px in 80-115 s a variant)",
+         "splats": "less than dmrt (no raytracing)",
+         "dmt": "DMT's graph-cut labeling of every kept depth map first, once per bundle (cached in it; the "
+                "kitchen's 175 maps: over 15 min on 2 CPU cores), then frames as dmrt's"}
+# the variants whose frames the report shows (and whose FLIP maps it draws), where run
+SHOWN = ("dmrt", "dmrt-view", "dmrt+gains", "dmrt+gains+leveling", "dmt+gains", "splats+gains")
+# the variants whose per-photo source breakdown the result keeps, where run
+SOURCES = ("dmrt", "dmrt-view", "dmrt+gains")
+# the data's own bounds: the kept photos reprojected through the geometry (reference/reprojection.py)
+BOUNDS = ("best_single", "view_closest")
+# the per-view measurements each variant row averages (``mean_<key>``)
+MEANS = ("psnr_db", "ssim", "flip", "surface_share", "psnr_common_db", "psnr_matched_db")
 
 
 @dataclass
@@ -68,6 +99,45 @@ class RealViewsParams:
     dmt_labeler: str = "graphcut"
     # held-out views whose frames, photos and error images are kept for the report
     shown_views: int = 2
+    # the variants run: names or shell patterns of VARIANTS (``dmrt bench --variants 'dmrt*'``);
+    # empty = all
+    variants: tuple[str, ...] = ()
+    # the bounds: the best single kept photo, among those that see at least this share of the
+    # pixels some kept photo sees (one photo that sees a corner alone must not win), and the
+    # per-pixel view-closest kept photo, both reprojected through the reference mesh (Embree) when
+    # the scene has one, else through DMRT's depth with the kept photos' depth maps. Cost: every
+    # kept photo reprojected at every view (the kitchen, 192 photos: 33 s a view on 2 CPU cores,
+    # and a mesh cast per photo once)
+    bounds: bool = True
+    best_single_min_share: float = 0.5
+    # temporal stability: a slow walkthrough of this many frames (0: none), this wide, through the
+    # cameras of the first walk_keys kept photos (consecutive photos of a capture are near)
+    walk_frames: int = 24
+    walk_keys: int = 2
+    walk_width: int = 256
+
+    def __post_init__(self):
+        self.variants = tuple(self.variants)
+        select_variants(self.variants)  # an unknown name fails before anything runs
+
+
+def select_variants(patterns) -> list[str]:
+    """The names of :data:`VARIANTS` that ``patterns`` (names or :mod:`fnmatch` patterns such as
+    ``dmrt*``) select, in :data:`VARIANTS`' order; all of them for no pattern.
+
+    Raises
+    ------
+    ValueError
+        A pattern that selects nothing, naming it and the variants.
+    """
+    from fnmatch import fnmatchcase
+
+    patterns = list(patterns)
+    for pat in patterns:
+        if not any(fnmatchcase(v, pat) for v in VARIANTS):
+            raise ValueError(f"--variants {pat}: no such real_views variant (choose from {', '.join(VARIANTS)}, "
+                             f"or a pattern such as 'dmrt*')")
+    return [v for v in VARIANTS if not patterns or any(fnmatchcase(v, pat) for pat in patterns)]
 
 
 def holdout_indices(n_photos: int, every: int) -> list[int]:
@@ -228,8 +298,150 @@ def gain_recovery(scene_dir: Path, kept: list[int], gains: np.ndarray) -> dict |
             "log_spread_after": float(corrected.std(axis=0).mean())}
 
 
+def quality(rendered: np.ndarray, photo: np.ndarray, mask: np.ndarray) -> tuple[dict, np.ndarray]:
+    """PSNR (dB), SSIM and FLIP of ``rendered`` against ``photo`` over ``mask``, and FLIP's error map
+    ((h, w) float32, 0..1; :func:`reference.metrics.flip`)."""
+    from reference.metrics import flip
+
+    f, fmap = flip(rendered, photo, mask)
+    return {"psnr_db": psnr(rendered, photo, mask), "ssim": ssim(rendered, photo, mask), "flip": f}, fmap
+
+
+def photo_depths(bundle, raycaster):
+    """The kept photos' depth maps the bounds test visibility with: ``j -> (h, w) float32`` camera
+    z. With ``raycaster`` (a :class:`reference.raycast.MeshRaycaster` of the reference mesh) Embree
+    casts of the mesh at the bundle's depth-map sizes, each cast once and kept (a cast per photo
+    costs far less than occlusion rays per photo and view: 8 kitchen views x 192 photos were not
+    done after 17 minutes that way on 2 shared cores); else the bundle's own depth maps."""
+    if raycaster is None:
+        return bundle.depth_map
+    sizes = bundle.meta.get("depthmap_sizes") or [[c.width, c.height] for c in bundle.cameras]
+    cache: dict[int, np.ndarray] = {}
+
+    def depth(j: int) -> np.ndarray:
+        if j not in cache:
+            cache[j] = raycaster.cast_camera(bundle.cameras[j].scaled(*sizes[j]))[0]
+        return cache[j]
+
+    return depth
+
+
+def data_bounds(bundle, cam, photo: np.ndarray, mask: np.ndarray, depth: np.ndarray, depth_maps,
+                min_share: float) -> dict:
+    """The data's own bounds at held-out camera ``cam`` (its ``photo`` at the frame size), over
+    ``mask`` (the pixels the renderers cover) and the surface ``depth`` ((h, w) camera z): every
+    kept photo reprojected through it (:mod:`reference.reprojection`), seeing what its depth map
+    (``depth_maps(j)``, :func:`photo_depths`) sees.
+
+    Returns
+    -------
+    dict of :data:`BOUNDS` -> ``color`` (h, w, 3) uint8, ``pixels`` (h, w) bool (``mask`` where the
+    bound has a colour) and ``photo`` (best_single: the photo's name; view_closest: None), plus
+    ``photos`` (per kept photo that sees the view: ``photo``, ``share`` of ``mask``, ``psnr_db`` on
+    it) and ``seconds``.
+    """
+    from reference.reprojection import ViewClosest, depth_map_visibility, reproject, reproject_photos
+
+    t0 = time.perf_counter()
+
+    def visibility(j):
+        return depth_map_visibility(bundle.cameras[j], depth_maps(j))
+
+    mask = mask & (depth > 0)
+    total = max(int(mask.sum()), 1)
+    closest = ViewClosest(cam.height, cam.width)
+    rows = []
+    for r in reproject_photos(cam, depth, bundle.cameras, bundle.image, visibility):
+        closest.add(r)
+        m = mask & r.seen
+        if m.any():
+            rows.append({"index": r.photo, "photo": bundle.cameras[r.photo].name, "share": float(m.sum() / total),
+                         "psnr_db": psnr(_u8(r.color), photo, m)})
+    any_share = float((mask & closest.seen).sum() / total)
+    eligible = [x for x in rows if x["share"] >= min_share * any_share]
+    out = {"view_closest": {"color": _u8(closest.color), "pixels": mask & closest.seen, "photo": None}}
+    best = max(eligible, key=lambda x: x["psnr_db"], default=None)
+    if best is not None:
+        j = best["index"]
+        r = reproject(cam, depth, j, bundle.cameras[j], bundle.image(j), visibility(j))
+        out["best_single"] = {"color": _u8(r.color), "pixels": mask & r.seen, "photo": best["photo"]}
+    out["photos"] = sorted(({k: v for k, v in x.items() if k != "index"} for x in rows), key=lambda x: -x["share"])
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def _u8(color: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint(color), 0, 255).astype(np.uint8)
+
+
+def walk_cameras(scene, kept: list[int], p: RealViewsParams) -> tuple[list, list[str]]:
+    """The stability walkthrough: ``p.walk_frames`` cameras gliding through the first
+    ``p.walk_keys`` (at least 2) kept photos' cameras, at ``p.walk_width`` with the first key's
+    field of view and aspect, and the keys' names; ([], []) when there are none."""
+    from dmrt.runtime.walkthrough import camera_path
+
+    keys = [scene.cameras[i] for i in kept[:max(p.walk_keys, 2)]]
+    if p.walk_frames < 2 or len(keys) < 2:
+        return [], []
+    k = keys[0]
+    fov = float(np.degrees(2 * np.arctan(0.5 * k.width / k.fx)))
+    height = max(1, round(p.walk_width * k.height / k.width))
+    return camera_path(keys, p.walk_frames, p.walk_width, height, fov), [c.name for c in keys]
+
+
+def render_variants(bundle, chosen: list[str], cams, walk, p: RealViewsParams, depth_of: str) -> dict:
+    """Render the held-out cameras ``cams`` and the walkthrough ``walk`` with each variant of
+    ``chosen``. Returns ``frames`` {variant: per view {color, label, mask}}, ``depths`` (variant
+    ``depth_of``'s depth per view), ``stability`` {variant: :func:`reference.stability.walkthrough_change`}
+    and ``seconds`` {variant: the renderer made, the views and the walkthrough rendered}."""
+    from reference.stability import walkthrough_change
+
+    out = {"frames": {}, "depths": [], "stability": {}, "seconds": {}}
+    for name in chosen:
+        kind, options = VARIANTS[name]
+        t0 = time.perf_counter()
+        renderer = make_renderer(bundle, kind, options, p)
+        try:
+            # only what is measured: a frame's other buffers would take GBs at the paper's scale
+            views = out["frames"][name] = []
+            for cam in cams:
+                f = renderer.render(cam)
+                views.append({"color": f["color"], "label": f["label"], "mask": f["depth"] > 0})
+                if name == depth_of:
+                    out["depths"].append(f["depth"])
+            if walk:
+                path = [{"color": f["color"], "depth": f["depth"]} for f in map(renderer.render, walk)]
+                out["stability"][name] = walkthrough_change(path, walk)
+        finally:
+            renderer.release()
+        out["seconds"][name] = time.perf_counter() - t0
+        print(f"  {name}: {len(cams)} views + {len(walk)} walkthrough frames in {out['seconds'][name]:.1f} s", flush=True)
+    return out
+
+
+def variant_views(frames: list[dict], photos, common, bounds) -> tuple[list[dict], list[np.ndarray]]:
+    """Per held-out view, one variant's ``frames`` against the ``photos``: :func:`quality`, surface
+    share, PSNR on the ``common`` pixels, exposure-matched PSNR, and PSNR and FLIP on each bound's
+    own pixels (``<bound>_pixels``; FLIP: its map over the frame's surface averaged over them:
+    like against like). Returns the rows and the FLIP maps."""
+    rows, fmaps = [], []
+    for k, (f, photo) in enumerate(zip(frames, photos)):
+        q, fmap = quality(f["color"], photo, f["mask"])
+        row = {**q, "surface_share": float(f["mask"].mean()), "psnr_common_db": psnr(f["color"], photo, common[k]),
+               "psnr_matched_db": psnr_matched(f["color"], photo, f["mask"])}
+        for b in BOUNDS:
+            if bounds and b in bounds[k]:
+                px = bounds[k][b]["pixels"]
+                row[f"{b}_pixels"] = {"psnr_db": psnr(f["color"], photo, px),
+                                      "flip": float(fmap[px].mean()) if px.any() else float("nan")}
+        rows.append(row)
+        fmaps.append(fmap)
+    return rows, fmaps
+
+
 def run_real_views(ws: Workspace, p: RealViewsParams, out: Path) -> dict:
     from dmrt.io.bundle import read_bundle
+    from reference.reprojection import DEPTH_TOLERANCE_REL, DEPTH_TOLERANCE_TEXELS
 
     path, held, kept, prep_s, scene = holdout_bundle(ws, p.holdout_every)
     bundle = read_bundle(path)
@@ -243,51 +455,83 @@ def run_real_views(ws: Workspace, p: RealViewsParams, out: Path) -> dict:
         cam = scene.cameras[i].resized(min(p.width, scene.cameras[i].width), None)
         cams.append(cam)
         photos.append(photo_at(scene.read_image(i), cam.width, cam.height))
+    chosen = select_variants(p.variants)
+    walk, walk_keys = walk_cameras(scene, kept, p)
+    # the depth the bounds reproject through where the scene has no mesh: the first DMRT variant's
+    depth_of = next((v for v in chosen if VARIANTS[v][0] == "dmrt"), chosen[0])
+    rendered = render_variants(bundle, chosen, cams, walk, p, depth_of)
+    frames = rendered["frames"]
 
-    frames: dict[str, list] = {}
-    rows = []
-    for name, (kind, options) in VARIANTS.items():
-        renderer = make_renderer(bundle, kind, options, p)
-        t0 = time.perf_counter()
-        try:
-            # only what is measured: a frame's other buffers would take GBs at the paper's scale
-            frames[name] = [{"color": f["color"], "label": f["label"], "mask": f["depth"] > 0}
-                            for f in (renderer.render(cam) for cam in cams)]
-        finally:
-            renderer.release()
-        print(f"  {name}: {len(cams)} views in {time.perf_counter() - t0:.1f} s", flush=True)
+    common = [np.logical_and.reduce([frames[v][k]["mask"] for v in chosen]) for k in range(len(cams))]
+    bounds, raycaster = [], None
+    if p.bounds and scene.mesh_path is not None:
+        from reference.raycast import MeshRaycaster
 
-    views = []
-    common = [np.logical_and.reduce([frames[v][k]["mask"] for v in VARIANTS]) for k in range(len(cams))]
-    for name in VARIANTS:
-        per = []
-        for k, (cam, photo) in enumerate(zip(cams, photos)):
-            f = frames[name][k]
-            mask = f["mask"]
-            per.append({"psnr_db": psnr(f["color"], photo, mask), "ssim": ssim(f["color"], photo, mask),
-                        "surface_share": float(mask.mean()), "psnr_common_db": psnr(f["color"], photo, common[k]),
-                        "psnr_matched_db": psnr_matched(f["color"], photo, mask)})
-        rows.append({"variant": name, "renderer": VARIANTS[name][0], **VARIANTS[name][1], "views": per,
-                     **{f"mean_{key}": _nanmean([v[key] for v in per])
-                        for key in ("psnr_db", "ssim", "surface_share", "psnr_common_db", "psnr_matched_db")}})
-        r = {k: (np.nan if v is None else v) for k, v in rows[-1].items() if k.startswith("mean_")}
-        print(f"  {name:20s} PSNR {r['mean_psnr_db']:.2f} dB, SSIM {r['mean_ssim']:.3f}, surface "
-              f"{r['mean_surface_share']:.1%} (pixels every variant covers: {r['mean_psnr_common_db']:.2f} dB; "
-              f"exposure-matched {r['mean_psnr_matched_db']:.2f} dB)",
-              flush=True)
-    for k, cam in enumerate(cams):
-        views.append({"photo": cam.name, "frame_size": [cam.width, cam.height],
-                      "common_share": float(common[k].mean()),
-                      "sources": {v: source_breakdown(frames[v][k], photos[k], names) for v in ("dmrt", "dmrt+gains")}})
+        raycaster = MeshRaycaster.from_file(scene.mesh_path, origin=scene.origin)
+    depth_maps = photo_depths(bundle, raycaster)
+    for k, cam in enumerate(cams if p.bounds else []):
+        # the surface at the view: the mesh's, else the DMRT frame's
+        depth = raycaster.cast_camera(cam)[0] if raycaster is not None else rendered["depths"][k]
+        bounds.append(data_bounds(bundle, cam, photos[k], common[k], depth, depth_maps, p.best_single_min_share))
 
     # the report's pictures: the views with the most common surface first
     shown = sorted(range(len(cams)), key=lambda k: -common[k].mean())[:max(0, p.shown_views)]
     maps = {}
     for k in shown:
         maps[f"photo_{k}"] = photos[k]
-        for v in SHOWN:
-            maps[f"{v}_color_{k}"] = frames[v][k]["color"]
-            maps[f"{v}_mask_{k}"] = frames[v][k]["mask"]
+    rows = []
+    measured = [b for b in BOUNDS if bounds]
+    for name in chosen:
+        per, fmaps = variant_views(frames[name], photos, common, bounds)
+        for k in shown if name in SHOWN else ():
+            maps[f"{name}_color_{k}"], maps[f"{name}_mask_{k}"] = frames[name][k]["color"], frames[name][k]["mask"]
+            maps[f"{name}_flip_{k}"] = fmaps[k].astype(np.float16)
+        st = rendered["stability"].get(name)
+        rows.append({"variant": name, "renderer": VARIANTS[name][0], **VARIANTS[name][1],
+                     "seconds": rendered["seconds"][name], "cost": COSTS[VARIANTS[name][0]], "views": per,
+                     "stability": st, **{f"mean_{key}": _nanmean([v[key] for v in per]) for key in MEANS},
+                     **{f"mean_{b}_pixels_{key}": _nanmean([v.get(f"{b}_pixels", {}).get(key) for v in per])
+                        for b in measured for key in ("psnr_db", "flip")}})
+        r = {k: (np.nan if v is None else v) for k, v in rows[-1].items() if k.startswith("mean_")}
+        print(f"  {name:20s} PSNR {r['mean_psnr_db']:.2f} dB, SSIM {r['mean_ssim']:.3f}, FLIP {r['mean_flip']:.3f}, "
+              f"surface {r['mean_surface_share']:.1%} (pixels every variant covers: {r['mean_psnr_common_db']:.2f} dB; "
+              f"exposure-matched {r['mean_psnr_matched_db']:.2f} dB); walkthrough change "
+              f"{_fmt((st or {}).get('mean'))} levels (max {_fmt((st or {}).get('max'))})", flush=True)
+
+    views, bound_rows = [], {b: [] for b in measured}
+    for k, cam in enumerate(cams):
+        view = {"photo": cam.name, "frame_size": [cam.width, cam.height], "common_share": float(common[k].mean()),
+                "sources": {v: source_breakdown(frames[v][k], photos[k], names) for v in SOURCES if v in frames}}
+        if bounds:
+            view["bounds"] = {"photos": bounds[k]["photos"], "seconds": bounds[k]["seconds"]}
+            for b in measured:
+                got = bounds[k].get(b)
+                view["bounds"][b] = None
+                if got is None:
+                    continue
+                q, fmap = quality(got["color"], photos[k], got["pixels"])
+                view["bounds"][b] = {**q, "photo": got["photo"],
+                                     "share": float(got["pixels"].sum() / max(common[k].sum(), 1))}
+                bound_rows[b].append(view["bounds"][b])
+                if k in shown:
+                    maps[f"{b}_color_{k}"], maps[f"{b}_mask_{k}"] = got["color"], got["pixels"]
+                    maps[f"{b}_flip_{k}"] = fmap.astype(np.float16)
+        views.append(view)
+    summary = None
+    if bounds:
+        summary = {"geometry": "the reference mesh: Embree casts at the view and at each kept photo"
+                   if raycaster is not None else f"{depth_of}'s depth and the bundle's depth maps",
+                   "depth_tolerance": {"relative": DEPTH_TOLERANCE_REL, "texels": DEPTH_TOLERANCE_TEXELS},
+                   "best_single_min_share": p.best_single_min_share,
+                   "seconds_per_view": float(np.mean([x["seconds"] for x in bounds]))}
+        for b in measured:
+            summary[b] = {f"mean_{key}": _nanmean([x[key] for x in bound_rows[b]])
+                          for key in ("psnr_db", "ssim", "flip", "share")} | {"views": len(bound_rows[b])}
+            mb = summary[b]
+            print(f"  bound {b:13s} PSNR {_fmt(mb['mean_psnr_db'])} dB, FLIP {_fmt(mb['mean_flip'], 3)} on "
+                  f"{_fmt(100 * (mb['mean_share'] or np.nan), 1)} % of the common pixels "
+                  f"({mb['views']} of {len(cams)} views)", flush=True)
+
     if maps:
         Path(out).mkdir(parents=True, exist_ok=True)
         np.savez_compressed(Path(out) / "real_views.npz", **maps)
@@ -298,8 +542,15 @@ def run_real_views(ws: Workspace, p: RealViewsParams, out: Path) -> dict:
             "preprocess_s": prep_s, "photometric": meta.get("photometric"),
             "photo_gains": bundle.photo_gains.tolist(),
             "gain_recovery": gain_recovery(ws.scene_dir, kept, bundle.photo_gains),
-            "variants": rows, "views": views, "shown_views": shown, "shown_variants": list(SHOWN),
+            "variants": rows, "views": views, "shown_views": shown,
+            "shown_variants": [v for v in SHOWN if v in frames], "bounds": summary,
+            "walkthrough": {"frames": len(walk), "keys": walk_keys, "frame_size": [walk[0].width, walk[0].height]}
+            if walk else None,
             "maps_file": "real_views.npz" if maps else None, "maps": sorted(maps)}
+
+
+def _fmt(v, digits: int = 2) -> str:
+    return "nan" if v is None or not np.isfinite(v) else f"{v:.{digits}f}"
 
 
 def _nanmean(values) -> float | None:

@@ -292,8 +292,8 @@ def _meas(rs: ResultSet, name: str) -> dict | None:
 
 
 # figures drawn from the .npz image maps, which reports/history does not keep (JSON only)
-REAL_VIEWS_CAPTION = ("Held-out photos, the renders at their cameras (black: no surface) and the mean absolute "
-                      "RGB error (8-bit levels)")
+REAL_VIEWS_CAPTION = ("Held-out photos, the renders at their cameras and the data's bounds (black: no surface or no "
+                      "photo), each with its FLIP error map beneath (0 = no perceived difference, 1 = most)")
 MAP_FIGURES = {"fig8": "fig8_heatmaps.png", "fig13": "fig13_holes.png", "real_views": "real_views.png"}
 
 
@@ -833,15 +833,17 @@ def section_real_views(rs: ResultSet, out: Path) -> Section:
            f"{m['holdout_every']}th: {', '.join(m['held_out'])}); the other {m['kept']} preprocessed without them "
            f"({m['points']:,} points, {m['proxies']:,} proxies, {fmt(m['preprocess_s'])} s). Each held-out camera "
            f"is rendered and compared with its photo over the pixels the frame has a surface at (PSNR over 8-bit RGB; "
-           f"SSIM of scikit-image with both images black outside that surface, its map averaged over it); "
-           f"'common pixels' = those every variant covers; 'exposure-matched' = after the per-channel gain that best "
-           f"maps the frame onto the held-out photo (a diagnostic: that photo's own exposure, which no renderer can "
-           f"know, taken out). Gains: the global photometric adjustment of "
+           f"SSIM of scikit-image and FLIP (NVIDIA's perceptual difference, LDR, 67 pixels per degree: 0 = "
+           f"identical, 1 = most different) with both images black outside that surface, their maps averaged over "
+           f"it); 'common pixels' = those every variant covers; 'exposure-matched' = after the per-channel gain that "
+           f"best maps the frame onto the held-out photo (a diagnostic: that photo's own exposure, which no renderer "
+           f"can know, taken out). Gains: the global photometric adjustment of "
            f"preprocessing ({ph.get('photos_adjusted', 0)} of {m['kept']} photos adjusted: tied to others by >= "
            f"{(ph.get('parameters') or {}).get('min_shared', '?')} shared proxies on a cycle of ties, in "
            f"{ph.get('groups', 0)} group(s); {ph.get('observations', 0)} observations; log residual RMS "
            f"{fmt(ph.get('rms_log_before'))} -> {fmt(ph.get('rms_log_after'))}; the others keep gain 1); "
-           f"leveling: the per-frame screen-space leveling.")
+           f"leveling: the per-frame screen-space leveling. `dmrt bench --variants` picks the variants (seconds "
+           f"below: each variant's renderer made, its views and its walkthrough rendered).")
     g = m.get("gain_recovery")
     if g:
         s.text(f"Synthetic scene: the spread of the photos' known log exposure x white balance is "
@@ -850,12 +852,14 @@ def section_real_views(rs: ResultSet, out: Path) -> Section:
     base = next((r for r in m["variants"] if r["variant"] == "dmrt"), None)
     rows = [{"variant": r["variant"], "renderer": r["renderer"], "gains": r.get("photometric", False),
              "leveling": r.get("leveling", False), "PSNR (dB)": r["mean_psnr_db"], "SSIM": r["mean_ssim"],
+             "FLIP": r.get("mean_flip"),
              "surface (%)": _pct(r["mean_surface_share"]), "PSNR common pixels (dB)": r["mean_psnr_common_db"],
              "PSNR exposure-matched (dB)": r.get("mean_psnr_matched_db"),
              "ΔPSNR vs dmrt (dB)": None if base is None or r["mean_psnr_db"] is None or base["mean_psnr_db"] is None
-             else r["mean_psnr_db"] - base["mean_psnr_db"]} for r in m["variants"]]
+             else r["mean_psnr_db"] - base["mean_psnr_db"], "seconds": r.get("seconds")} for r in m["variants"]]
     s.table("real_views", "Means over the held-out photos per variant (dmrt: the paper's DMRT with the photos' own "
                           "colours; splats: the coarse splats, RenderConfig(raytrace=False))", rows)
+    _real_views_bounds(s, m)
     per = []
     for k, v in enumerate(m["views"]):
         row = {"photo": v["photo"], "frame": "x".join(map(str, v["frame_size"])),
@@ -863,11 +867,12 @@ def section_real_views(rs: ResultSet, out: Path) -> Section:
         for r in m["variants"]:
             row[f"{r['variant']} PSNR"] = r["views"][k]["psnr_db"]
         for r in m["variants"]:
-            if r["variant"] in ("dmrt", "dmrt+gains", "dmt", "splats"):
+            if r["variant"] in ("dmrt", "dmrt-view", "dmrt+gains", "dmt", "splats"):
                 row[f"{r['variant']} SSIM"] = r["views"][k]["ssim"]
+                row[f"{r['variant']} FLIP"] = r["views"][k].get("flip")
                 row[f"{r['variant']} surface (%)"] = _pct(r["views"][k]["surface_share"])
         per.append(row)
-    s.table("real_views_per_photo", "Per held-out photo: PSNR (dB) of every variant, SSIM and surface share", per)
+    s.table("real_views_per_photo", "Per held-out photo: PSNR (dB) of every variant, SSIM, FLIP and surface share", per)
     src = []
     for v in m["views"]:
         gained = {x["photo"]: x for x in v["sources"].get("dmrt+gains", [])}
@@ -876,36 +881,121 @@ def section_real_views(rs: ResultSet, out: Path) -> Section:
                 continue
             src.append({"held-out photo": v["photo"], "textured from": x["photo"], "share (%)": _pct(x["share"]),
                         "PSNR (dB)": x["psnr_db"], "PSNR with gains (dB)": (gained.get(x["photo"]) or {}).get("psnr_db")})
-    s.table("real_views_sources", "Where the error comes from: per held-out photo, the photos DMRT textured >= 2 % of "
-                                  "it from, their share of its surface pixels and how well those pixels agree with it",
-            src)
+    if src:
+        s.table("real_views_sources", "Where the error comes from: per held-out photo, the photos DMRT textured >= 2 % "
+                                      "of it from, their share of its surface pixels and how well those pixels agree "
+                                      "with it", src)
     if not m.get("maps_file"):
         return s
     maps = _maps(rs, "real_views")
     if maps is None:
         return _kept_figure(s, out, "real_views", REAL_VIEWS_CAPTION)
+    _real_views_figure(s, out, m, maps)
+    return s
+
+
+# the data's own bounds of real_views (bench/real_views.py BOUNDS), as the report names them
+BOUND_NAMES = {"best_single": "best single photo", "view_closest": "view-closest photo per pixel"}
+BOUND_COLUMNS = {"best_single": "best single", "view_closest": "view-closest"}
+
+
+def _real_views_bounds(s: Section, m: dict) -> None:
+    """The bounds tables: per variant, its PSNR and FLIP on each bound's pixels against the
+    bound's, and its walkthrough change; per held-out photo, each bound."""
+    b = m.get("bounds")
+    walk = m.get("walkthrough")
+    if not b and not walk:
+        return
+    if b:
+        tol = b.get("depth_tolerance") or {}
+        s.text(f"What the photos allow: at each held-out view the kept photos are reprojected through the scene's "
+               f"geometry ({b['geometry']}: a photo sees a point where its depth map agrees within "
+               f"{_pct(tol.get('relative'))} % of its depth + {fmt(tol.get('texels'))} texels), "
+               f"on the pixels every variant covers ({fmt(b.get('seconds_per_view'))} s per view). **Best single photo**: "
+               f"the kept photo with the highest PSNR among those that see at least "
+               f"{_pct(b['best_single_min_share'])} % of the pixels some kept photo sees, alone (on the pixels it "
+               f"sees). **View-closest photo per pixel**: at each pixel, of the kept photos that see the point, the "
+               f"one whose ray to it is closest in angle to the view's ray (Debevec et al. 1996; Buehler et al. "
+               f"2001). Each variant is measured on each bound's own pixels: the gap is how far it is from what "
+               f"the photos allow.")
+    if walk:
+        s.text(f"Walkthrough change: along a slow walkthrough ({walk['frames']} frames of "
+               f"{walk['frame_size'][0]}x{walk['frame_size'][1]} from {' to '.join(walk['keys'])}), each frame's "
+               f"surface points are projected into the frame before; where that frame sees the same point, the mean "
+               f"absolute RGB change (8-bit levels) is what the motion does not explain: flicker. Mean over the "
+               f"frame pairs and the largest (a popping seam shows as a spike).")
+    rows = []
+    for r in m["variants"]:
+        row = {"variant": r["variant"]}
+        for key, col in (BOUND_COLUMNS.items() if b else ()):
+            bound = b[key]
+            got = r.get(f"mean_{key}_pixels_psnr_db")
+            row[f"{col}: PSNR (dB)"] = got
+            row[f"{col}: bound PSNR (dB)"] = bound["mean_psnr_db"]
+            row[f"{col}: gap (dB)"] = None if got is None or bound["mean_psnr_db"] is None else bound["mean_psnr_db"] - got
+            row[f"{col}: FLIP"] = r.get(f"mean_{key}_pixels_flip")
+            row[f"{col}: bound FLIP"] = bound["mean_flip"]
+        st = r.get("stability") or {}
+        row["walkthrough change (levels)"] = st.get("mean")
+        row["largest change (levels)"] = st.get("max")
+        rows.append(row)
+    s.table("real_views_vs_bounds", "Per variant, means over the held-out photos: PSNR and FLIP on each bound's "
+                                    "pixels next to the bound's own (gap = bound - variant), and the walkthrough "
+                                    "change", rows)
+    if not b:
+        return
+    per = []
+    for k, v in enumerate(m["views"]):
+        for key, name in BOUND_NAMES.items():
+            got = (v.get("bounds") or {}).get(key)
+            if got is None:
+                per.append({"held-out photo": v["photo"], "bound": name, "from": "no kept photo sees enough of it"})
+                continue
+            row = {"held-out photo": v["photo"], "bound": name, "from": got["photo"] or "per pixel",
+                   "share of common (%)": _pct(got["share"]), "PSNR (dB)": got["psnr_db"], "SSIM": got["ssim"],
+                   "FLIP": got["flip"]}
+            for r in m["variants"]:
+                row[f"{r['variant']} PSNR"] = (r["views"][k].get(f"{key}_pixels") or {}).get("psnr_db")
+            per.append(row)
+    s.table("real_views_bounds_per_photo", "Per held-out photo, each bound (its source photo, its share of the "
+                                           "pixels every variant covers, its PSNR, SSIM and FLIP there) and every "
+                                           "variant's PSNR (dB) on the same pixels", per)
+
+
+def _real_views_figure(s: Section, out: Path, m: dict, maps: dict) -> None:
+    """Per shown view: the held-out photo, the shown variants' frames and the bounds' images, each
+    with its FLIP error map beneath (result sets before FLIP: the mean absolute RGB error)."""
     shown, variants = m["shown_views"], m["shown_variants"]
-    err_of = [v for v in ("dmrt", "dmrt+gains") if v in variants]
-    ncol = 1 + len(variants) + len(err_of)
-    fig, axs = plt.subplots(len(shown), ncol, figsize=(2.6 * ncol, 2.0 * len(shown) + 0.4), squeeze=False)
+    bounds = [b for b in BOUND_NAMES if any(f"{b}_color_{k}" in maps for k in shown)]
+    columns = [(v, f"{v}") for v in variants] + [(b, BOUND_NAMES[b]) for b in bounds]
+    ncol = 1 + len(columns)
+    fig, axs = plt.subplots(2 * len(shown), ncol, figsize=(2.3 * ncol, 3.6 * len(shown) + 0.4), squeeze=False)
     for i, k in enumerate(shown):
+        top, bottom = axs[2 * i], axs[2 * i + 1]
         photo = maps[f"photo_{k}"]
-        axs[i, 0].imshow(photo)
-        axs[i, 0].set_title(f"held-out {m['views'][k]['photo']}", fontsize=7)
-        for j, v in enumerate(variants, 1):
-            axs[i, j].imshow(np.where(maps[f"{v}_mask_{k}"][..., None], maps[f"{v}_color_{k}"], 0))
-            r = next(r for r in m["variants"] if r["variant"] == v)["views"][k]
-            axs[i, j].set_title(f"{v}: {fmt(r['psnr_db'])} dB", fontsize=7)
-        for j, v in enumerate(err_of, 1 + len(variants)):
-            mask = maps[f"{v}_mask_{k}"]
-            err = np.abs(maps[f"{v}_color_{k}"].astype(np.float64) - photo).mean(axis=-1)
-            im = axs[i, j].imshow(np.where(mask, err, np.nan), cmap="inferno", vmin=0, vmax=64)
-            axs[i, j].set_title(f"|error| {v}", fontsize=7)
-            plt.colorbar(im, ax=axs[i, j], fraction=0.035)
-        for a in axs[i]:
+        top[0].imshow(photo)
+        top[0].set_title(f"held-out {m['views'][k]['photo']}", fontsize=7)
+        for j, (key, title) in enumerate(columns, 1):
+            if f"{key}_color_{k}" not in maps:
+                continue
+            mask = maps[f"{key}_mask_{k}"]
+            top[j].imshow(np.where(mask[..., None], maps[f"{key}_color_{k}"], 0))
+            got = (next((r for r in m["variants"] if r["variant"] == key), None) or {}).get("views", [{}] * (k + 1))[k] \
+                if key in variants else m["views"][k]["bounds"][key]
+            top[j].set_title(f"{title}: {fmt(got['psnr_db'])} dB", fontsize=7)
+            if f"{key}_flip_{k}" in maps:
+                im = bottom[j].imshow(np.where(mask, maps[f"{key}_flip_{k}"].astype(np.float32), np.nan), cmap="magma",
+                                      vmin=0, vmax=1)
+                bottom[j].set_title(f"FLIP {fmt(got.get('flip'))}", fontsize=7)
+            else:
+                err = np.abs(maps[f"{key}_color_{k}"].astype(np.float64) - photo).mean(axis=-1)
+                im = bottom[j].imshow(np.where(mask, err, np.nan), cmap="inferno", vmin=0, vmax=64)
+                bottom[j].set_title("|error| (levels)", fontsize=7)
+            if j == len(columns):  # one scale per row
+                plt.colorbar(im, ax=bottom[j], fraction=0.035)
+        for a in (*top, *bottom):
             a.axis("off")
     s.figure(_save(fig, out, MAP_FIGURES["real_views"]), REAL_VIEWS_CAPTION)
-    return s
 
 
 FULL_PRESET = "paper-full"

@@ -271,7 +271,8 @@ def cmd_bench(args) -> None:
 
     try:
         status = run_bench(args.preset, args.out, work=args.work, only=args.only, scene=args.scene,
-                           progress=not args.quiet, machine_name=args.machine, holdout_every=args.holdout_every)
+                           progress=not args.quiet, machine_name=args.machine, holdout_every=args.holdout_every,
+                           variants=args.variants)
     except ValueError as exc:
         raise InputError(None, str(exc)) from exc
     if status["failed"]:
@@ -414,6 +415,12 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--holdout-every", type=int, metavar="N",
                        help="real_views: hold out photos 0, N, 2N, ... of the scene (N >= 2; default 8, the field's "
                             "habit; a scene of few photos needs a smaller N to hold out more than photo 0)")
+    from bench.real_views import COSTS, VARIANTS
+
+    costs = "; ".join(f"{k}*: {v}" for k, v in COSTS.items())  # by renderer: a variant's name starts with it
+    bench.add_argument("--variants", nargs="+", metavar="NAME",
+                       help=f"real_views: run only these renderer variants, names or patterns ({' '.join(VARIANTS)}; "
+                            f"e.g. 'dmrt*'; default all). What each costs: {costs}")
     bench.add_argument("--quiet", action="store_true", help="no progress bars")
     bench.set_defaults(func=cmd_bench)
 
