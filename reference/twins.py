@@ -582,12 +582,13 @@ _MIN_PENALTY = 1e-3  # dmrt_view_common.glsl's MIN_PENALTY
 
 
 def view_penalties(camera: Camera, points: np.ndarray, cameras, depthmaps, photo: np.ndarray,
-                   tolerance: float, resolution_weight: float) -> np.ndarray:
+                   tolerance: float, distance_weight: float, turn_weight: float) -> np.ndarray:
     """Penalty of photo ``photo[i]`` for point ``points[i]`` seen by ``camera`` (``view_penalty``
     and ``view_sees`` of ``shaders/dmrt_view_common.glsl``): the angle between the view ray and the
-    photo's ray to the point, radians, plus ``resolution_weight`` per octave by which the photo's
-    pixel at the point is coarser than the frame's; NaN where the photo does not see the point (behind
-    it, outside its map, or its depth map more than ``tolerance`` metres off).
+    photo's ray to the point, radians, plus ``distance_weight`` per octave by which the photo's
+    distance to the point differs from the view's, plus ``turn_weight`` times the angle between the
+    photo's optical axis and the view's; NaN where the photo does not see the point (behind it, outside its
+    map, or its depth map more than ``tolerance`` metres off).
 
     Parameters
     ----------
@@ -604,7 +605,6 @@ def view_penalties(camera: Camera, points: np.ndarray, cameras, depthmaps, photo
     out = np.full(len(points), np.nan)
     view = points - camera.center
     dist = np.linalg.norm(view, axis=1)
-    footprint = dist / camera.fx
     for j in np.unique(photo):
         m = photo == j
         D = depthmaps[j]
@@ -616,8 +616,9 @@ def view_penalties(camera: Camera, points: np.ndarray, cameras, depthmaps, photo
         ray = points[m] - c.center
         length = np.linalg.norm(ray, axis=1)
         cos = np.einsum("ij,ij->i", view[m] / dist[m, None], ray / length[:, None])
-        octaves = np.log2(np.maximum(length / cameras[j].fx / footprint[m], 1e-30))
-        pen = np.maximum(np.arccos(np.clip(cos, -1, 1)) + resolution_weight * np.maximum(octaves, 0), _MIN_PENALTY)
+        octaves = np.abs(np.log2(length / dist[m]))
+        turn = np.arccos(np.clip(c.R[2] @ camera.R[2], -1, 1))
+        pen = np.maximum(np.arccos(np.clip(cos, -1, 1)) + distance_weight * octaves + turn_weight * turn, _MIN_PENALTY)
         out[np.flatnonzero(m)[seen]] = pen[seen]
     return out
 
@@ -631,7 +632,7 @@ def _sample_points(camera: Camera, depth: np.ndarray, stride: int, grid) -> np.n
 
 
 def view_scores(camera: Camera, depth: np.ndarray, cameras, depthmaps, stride: int, grid, tolerance: float,
-                resolution_weight: float) -> np.ndarray:
+                distance_weight: float, turn_weight: float) -> np.ndarray:
     """Each photo's score against the frame (``shaders/dmrt_view_scores.glsl``): the sum over the
     sample pixels (``stride`` apart, ``grid`` = (columns, rows)) whose point it sees of
     ``floor(64 / penalty)``.
@@ -645,12 +646,12 @@ def view_scores(camera: Camera, depth: np.ndarray, cameras, depthmaps, stride: i
     pts = pixel_points(camera, depth).reshape(-1, 3)[pix]
     n = len(cameras)
     pen = view_penalties(camera, np.repeat(pts, n, 0), cameras, depthmaps, np.tile(np.arange(n), len(pts)),
-                         tolerance, resolution_weight).reshape(len(pts), n)
+                         tolerance, distance_weight, turn_weight).reshape(len(pts), n)
     return np.where(np.isnan(pen), 0, np.floor(64.0 / np.nan_to_num(pen, nan=1.0))).astype(np.int64).sum(0)
 
 
 def view_choice(camera: Camera, depth: np.ndarray, label: np.ndarray, cameras, depthmaps, candidates, blend: int,
-                tolerance: float, resolution_weight: float) -> tuple[np.ndarray, np.ndarray]:
+                tolerance: float, distance_weight: float, turn_weight: float) -> tuple[np.ndarray, np.ndarray]:
     """The per-pixel view-dependent choice (``shaders/dmrt_view_choice.glsl``): each pixel's label
     and the candidates ranked by :func:`view_penalties`, the ``blend`` best that see the point kept
     with unstructured-lumigraph weights ``(1 - p_i / p_t) / p_i`` normalised (``p_t`` the next best
@@ -680,7 +681,7 @@ def view_choice(camera: Camera, depth: np.ndarray, label: np.ndarray, cameras, d
     pen = np.full(cand.shape, np.nan)
     m = cand >= 0
     rows = np.nonzero(m)[0]
-    pen[m] = view_penalties(camera, pts[rows], cameras, depthmaps, cand[m], tolerance, resolution_weight)
+    pen[m] = view_penalties(camera, pts[rows], cameras, depthmaps, cand[m], tolerance, distance_weight, turn_weight)
     pen = np.where(np.isnan(pen), np.inf, pen)
     order = np.argsort(pen, axis=1, kind="stable")[:, :blend + 1]
     best_pen = np.take_along_axis(pen, order, 1)

@@ -52,8 +52,8 @@ void main() {
         return;
     }
     vec3 q, dir;
-    float footprint;
-    view_ray(p, hit.depth, q, dir, footprint);
+    float dist;
+    view_ray(p, hit.depth, q, dir, dist);
 
     // every candidate's penalty first (arithmetic only: index 0 = the label, i = candidates[i - 1]);
     // then the depth maps of the lowest ones, in ascending order, until BLEND + 1 see the point: about
@@ -66,7 +66,7 @@ void main() {
         int l = i == 0 ? hit.final_label : (i <= n ? candidates[i - 1] : -1);
         if (l < 0 || (i > 0 && l == hit.final_label)) continue;
         Photo ph = photos[l];
-        float penalty = view_penalty(ph, to_photo(ph, q), dir, footprint);
+        float penalty = view_penalty(ph, to_photo(ph, q), dir, dist);
         if (penalty >= 0.0) cpen[i] = penalty;
     }
     float pen[BLEND + 1];

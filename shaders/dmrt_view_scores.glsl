@@ -37,11 +37,11 @@ void main() {
         float depth = hits[p.y * u_size.x + p.x].depth;
         if (depth > 0.0) {
             vec3 q, dir;
-            float footprint;
-            view_ray(p, depth, q, dir, footprint);
+            float dist;
+            view_ray(p, depth, q, dir, dist);
             Photo ph = photos[l];
             vec3 pc = to_photo(ph, q);
-            float penalty = view_penalty(ph, pc, dir, footprint);
+            float penalty = view_penalty(ph, pc, dir, dist);
             if (penalty > 0.0 && view_sees(l, ph, pc)) atomicAdd(group_score, uint(SCORE_SCALE / penalty));
         }
     }

@@ -39,8 +39,8 @@ def _local(bundle, cams):
 def test_view_choice_matches_numpy_twin(ctx, bundle, depthmaps):
     cams = bundle.cameras
     view = novel_camera(cams[0], cams[3], 0.4).resized(W, H)
-    cfg = {"view_blend": 3, "view_candidates": 4, "view_resolution_weight": 0.05}
-    paper, _ = _render(bundle, ctx, view)  # the labels the choice starts from
+    cfg = {"view_blend": 3, "view_candidates": 4, "view_distance_weight": 0.3, "view_turn_weight": 0.5}
+    paper, _ = _render(bundle, ctx, view, photo_choice="labels")  # the labels the choice starts from
     frame, extra = _render(bundle, ctx, view, photo_choice="view", **cfg)
     np.testing.assert_array_equal(frame["depth"], paper["depth"])  # the choice changes only labels
     local, photos = view.relative_to(bundle.origin), _local(bundle, cams)
@@ -49,13 +49,13 @@ def test_view_choice_matches_numpy_twin(ctx, bundle, depthmaps):
     # the candidates: the 4 best-scored photos. float32 against float64 scores may differ by a unit
     # where 64 / penalty lies on an integer, so a candidate must score within 1 % of the 4th best.
     stride, grid = sample_grid(W, H)
-    scores = twins.view_scores(local, frame["depth"], photos, depthmaps, stride, grid, tol, 0.05)
+    scores = twins.view_scores(local, frame["depth"], photos, depthmaps, stride, grid, tol, 0.3, 0.5)
     assert len(extra["candidates"]) == min(4, int((scores > 0).sum())) >= 2
     fourth = np.sort(scores)[::-1][len(extra["candidates"]) - 1]
     assert (scores[extra["candidates"]] >= 0.99 * fourth).all(), (scores, extra["candidates"])
 
     best, weights = twins.view_choice(local, frame["depth"], paper["label"], photos, depthmaps,
-                                      extra["candidates"], 3, tol, 0.05)
+                                      extra["candidates"], 3, tol, 0.3, 0.5)
     hit = frame["depth"] > 0
     assert hit.mean() > 0.5
     # float32 angles on the GPU: a pixel whose two best penalties lie within rounding of each other
@@ -148,8 +148,10 @@ def test_view_blend_changes_smoothly_along_a_slow_walk(ctx, bundle):
             change.append(np.abs(w1[row * W + col] - w0)[ok].sum(1))
         jumps[blend] = np.concatenate(change)
     pops = {k: (v > 1.5).mean() for k, v in jumps.items()}  # weight moved wholesale to another photo
-    # best alone: ~1 % of the points pop a frame here (the seams sweeping over the surface); with
+    # best alone: ~1.6 % of the points pop a frame here (the seams sweeping over the surface); with
     # the blend the weights slide, and what still jumps lies where a photo's visibility ends (an
-    # occluding edge: a real change), ~0.4 %; 99 % of the points change by less than half their weight
+    # occluding edge: a real change), ~0.4 %; 90 % of the points move less than a tenth of their
+    # weight (measured 0.02) and 99 % less than three quarters (0.67), where best alone moves all (2)
     assert pops[3] < 0.005 and pops[1] > 2 * pops[3], pops
-    assert np.percentile(jumps[3], 99) < 0.6 and np.percentile(jumps[1], 99) == 2.0
+    assert np.percentile(jumps[3], 90) < 0.1 and np.percentile(jumps[3], 99) < 0.75
+    assert np.percentile(jumps[1], 99) == 2.0

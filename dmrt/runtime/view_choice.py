@@ -13,7 +13,8 @@ fetch a photo, which photos see the raytraced point. Per frame, after the final 
    are the photos every pixel tests: a bounded per-pixel cost whatever the number of photos;
 2. ``choice`` (``shaders/dmrt_view_choice.glsl``): per pixel, its final label and those candidates
    ranked by penalty = the angle between the view ray and the photo's ray to the point, plus
-   ``resolution_weight`` per octave by which the photo's texel is coarser than the frame's pixel;
+   ``distance_weight`` per octave by which the photo's distance to the point differs from the
+   view's, plus ``turn_weight`` times the angle between the photo's optical axis and the view's;
    the best that see the point (depth map within ``tolerance``) are kept, the first becomes the
    final label (histogram, photo cache and leveling follow it) and with ``blend`` > 1 the texturing
    pass mixes the ``blend`` best with unstructured-lumigraph weights, which fall smoothly to 0 as a
@@ -65,8 +66,10 @@ class ViewChoice:
         Photos each pixel tests besides its own label (the frame's best-scored).
     blend : int
         Photos mixed per pixel, 1 (the best alone) to :data:`MAX_BLEND`.
-    resolution_weight : float
-        Radians of penalty per octave by which a photo's texel is coarser than the frame's pixel.
+    distance_weight : float
+        Radians of penalty per octave by which a photo's distance to the point differs from the view's.
+    turn_weight : float
+        Radians of penalty per radian the photo's optical axis turns from the view's.
     tolerance : float
         Metres: a photo whose depth map differs by more from the point's depth does not see it.
 
@@ -77,10 +80,11 @@ class ViewChoice:
     """
 
     def __init__(self, ctx: moderngl.Context, n_photos: int, candidates: int, blend: int,
-                 resolution_weight: float, tolerance: float):
+                 distance_weight: float, turn_weight: float, tolerance: float):
         self.ctx, self.n_photos, self.blend = ctx, int(n_photos), int(blend)
         self.n_candidates = int(candidates)
-        self._uniforms = {"u_res_weight": float(resolution_weight), "u_view_tol": float(tolerance)}
+        self._uniforms = {"u_distance_weight": float(distance_weight), "u_turn_weight": float(turn_weight),
+                          "u_view_tol": float(tolerance)}
         self.scores = ctx.buffer(reserve=4 * self.n_photos)
         self.candidates = ctx.buffer(reserve=4 * (STATUS_HEADER_WORDS + max(self.n_candidates, 1)))
         self.candidates.write(np.zeros(STATUS_HEADER_WORDS, np.uint32).tobytes())  # no candidates
