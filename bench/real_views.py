@@ -47,29 +47,24 @@ from pathlib import Path
 import numpy as np
 
 from bench.workspace import Workspace, _stamp_ok, write_json
-from dmrt.runtime.renderer import RenderConfig
 
 # name -> (renderer, options): "dmrt" (RenderConfig), "dmt" (DMTConfig) or "splats" (RenderConfig,
-# raytrace off). "dmrt" is the paper's DMRT with colours the photos' own: the "before" of the
-# photometric work; the others add the global gains and/or the screen-space leveling.
+# raytrace off). "dmrt" is the paper's DMRT (the fixed labels) with colours the photos' own: the
+# "before" of the photometric work and of the view-dependent photo choice ("dmrt-view", the
+# runtime's default); the others add the global gains and/or the screen-space leveling.
+_LABELS = {"photo_choice": "labels"}
 VARIANTS = {
-    "dmrt": ("dmrt", {"photometric": False}),
-    "dmrt+gains": ("dmrt", {"photometric": True}),
-    "dmrt+leveling": ("dmrt", {"photometric": False, "leveling": True}),
-    "dmrt+gains+leveling": ("dmrt", {"photometric": True, "leveling": True}),
+    "dmrt": ("dmrt", {"photometric": False, **_LABELS}),
+    "dmrt-view": ("dmrt", {"photometric": False, "photo_choice": "view"}),
+    "dmrt-view+gains": ("dmrt", {"photometric": True, "photo_choice": "view"}),
+    "dmrt+gains": ("dmrt", {"photometric": True, **_LABELS}),
+    "dmrt+leveling": ("dmrt", {"photometric": False, "leveling": True, **_LABELS}),
+    "dmrt+gains+leveling": ("dmrt", {"photometric": True, "leveling": True, **_LABELS}),
     "dmt": ("dmt", {"photometric": False}),
     "dmt+gains": ("dmt", {"photometric": True}),
-    "splats": ("splats", {"photometric": False}),
-    "splats+gains": ("splats", {"photometric": True}),
+    "splats": ("splats", {"photometric": False, **_LABELS}),
+    "splats+gains": ("splats", {"photometric": True, **_LABELS}),
 }
-if "photo_choice" in RenderConfig.__dataclass_fields__:
-    # the runtime's view-dependent photo choice (issue 37); the other DMRT variants keep the
-    # paper's fixed labels whatever the default becomes
-    for _kind, _options in VARIANTS.values():
-        if _kind != "dmt":
-            _options["photo_choice"] = "labels"
-    VARIANTS["dmrt-view"] = ("dmrt", {"photometric": False, "photo_choice": "view"})
-    VARIANTS["dmrt-view+gains"] = ("dmrt", {"photometric": True, "photo_choice": "view"})
 # What a variant costs, by renderer (``dmrt bench --variants`` says it; the result records each
 # variant's seconds): DMT labels every kept depth map by graph cuts before its first frame.
 COSTS = {"dmrt": "a frame per view and walkthrough frame (the kitchen, 2 shared CPU cores: 8 views at 512 px and "

@@ -65,10 +65,8 @@ def test_flip_on_known_pairs():
 
 def test_select_variants():
     """Variants by name or pattern, in VARIANTS' order; a name that selects nothing is refused
-    (also when the parameters are made); dmrt-view exists exactly when the runtime has the
-    view-dependent photo choice, and then every other RenderConfig variant pins the fixed labels."""
-    from dmrt.runtime.renderer import RenderConfig
-
+    (also when the parameters are made); dmrt-view is the view-dependent photo choice, every
+    other RenderConfig variant pins the fixed labels."""
     assert select_variants([]) == list(VARIANTS)
     assert select_variants(["dmt+gains", "dmrt"]) == ["dmrt", "dmt+gains"]
     assert set(select_variants(["dmrt*"])) == {v for v in VARIANTS if v.startswith("dmrt")}
@@ -77,10 +75,8 @@ def test_select_variants():
         select_variants(["dmrt", "dtm"])
     with pytest.raises(ValueError, match="no such real_views variant"):
         RealViewsParams(variants=("nope",))
-    has = "photo_choice" in RenderConfig.__dataclass_fields__
-    assert ("dmrt-view" in VARIANTS) == has
-    if has:
-        assert VARIANTS["dmrt-view"][1]["photo_choice"] == "view" and VARIANTS["dmrt"][1]["photo_choice"] == "labels"
+    assert VARIANTS["dmrt-view"][1]["photo_choice"] == "view"
+    assert all(o["photo_choice"] == "labels" for k, (r, o) in VARIANTS.items() if r != "dmt" and "view" not in k)
 
 
 def test_report_reads_a_result_before_the_bounds(tmp_path):
