@@ -122,7 +122,11 @@ class ProcessPool:
         try:
             with _workers_ignore_interrupts():
                 self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
-                self._pool.submit(int).result()  # spawns every worker (spawned pools start them all at once)
+                # every worker now: a spawned pool starts one per task submitted while none is idle
+                # (Python 3.11), so one task each, submitted together; a worker started later would
+                # miss the variables (and take Ctrl-C)
+                for task in [self._pool.submit(int) for _ in range(self.workers)]:
+                    task.result()
         finally:
             for k, v in saved.items():
                 if v is None:
