@@ -121,17 +121,19 @@ def atomic_dir(path, force: bool = True, what: str = "output") -> Iterator[Path]
     try:
         yield tmp
         old = path.with_name(f".{path.name}.old-{os.getpid()}")
-        with _uninterrupted():
-            # the old one renamed aside first: the new one appears in one rename, never half-copied
-            if path.exists():
-                os.replace(path, old)
-            try:
-                os.replace(tmp, path)
-            except OSError:
-                if old.exists():
-                    os.replace(old, path)
-                raise
-        shutil.rmtree(old, ignore_errors=True)
+        try:
+            with _uninterrupted():
+                # the old one renamed aside first: the new one appears in one rename, never half-copied
+                if path.exists():
+                    os.replace(path, old)
+                try:
+                    os.replace(tmp, path)
+                except OSError:
+                    if old.exists():
+                        os.replace(old, path)
+                    raise
+        finally:  # also when Ctrl-C, held during the renames, is raised after them
+            shutil.rmtree(old, ignore_errors=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
