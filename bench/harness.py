@@ -13,7 +13,8 @@ file, asv-style::
     RESULTS_DIR/<machine>/<commit>-<preset>@<scene>/...          the same for a user's scene (--scene)
     RESULTS_DIR/<machine>/machine.json
 
-A user's scene has result sets of its own, named after its folder (:func:`result_label`): its
+A user's scene has result sets of its own, named after its folder
+(:func:`bench.workspace.result_label`): its
 report carries its name and only the experiments run on it (:func:`bench.report.build_report`).
 
 The work folder keeps the scene, the bundles and the Embree reference frames between runs (each
@@ -24,8 +25,6 @@ several commands (``--only``) on a machine that limits a command's time.
 from __future__ import annotations
 
 import dataclasses
-import json
-import re
 import sys
 import time
 import traceback
@@ -33,32 +32,8 @@ from pathlib import Path
 
 from bench.experiments import EXPERIMENTS, run_order
 from bench.workspace import (PRESETS, RESULTS_FORMAT, BenchPreset, Workspace, commit_info, default_work,
-                             machine_info, result_dir, write_json)
+                             machine_info, result_dir, result_label, scene_name, write_json)
 from dmrt.errors import DMRTError
-
-SCENE_MARK = "@"  # between the preset and a user's scene in a result set's label
-
-
-def scene_name(preset: BenchPreset, scene=None) -> str | None:
-    """The name a user's scene gives its result sets: its folder's name (characters other than
-    letters, digits, ``.``, ``_`` and ``-`` as ``_``); None for the preset's own synthetic scene,
-    generated or given with ``--scene`` (its ``synthetic.json`` names the preset's scene)."""
-    if scene is None:
-        return None
-    try:
-        if json.loads((Path(scene) / "synthetic.json").read_text())["config"]["name"] == preset.scene:
-            return None
-    except (OSError, ValueError, KeyError, TypeError):  # not one of the suite's synthetic scenes
-        pass
-    return re.sub(r"[^A-Za-z0-9._-]", "_", Path(scene).resolve().name) or "scene"
-
-
-def result_label(preset: BenchPreset, scene=None) -> str:
-    """The label of a result set (its folder: ``<commit>-<label>``): the preset's name, and for a
-    user's scene ``<preset>@<scene name>`` (:func:`scene_name`), so that its results never mix
-    with the synthetic scene's."""
-    name = scene_name(preset, scene)
-    return preset.name if name is None else f"{preset.name}{SCENE_MARK}{name}"
 
 
 def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, progress: bool = True,
@@ -72,7 +47,7 @@ def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, 
     work : work folder (default: ``$TMPDIR/dmrt-bench/<preset>``)
     only : experiment names to run (default: all)
     scene : an existing scene directory instead of the synthetic one (a user's scene: result sets
-        of its own, :func:`result_label`)
+        of its own, :func:`bench.workspace.result_label`)
     machine_name : results folder name of the machine (default: from the GL renderer)
     holdout_every : the experiments that hold photos out (``real_views``) hold out photos 0, N,
         2N, ... (default: theirs, 8)

@@ -40,7 +40,7 @@ import pandas as pd  # noqa: E402
 
 from bench import paper  # noqa: E402
 from bench.experiments import EXPERIMENTS, required_experiments  # noqa: E402
-from bench.harness import SCENE_MARK  # noqa: E402
+from bench.workspace import SCENE_MARK  # noqa: E402
 from dmrt.errors import InputError  # noqa: E402
 from dmrt.io.atomic import atomic_dir  # noqa: E402
 
@@ -990,7 +990,7 @@ def select(sets: list[ResultSet], preset: str | None = None, machine: str | None
 
 def scene_of(rs: ResultSet) -> str | None:
     """The user's scene ``rs`` was measured on (its label ``<preset>@<scene>``,
-    :func:`bench.harness.result_label`); None for the preset's synthetic scene."""
+    :func:`bench.workspace.result_label`); None for the preset's synthetic scene."""
     return rs.preset.partition(SCENE_MARK)[2] or None
 
 

@@ -43,9 +43,8 @@ def test_render_prints_and_writes_unmeasured_times_as_unavailable(tiny_bundle, t
 
 
 def test_report_of_a_users_scene_names_it_and_shows_its_experiments_only(tmp_path):
-    from bench.harness import result_label
     from bench.report import build_report
-    from bench.workspace import PRESETS
+    from bench.workspace import PRESETS, result_label
     from test_bench_report import _table1_payload, _write_set
 
     # a scene of the user's gets result sets of its own; the preset's synthetic scene does not
