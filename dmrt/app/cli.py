@@ -21,8 +21,8 @@ from dmrt.errors import ConfigError, DMRTError, InputError, require
 # (scikit-image), the report (pandas, matplotlib)
 BENCH_EXTRA = ("skimage", "pandas", "matplotlib")
 # the argument group of RenderConfig's knobs, listed last in --help
-TUNING = ("tuning (the renderer)", "knobs of the renderer's stages: speed, memory, the paper's variants; the "
-                               "defaults suit most scenes")
+TUNING = ("tuning (the renderer)",
+          "knobs of the renderer's stages: speed, memory, the paper's variants; the defaults suit most scenes")
 
 
 # ----------------------------------------------------------------------------------------------

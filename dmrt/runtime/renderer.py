@@ -468,6 +468,7 @@ class Renderer:
         self.visibility.release()
         self.splats.release()
         self.shading.release()
+        self.timer.release()
         for obj in (self.depthmaps, self.step_stats):
             if obj is not None:
                 obj.release()
