@@ -65,6 +65,9 @@ def cmd_reference(args) -> None:
 
 
 def cmd_preprocess(args) -> None:
+    import shutil
+
+    from dmrt.io.atomic import partial_dir
     from dmrt.preprocess.labeling import LabelingConfig
     from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
 
@@ -76,9 +79,15 @@ def cmd_preprocess(args) -> None:
     check_output(args.out, folder=True)
     if args.out.exists() and not args.force:  # refused before the scene is read (minutes on big clouds)
         raise InputError(args.out, "bundle exists (use --force to replace it)")
-    with open_executor(args.dask, workers=args.workers, gpus_per_host=args.dask_gpus) as executor:
-        out = preprocess(args.scene, args.out, config, labeling, force=args.force, progress=not args.quiet,
-                         executor=executor)
+    try:
+        with open_executor(args.dask, workers=args.workers, gpus_per_host=args.dask_gpus) as executor:
+            out = preprocess(args.scene, args.out, config, labeling, force=args.force, progress=not args.quiet,
+                             executor=executor)
+    except BaseException:
+        # the bundle's .partial folder is gone, but a worker process finishing its task (the pool
+        # waits for them) may have written into it again (Ctrl-C, or a task that failed)
+        shutil.rmtree(partial_dir(args.out), ignore_errors=True)
+        raise
     print(f"wrote {out}")
 
 

@@ -94,6 +94,12 @@ def write_bytes(path, data: bytes) -> Path:
     return Path(path)
 
 
+def partial_dir(path) -> Path:
+    """The folder :func:`atomic_dir` assembles ``path`` in: ``<path>.partial``."""
+    path = Path(path)
+    return path.with_name(path.name + ".partial")
+
+
 @contextmanager
 def atomic_dir(path, force: bool = True, what: str = "output") -> Iterator[Path]:
     """Yield an empty folder ``<path>.partial``; rename it to ``path`` when the block succeeds.
@@ -115,7 +121,7 @@ def atomic_dir(path, force: bool = True, what: str = "output") -> Iterator[Path]
     path = Path(path)
     if path.exists() and not force:
         raise InputError(path, f"{what} already exists (use --force to replace it)")
-    tmp = path.with_name(path.name + ".partial")
+    tmp = partial_dir(path)
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
