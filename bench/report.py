@@ -163,16 +163,18 @@ def missing_experiments(rs: ResultSet, required=None) -> list[str]:
 # Document model: sections of text, tables and figures, rendered to Markdown and HTML
 # ----------------------------------------------------------------------------------------------
 def fmt(v) -> str:
-    """The one number format of the report (Markdown and HTML alike): 4 significant digits."""
+    """The one number format of the report (Markdown and HTML alike): 4 significant digits; "n/a"
+    for no value: None, or NaN (a time that was not measured, e.g. a GPU time on a software
+    renderer: dmrt.gl.timer; and every empty cell of a table: pandas reads a missing value as NaN)."""
     if v is None:
-        return "—"
+        return "n/a"
     if isinstance(v, (bool, np.bool_)):
         return "yes" if v else "no"
     if isinstance(v, (int, np.integer)):
         return str(int(v))
     if isinstance(v, (float, np.floating)):
         if math.isnan(v):
-            return "n/a"  # not measured (a GPU time on a software renderer: dmrt.gl.timer)
+            return "n/a"
         if math.isinf(v):
             return "∞" if v > 0 else "-∞"
         return f"{v:.4g}"
