@@ -465,10 +465,10 @@ class Renderer:
     def release(self) -> None:
         """Free this renderer's GPU resources (cached programs stay with the context)."""
         self._release_frame()
+        self.timer.release()
         self.visibility.release()
         self.splats.release()
         self.shading.release()
-        self.timer.release()
         for obj in (self.depthmaps, self.step_stats):
             if obj is not None:
                 obj.release()
