@@ -49,7 +49,9 @@ VERSION = 2
 
 def _walk(renderer, cameras, warmup: int) -> dict:
     """Render ``cameras`` after ``warmup`` frames; per-frame GPU ms, fps and statistics. The timed
-    frames stay on the GPU (``readback=False``), as in interactive use."""
+    frames stay on the GPU (``readback=False``), as in interactive use; each frame's own times
+    (the timer waits for them: :attr:`dmrt.gl.GpuTimer.wait`)."""
+    renderer.timer.wait = True
     for cam in cameras[:warmup]:
         renderer.render(cam)
     totals, wall, stages, drawn = [], [], [], []

@@ -77,6 +77,7 @@ def main(argv=None) -> None:
         for k in (1, args.layers):
             r = Renderer(bundle, RenderConfig(layers=k, method=method.split("-")[0], max_thread_pixels=mtp,
                                               kbuffer_slots=slots, cache_mb=0))
+            r.timer.wait = True  # each frame's own times
             if method == "tiles-lagged":
                 r.visibility.tiles.check = "lagged"
             for cam in path[:3]:

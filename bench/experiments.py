@@ -185,6 +185,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
     from dmrt.runtime.renderer import Renderer
 
     renderer = Renderer(bundle, config)
+    renderer.timer.wait = True  # the timed pass: each frame's own times (the other passes do not read them)
     try:
         iters, surface, wanted = [], [], {}
         for cam in tqdm(cameras, desc=f"{desc} (statistics)", unit="frame", leave=False, disable=not progress):

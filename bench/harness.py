@@ -10,7 +10,12 @@ many proxy levels as the proxy sweep needs), derives the other proxy sets from i
 file, asv-style::
 
     RESULTS_DIR/<machine>/<commit>-<preset>/<experiment>.json   (+ <experiment>.npz for image maps)
+    RESULTS_DIR/<machine>/<commit>-<preset>@<scene>/...          the same for a user's scene (--scene)
     RESULTS_DIR/<machine>/machine.json
+
+A user's scene has result sets of its own, named after its folder
+(:func:`bench.workspace.result_label`): its
+report carries its name and only the experiments run on it (:func:`bench.report.build_report`).
 
 The work folder keeps the scene, the bundles and the Embree reference frames between runs (each
 checked against the configuration that made it), so that the experiments of a preset can run in
@@ -27,7 +32,8 @@ from pathlib import Path
 
 from bench.experiments import EXPERIMENTS, run_order
 from bench.workspace import (PRESETS, RESULTS_FORMAT, BenchPreset, Workspace, commit_info, default_work,
-                             machine_info, result_dir, write_json)
+                             machine_info, result_dir, result_label, scene_name, write_json)
+from dmrt.errors import DMRTError
 
 
 def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, progress: bool = True,
@@ -41,7 +47,8 @@ def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, 
     out : results folder (``RESULTS_DIR``)
     work : work folder (default: ``$TMPDIR/dmrt-bench/<preset>``)
     only : experiment names to run (default: all)
-    scene : an existing scene directory instead of the synthetic one
+    scene : an existing scene directory instead of the synthetic one (a user's scene: result sets
+        of its own, :func:`bench.workspace.result_label`)
     machine_name : results folder name of the machine (default: from the GL renderer)
     holdout_every : the experiments that hold photos out (``real_views``) hold out photos 0, N,
         2N, ... (default: theirs, 8)
@@ -76,11 +83,13 @@ def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, 
     if machine_name:
         machine["name"] = machine_name
     commit = commit_info()
-    rdir = result_dir(out, machine, commit, preset.name)
+    rdir = result_dir(out, machine, commit, result_label(preset, scene))
     write_json(Path(out) / machine["name"] / "machine.json", machine)
     if machine["gl_is_software"]:
-        print(f"[bench] note: {machine['gl_renderer']} is a software renderer: GPU timings are meaningless",
-              flush=True)
+        print(f"[bench] note: {machine['gl_renderer']} is a software renderer: its GPU times do not measure the "
+              f"work and are recorded as unavailable (NaN)", flush=True)
+    name = scene_name(preset, scene)
+    scene_info = None if name is None else {"name": name, "path": str(Path(scene).resolve())}
     ws = Workspace(preset, Path(work) if work else default_work(preset.name), scene, progress)
     status = {"dir": rdir, "written": {}, "failed": {}}
     t_all = time.perf_counter()
@@ -93,7 +102,8 @@ def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, 
         try:
             measurements = exp.run(ws, params, rdir)
         except Exception as exc:  # one broken experiment must not cost the others' GPU time
-            traceback.print_exc()
+            if not isinstance(exc, DMRTError):  # bad input is one line; anything else is a bug to read
+                traceback.print_exc()
             print(f"[bench] {name}: FAILED: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
             status["failed"][name] = f"{type(exc).__name__}: {exc}"
             for stale in (rdir / f"{name}.json", rdir / f"{name}.npz"):  # an older result is no longer this commit's
@@ -104,7 +114,7 @@ def run_bench(preset: str | BenchPreset, out, work=None, only=None, scene=None, 
         seconds = time.perf_counter() - t0
         payload = {"experiment": name, "title": exp.title, "version": exp.version, "format": RESULTS_FORMAT,
                    "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "duration_s": round(seconds, 2),
-                   "machine": machine, "commit": commit, "preset": preset.name,
+                   "machine": machine, "commit": commit, "preset": preset.name, "scene": scene_info,
                    "preset_config": dataclasses.asdict(preset), "parameters": dataclasses.asdict(params),
                    "setup_s": dict(ws.setup_s), "measurements": measurements}
         path = rdir / f"{name}.json"

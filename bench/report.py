@@ -40,6 +40,7 @@ import pandas as pd  # noqa: E402
 
 from bench import paper  # noqa: E402
 from bench.experiments import EXPERIMENTS, required_experiments  # noqa: E402
+from bench.workspace import SCENE_MARK  # noqa: E402
 from dmrt.errors import InputError  # noqa: E402
 from dmrt.io.atomic import atomic_dir  # noqa: E402
 
@@ -162,16 +163,18 @@ def missing_experiments(rs: ResultSet, required=None) -> list[str]:
 # Document model: sections of text, tables and figures, rendered to Markdown and HTML
 # ----------------------------------------------------------------------------------------------
 def fmt(v) -> str:
-    """The one number format of the report (Markdown and HTML alike): 4 significant digits."""
+    """The one number format of the report (Markdown and HTML alike): 4 significant digits; "n/a"
+    for no value: None, or NaN (a time that was not measured, e.g. a GPU time on a software
+    renderer: dmrt.gl.timer; and every empty cell of a table: pandas reads a missing value as NaN)."""
     if v is None:
-        return "—"
+        return "n/a"
     if isinstance(v, (bool, np.bool_)):
         return "yes" if v else "no"
     if isinstance(v, (int, np.integer)):
         return str(int(v))
     if isinstance(v, (float, np.floating)):
         if math.isnan(v):
-            return "—"
+            return "n/a"
         if math.isinf(v):
             return "∞" if v > 0 else "-∞"
         return f"{v:.4g}"
@@ -1077,10 +1080,21 @@ def select(sets: list[ResultSet], preset: str | None = None, machine: str | None
     return cand[-1]
 
 
+def scene_of(rs: ResultSet) -> str | None:
+    """The user's scene ``rs`` was measured on (its label ``<preset>@<scene>``,
+    :func:`bench.workspace.result_label`); None for the preset's synthetic scene."""
+    return rs.preset.partition(SCENE_MARK)[2] or None
+
+
 def build_report(results_dir, out, preset: str | None = None, machine: str | None = None,
                  required=None) -> ReportResult:
     """Build the report of the newest result set under ``results_dir`` into ``out``; the experiments
     it lacks are carried from older sets of its machine and preset (:func:`carry_forward`).
+
+    A preset's synthetic scene gets every section, an experiment without a result shown as not
+    run (the nightly completeness check: ``required``, default :data:`REQUIRED_EXPERIMENTS`). A
+    user's scene (:func:`scene_of`) gets its name in the title and the sections of the experiments
+    run on it only; ``required`` defaults to those.
 
     Returns
     -------
@@ -1092,6 +1106,10 @@ def build_report(results_dir, out, preset: str | None = None, machine: str | Non
     newest = select(sets, preset, machine)
     history = [s for s in sets if s.machine == newest.machine and s.preset == newest.preset]
     rs = carry_forward(newest, history[:-1], list(dict.fromkeys([*SECTIONS, *(required or [])])))
+    scene = scene_of(rs)
+    keys = SECTIONS if scene is None else [k for k in SECTIONS if k in rs.experiments or k in rs.failed]
+    if scene is not None and required is None:
+        required = keys
     out = Path(out)
     with atomic_dir(out, what="report") as tmp:
         for sub in ("figures", "csv", "results"):
@@ -1102,7 +1120,7 @@ def build_report(results_dir, out, preset: str | None = None, machine: str | Non
             if (out / "figures" / name).is_file():
                 shutil.copy2(out / "figures" / name, tmp / "figures" / name)
         sections = []
-        for key in SECTIONS:
+        for key in keys:
             try:
                 sections.append(BUILDERS[key](rs, tmp))
             except InputError:
@@ -1118,7 +1136,7 @@ def build_report(results_dir, out, preset: str | None = None, machine: str | Non
         # Table 1 at the paper's own Scene 2 size is a preset of its own (bench/scale_run.sh): its
         # newest result on this machine stands beside this preset's
         full = [f for f in sets if f.machine == rs.machine and f.preset == FULL_PRESET and "table1" in f.experiments]
-        if full and rs.preset != FULL_PRESET:
+        if full and rs.preset != FULL_PRESET and scene is None:
             sections.insert(1, section_table1(full[-1], tmp, "table1_full", f"Table 1 at Scene 2's size: the "
                                               f"`{FULL_PRESET}` preset (commit {full[-1].commit}, {full[-1].date})"))
             shutil.copy2(full[-1].dir / "table1.json", tmp / "results" / f"{FULL_PRESET}-table1.json")
@@ -1127,8 +1145,9 @@ def build_report(results_dir, out, preset: str | None = None, machine: str | Non
             sections.append(hist)
         missing = missing_experiments(rs, required)
         failed = sorted(rs.failed)
-        header = _header(rs, missing, failed)
-        title = f"DMRT benchmark report: {rs.preset} preset"
+        header = _header(rs, missing, failed, keys)
+        title = f"DMRT benchmark report: {rs.preset} preset" if scene is None else \
+            f"DMRT benchmark report: scene {scene} ({rs.preset.partition(SCENE_MARK)[0]} preset)"
         for s in sections:
             for b in s.blocks:
                 if isinstance(b, Table):
@@ -1145,13 +1164,17 @@ def build_report(results_dir, out, preset: str | None = None, machine: str | Non
     return ReportResult(out, rs, missing, failed)
 
 
-def _header(rs: ResultSet, missing: list, failed: list) -> list[str]:
+def _header(rs: ResultSet, missing: list, failed: list, keys: list) -> list[str]:
     info = rs.info
     mach, com = info["machine"], info["commit"]
+    preset, _, scene = rs.preset.partition(SCENE_MARK)
     lines = []
     if missing or failed:
         parts = [f"{what}: {', '.join(names)}" for what, names in (("not run", missing), ("failed", failed)) if names]
         lines.append(f"**INCOMPLETE** ({'; '.join(parts)}).")
+    elif scene:
+        lines.append(f"**Complete**: every experiment run on scene `{scene}` has a result ({', '.join(keys)})"
+                     + ("; some carried from earlier runs: see below." if rs.carried else "."))
     else:
         lines.append("**Complete**: every required experiment has a result"
                      + (" (some carried from earlier runs: see below)." if rs.carried else "."))
@@ -1166,17 +1189,24 @@ def _header(rs: ResultSet, missing: list, failed: list) -> list[str]:
     lines.append(f"Machine `{rs.machine}`: GL renderer {mach.get('gl_renderer')} ({mach.get('gl_version')}); CPU "
                  f"{mach.get('cpu')}, {mach.get('cpu_cores')} cores, {fmt(mach.get('memory_gib'))} GiB.")
     lines.append(f"Commit `{com.get('hash', rs.commit)}`{' (uncommitted changes)' if com.get('dirty') else ''}, "
-                 f"committed {com.get('date')}; preset `{rs.preset}`; newest result {rs.date}; results from "
-                 f"`{rs.dir}`.")
+                 f"committed {com.get('date')}; "
+                 + (f"scene `{scene}` ({_scene_path(rs)}), " if scene else "")
+                 + f"preset `{preset}`; newest result {rs.date}; results from `{rs.dir}`.")
     if mach.get("gl_is_software"):
-        lines.append("**Note**: a software GL renderer (Mesa llvmpipe): its GPU timer values are meaningless, so "
-                     "every millisecond, fps and speed ratio below is not a measurement of anything; the quality "
-                     "numbers (depth error, holes, steps) are.")
+        lines.append("**Note**: a software GL renderer (Mesa llvmpipe): its GPU timer values do not measure the "
+                     "work, so GPU milliseconds, fps and speed ratios below are n/a (results made before they "
+                     "were recorded as unavailable show numbers that measure nothing); the quality numbers "
+                     "(depth error, holes, steps) are measurements.")
 
     def state(k: str) -> str:
         if k in rs.carried:
             return f"carried from {rs.carried[k].commit}"
         return "ok" if k in rs.experiments else "FAILED" if k in rs.failed else "not run"
 
-    lines.append(f"Paper: {paper.MACHINE}. Experiments: " + ", ".join(f"{k} ({state(k)})" for k in SECTIONS) + ".")
+    lines.append(f"Paper: {paper.MACHINE}. Experiments: " + ", ".join(f"{k} ({state(k)})" for k in keys) + ".")
     return lines
+
+
+def _scene_path(rs: ResultSet) -> str:
+    """Where the user's scene of ``rs`` was read from (its results record it)."""
+    return next((f"`{p['scene']['path']}`" for p in rs.experiments.values() if p.get("scene")), "path not recorded")

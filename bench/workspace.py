@@ -194,6 +194,31 @@ def result_dir(out: Path, machine: dict, commit: dict, preset: str) -> Path:
     return Path(out) / machine["name"] / f"{commit['hash']}-{preset}"
 
 
+SCENE_MARK = "@"  # between the preset and a user's scene in a result set's label
+
+
+def scene_name(preset: BenchPreset, scene=None) -> str | None:
+    """The name a user's scene gives its result sets: its folder's name (characters other than
+    letters, digits, ``.``, ``_`` and ``-`` as ``_``); None for the preset's own synthetic scene,
+    generated or given with ``--scene`` (its ``synthetic.json`` names the preset's scene)."""
+    if scene is None:
+        return None
+    try:
+        if json.loads((Path(scene) / "synthetic.json").read_text())["config"]["name"] == preset.scene:
+            return None
+    except (OSError, ValueError, KeyError, TypeError):  # not one of the suite's synthetic scenes
+        pass
+    return re.sub(r"[^A-Za-z0-9._-]", "_", Path(scene).resolve().name) or "scene"
+
+
+def result_label(preset: BenchPreset, scene=None) -> str:
+    """The label of a result set (its folder: ``<commit>-<label>``): the preset's name, and for a
+    user's scene ``<preset>@<scene name>`` (:func:`scene_name`), so that its results never mix
+    with the synthetic scene's."""
+    name = scene_name(preset, scene)
+    return preset.name if name is None else f"{preset.name}{SCENE_MARK}{name}"
+
+
 def write_json(path: Path, payload: dict) -> None:
     """Write JSON through a temporary file and a rename: a result file is whole or absent."""
     write_text(path, json.dumps(payload, indent=1, default=_json_default))

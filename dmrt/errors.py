@@ -45,8 +45,9 @@ class MissingDependencyError(DMRTError, ImportError):
     """An optional dependency is not installed; the message says which extra brings it."""
 
     def __init__(self, module: str, purpose: str, extra: str):
+        # the suite is installed from its checkout (setup.sh), not from a package index
         super().__init__(f"{purpose} needs the Python package '{module}', which is not installed: "
-                         f"pip install 'dmrt[{extra}]'")
+                         f"pip install -e '.[{extra}]' in the suite's checkout")
 
 
 def require(module: str, purpose: str, extra: str):

@@ -5,7 +5,7 @@ value into a :class:`~dmrt.errors.ConfigError` that names the option.
 
     @dataclass
     class RenderConfig:
-        layers: int = option(5, "Number of label layers k.", minimum=1)
+        layers: int = option(5, "Number of label layers k.", minimum=1, level="common")
         method: Literal["kbuffer", "compute"] = option("kbuffer", "Visibility stage.")
 
         def __post_init__(self):
@@ -20,10 +20,17 @@ import typing
 from dmrt.errors import ConfigError
 
 
-def option(default, help: str, *, minimum=None, maximum=None):
-    """A dataclass field with its ``--help`` text and inclusive bounds (numbers, or each element of
-    a tuple; None = unbounded)."""
-    return dataclasses.field(default=default, metadata={"help": help, "min": minimum, "max": maximum})
+Level = typing.Literal["common", "tuning"]
+
+
+def option(default, help: str, *, minimum=None, maximum=None, level: Level = "tuning"):
+    """A dataclass field with its ``--help`` text, inclusive bounds (numbers, or each element of
+    a tuple; None = unbounded) and ``level``: ``"common"`` for an option most users need, listed
+    first in ``--help``; ``"tuning"`` for a knob, listed in a group of its own after them."""
+    if level not in typing.get_args(Level):
+        raise ValueError(f"option level must be one of {typing.get_args(Level)}, not {level!r}")
+    return dataclasses.field(default=default, metadata={"help": help, "min": minimum, "max": maximum,
+                                                        "level": level})
 
 
 def choices(tp) -> tuple | None:

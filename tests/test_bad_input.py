@@ -225,6 +225,8 @@ RENDER_CASES = {
     "out_parent_is_file": (["--out", "OUTDIR/afile/f.png"], ["afile", "is a file"]),
     "stats_parent_is_file": (["--stats", "OUTDIR/afile/s.json"], ["afile", "--stats"]),
     "dump_stages_is_file": (["--dump-stages", "OUTDIR/afile"], ["--dump-stages", "afile", "is a file"]),
+    # root passes permission checks there: only a write tells
+    "out_unwritable": (["--out", "/proc/x.png"], ["/proc", "not writable", "--out"]),
 }
 
 
@@ -491,6 +493,31 @@ def test_report_on_missing_or_empty_results(tmp_path, out_dir, capfd):
                      [tmp_path / "empty"], out_dir)
 
 
+# dmrt demo: every case is refused before the scene is made (out/scene would appear otherwise)
+DEMO_CASES = {
+    "width_zero": (["--width", "0"], ["--width", "not 0"]),
+    "width_negative": (["--width", "-5"], ["--width", "not -5"]),
+    "width_huge": (["--width", "100000"], ["--width", "4096", "not 100000"]),  # else minutes of ray casting
+    "out_is_file": (["--out", "OUTDIR/afile"], ["--out", "afile", "is a file"]),
+    "out_unwritable": (["--out", "/proc/demo"], ["/proc", "not writable"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(DEMO_CASES))
+def test_bad_demo_request(case, out_dir, capfd):
+    extra, names = DEMO_CASES[case]
+    (out_dir / "afile").write_text("a file, not a folder")
+    extra = [a.replace("OUTDIR", str(out_dir)) for a in extra]
+    argv = ["demo", "--quiet"] + ([] if "--out" in extra else ["--out", out_dir / "demo"])
+    assert_bad_input(argv + extra, capfd, names, out_dir)
+
+
+def test_view_photo_out_of_range(tiny_bundle, out_dir, capfd):
+    """Refused before a window opens (headless here), naming the option and the photos there are."""
+    assert_bad_input(["view", tiny_bundle, "--window", "headless", "--photo", "99", "--screenshot",
+                      out_dir / "s.png"], capfd, ["--photo", "99", "12 photos"], out_dir)
+
+
 def test_view_missing_bundle(tmp_path, out_dir, capfd):
     assert_bad_input(["view", tmp_path / "nobundle", "--window", "headless", "--screenshot", out_dir / "s.png"],
                      capfd, [tmp_path / "nobundle", "not found"], out_dir)
@@ -550,6 +577,9 @@ def _run_without(module, argv, cwd):
     ("skimage", ["scene", "synth", "--preset", "tiny", "--quiet", "--out", "OUT/scene"], "bench"),
     ("pymeshlab", ["scene", "mesh", "SCENE", "--out", "OUT/mesh.ply"], "poisson"),
     ("pandas", ["report", "OUT", "--out", "OUT/report"], "bench"),
+    # dmrt bench needs the whole extra before any work (each experiment failed alike without it)
+    *[(m, ["bench", "--preset", "ci", "--out", "OUT/results", "--work", "OUT/work", "--scene", "SCENE"], "bench")
+      for m in ("skimage", "pandas", "matplotlib")],
 ])
 def test_missing_optional_dependency(module, argv, extra, tmp_path, out_dir):
     scene = tmp_path / "scene"
@@ -559,6 +589,38 @@ def test_missing_optional_dependency(module, argv, extra, tmp_path, out_dir):
     lines = r.stderr.splitlines()
     assert r.returncode == 2, r.stderr
     assert len(lines) == 1 and lines[0].startswith("dmrt: error: "), r.stderr
-    assert f"'{module}'" in lines[0] and f"pip install 'dmrt[{extra}]'" in lines[0]
+    assert f"'{module}'" in lines[0] and f"pip install -e '.[{extra}]'" in lines[0]
     assert "Traceback" not in r.stderr and not any(out_dir.iterdir())
     assert not (out_dir / "scene.partial").exists()
+
+
+# -- Ctrl-C ------------------------------------------------------------------------------------------
+def test_interrupted_preprocess_is_one_line_and_leaves_nothing(tiny_scene, out_dir):
+    """Ctrl-C as a terminal sends it (SIGINT to the command's whole process group: the command and
+    its worker processes) once preprocessing has started: one line, exit 130, no traceback from
+    any process, and neither the bundle nor its ``.partial`` folder left."""
+    import os
+    import signal
+    import time
+
+    code = "import sys; from dmrt.app.cli import main; sys.exit(main(sys.argv[1:]))"
+    bundle = out_dir / "b"
+    p = subprocess.Popen([sys.executable, "-c", code, "preprocess", str(tiny_scene), "--out", str(bundle),
+                          "--workers", "2", "--quiet"], start_new_session=True, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as a shell's job
+    try:
+        partial = bundle.with_name("b.partial")
+        t0 = time.monotonic()
+        while not partial.exists() and p.poll() is None and time.monotonic() - t0 < 120:
+            time.sleep(0.05)  # the workers are started before the bundle's .partial folder is made
+        assert partial.exists(), "preprocessing never started"
+        time.sleep(0.5)
+        os.killpg(p.pid, signal.SIGINT)
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130, (p.returncode, err)
+    assert err.splitlines() == ["dmrt: error: interrupted (Ctrl-C); no output was left half-written"], err
+    assert not any(out_dir.iterdir()), list(out_dir.iterdir())

@@ -129,8 +129,9 @@ def test_report_numbers_are_the_measured_ones(ci_run):
         # each frame's sections, which add up to its total
         parts = st["part_ms_per_frame"]
         assert "raytracing:search" in parts and all(len(v) == len(st["total_ms_per_frame"]) for v in parts.values())
+        # (NaN on both sides where no time was measured: a software rasterizer, dmrt.gl.timer)
         assert np.allclose([sum(v[i] for v in parts.values()) for i in range(len(st["total_ms_per_frame"]))],
-                           st["total_ms_per_frame"], rtol=1e-6)
+                           st["total_ms_per_frame"], rtol=1e-6, equal_nan=True)
     # the raytracing row of the default path's table starts with the 1-layer median of the frames
     # rendered back to back and the paper's 1.2 ms
     assert any(r.startswith(f"| raytracing | {fmt(k1['sustained_timed']['median_ms']['raytracing'])} | 1.2 |")
@@ -165,8 +166,8 @@ def test_report_numbers_are_the_measured_ones(ci_run):
                 f"{fmt(e['labeling_ratio_dmt_over_dmrt']['cpu'])} | {fmt(e['labeling_ratio_dmt_over_dmrt']['wall'])} |")
         assert any(r.startswith(want) for r in rows), want
         assert any(f"| {fmt(e['fps_min_avg_max'][0])} | {fmt(e['fps_min_avg_max'][1])} | " in r for r in rows)
-    assert any(r.startswith(f"| DMRT (5 layers) | DMRT 1024x684, 1M proxies, 5 layers | — | "
-                            f"{fmt(dmrt_lab['wall_s'])} | {fmt(dmrt_lab['cpu_s'])} | — | 204 |") for r in rows)
+    assert any(r.startswith(f"| DMRT (5 layers) | DMRT 1024x684, 1M proxies, 5 layers | n/a | "
+                            f"{fmt(dmrt_lab['wall_s'])} | {fmt(dmrt_lab['cpu_s'])} | n/a | 204 |") for r in rows)
 
     fig7 = _result(set_dir, "fig7")["measurements"]
     for s in fig7["sets"]:

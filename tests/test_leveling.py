@@ -187,7 +187,8 @@ def test_leveling_balances_photo_exposures(ctx, renderers, bundle, tiny_scene):
               f"GPU gains vs numpy twin: max |log difference| {max(twin_diff):.2e}")
         assert len(before) >= 3
         assert np.mean(after) <= 0.5 * np.mean(before)
-        assert frame["timings"]["leveling"] >= 0 and "leveling" in frame["cpu_ms"]
+        # a time, or NaN where none was measured (a software rasterizer: dmrt.gl.timer)
+        assert not frame["timings"]["leveling"] < 0 and "leveling" in frame["cpu_ms"]
         assert {"leveling:seams", "leveling:solve", "leveling:apply"} <= set(frame["part_timings"])
         kept = leveler.render(bundle.cameras[1].resized(W), readback=False)
         assert "leveling_gains" not in kept and "leveling" in kept["cpu_ms"]

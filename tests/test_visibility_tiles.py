@@ -281,7 +281,8 @@ def test_walk_per_frame_bench(bundle):
     rows = walk_per_frame(bundle, cams, 3)
     assert [r["frame"] for r in rows] == [0, 1]
     for r in rows:
-        assert r["linear_ms"] >= 0.0 and r["sparse_ms"] >= 0.0 and r["N"] > 1.0
+        # a time, or NaN where none was measured (a software rasterizer: dmrt.gl.timer)
+        assert not (r["linear_ms"] < 0.0 or r["sparse_ms"] < 0.0) and r["N"] > 1.0
         assert 1 / 256 <= r["cover"] <= 1.0
 
 

@@ -147,7 +147,7 @@ class DMTRenderer:
             if np.shape(lab) != (h, w):
                 raise ValueError(f"labels of depth map {i}: shape {np.shape(lab)}, expected ({h}, {w})")
         dims = (max(s[0] for s in self.sizes), max(s[1] for s in self.sizes))
-        self.timer = GpuTimer(self.ctx)
+        self.timer = GpuTimer(self.ctx, wait=False)  # as DMRT's: the render loop never waits on it
         ctx = self.ctx
 
         # depth maps (R32F) and labels (R16I when photo indices fit, else R32I), one layer per map
@@ -213,7 +213,8 @@ class DMTRenderer:
         maps : sequence of int, optional
             Draw only these depth maps (the others count as culled); default all.
         readback : bool
-            False: only ``timings``, ``cpu_ms`` and ``stats`` (as ``dmrt.runtime.renderer.Renderer.render``).
+            False: only ``timings``, ``part_timings``, ``timings_lag``, ``cpu_ms`` and ``stats`` (as
+            ``dmrt.runtime.renderer.Renderer.render``).
 
         Returns
         -------
@@ -222,7 +223,8 @@ class DMTRenderer:
             background), ``label`` (h, w) int32 (-1 = none), ``color`` (h, w, 3) uint8, ``normal``
             (h, w, 3) float32 unit world normal facing the camera - plus ``depth_map`` (h, w) int32
             (the depth map that won the pixel, -1 = none), ``timings`` {stage: GPU ms} for
-            :data:`STAGES` (meaningless on llvmpipe), ``cpu_ms`` {``status_read``,
+            :data:`STAGES` and ``timings_lag`` as DMRT's (an earlier frame's, NaN where
+            unavailable: :meth:`dmrt.gl.GpuTimer.frame_timings`), ``cpu_ms`` {``status_read``,
             ``image_management``} as DMRT's, and ``stats`` {``maps``, ``maps_culled``,
             ``maps_drawn``, ``triangles_drawn`` (upper bound: triangles of the drawn maps, before
             the discontinuity drop)}.
@@ -313,6 +315,7 @@ class DMTRenderer:
         for vao in self._vao.values():
             vao.release()
         self.shading.release()
+        self.timer.release()
         for obj in (self.depthmaps, self.labels, self._boxes_buf, self._commands, self._stats, self._stats_host):
             if obj is not None:
                 obj.release()

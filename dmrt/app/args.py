@@ -15,16 +15,30 @@ from dmrt.errors import ConfigError, InputError
 # ----------------------------------------------------------------------------------------------
 # Dataclass <-> argparse
 # ----------------------------------------------------------------------------------------------
-def add_config_args(parser: argparse.ArgumentParser, cls, skip=()) -> None:
+def add_config_args(parser: argparse.ArgumentParser, cls, skip=(), tuning=None, common=None) -> None:
     """Add one ``--option`` per field of dataclass ``cls``, with the help text, choices and default
-    the field declares (:func:`dmrt.options.option`); defaults stay the dataclass's own."""
+    the field declares (:func:`dmrt.options.option`); defaults stay the dataclass's own.
+
+    Parameters
+    ----------
+    parser : the (sub)command's parser.
+    cls : the configuration dataclass.
+    skip : field names the command gives options of its own.
+    tuning : the argument group (``parser.add_argument_group(title)``) that takes the fields of
+        level ``"tuning"``; ``--help`` lists groups in the order they were made, so make it after
+        the command's own options. None: ``parser``'s main options.
+    common : where the fields of level ``"common"`` go (an argument group; default ``parser``'s
+        main options, listed first).
+    """
     from dmrt.options import choices
 
     hints = typing.get_type_hints(cls)
     defaults = cls()
+    groups = {"common": common or parser, "tuning": tuning or parser}
     for f in dataclasses.fields(cls):
         if f.name in skip:
             continue
+        group = groups[f.metadata.get("level", "tuning")]
         opt = "--" + f.name.replace("_", "-")
         tp = hints[f.name]
         default = getattr(defaults, f.name)
@@ -33,16 +47,16 @@ def add_config_args(parser: argparse.ArgumentParser, cls, skip=()) -> None:
         origin = typing.get_origin(tp)
         allowed = choices(tp)
         if tp is bool:
-            parser.add_argument(opt, dest=f.name, default=None, action=argparse.BooleanOptionalAction, help=text)
+            group.add_argument(opt, dest=f.name, default=None, action=argparse.BooleanOptionalAction, help=text)
         elif allowed is not None:
-            parser.add_argument(opt, dest=f.name, default=None, choices=allowed, help=text)
+            group.add_argument(opt, dest=f.name, default=None, choices=allowed, help=text)
         elif origin is tuple:
             args = typing.get_args(tp)
-            parser.add_argument(opt, dest=f.name, default=None, nargs=len(args), type=args[0],
-                                metavar=f.name.upper(), help=text)
+            group.add_argument(opt, dest=f.name, default=None, nargs=len(args), type=args[0],
+                               metavar=f.name.upper(), help=text)
         else:
             base = next((a for a in typing.get_args(tp) if a is not type(None)), tp) if origin else tp
-            parser.add_argument(opt, dest=f.name, default=None, type=base, help=text)
+            group.add_argument(opt, dest=f.name, default=None, type=base, help=text)
 
 
 def config_from_args(cls, args: argparse.Namespace, base=None):
@@ -89,7 +103,8 @@ def check_output(path, option: str = "out", suffixes=None, folder: bool = False,
     InputError
         A parent of ``path`` is a file, or the nearest existing parent is not writable.
     """
-    import os
+    import errno
+    import tempfile
 
     path = Path(path)
     if folder and path.exists() and not path.is_dir():
@@ -103,8 +118,13 @@ def check_output(path, option: str = "out", suffixes=None, folder: bool = False,
         if parent.exists():
             if not parent.is_dir():
                 raise InputError(parent, f"is a file, so --{option} {path} cannot be written in it")
-            if not os.access(parent, os.W_OK | os.X_OK):
-                raise InputError(parent, f"folder not writable (for --{option} {path})")
+            # a file made and deleted at once: permission bits do not tell (root passes os.access
+            # in /proc and on read-only mounts)
+            try:
+                tempfile.TemporaryFile(dir=parent).close()
+            except OSError as exc:  # the reason where it says more than "not writable" (read-only, full)
+                reason = f": {exc.strerror}" if exc.errno in (errno.EROFS, errno.ENOSPC, errno.EDQUOT) else ""
+                raise InputError(parent, f"folder not writable (for --{option} {path}){reason}") from None
             break
     return path
 

@@ -17,6 +17,14 @@ from dmrt.camera import Camera
 from dmrt.errors import ConfigError, DMRTError, InputError, require
 
 
+# the bench extra's packages (pyproject.toml): the synthetic scenes' textures and real_views' SSIM
+# (scikit-image), the report (pandas, matplotlib)
+BENCH_EXTRA = ("skimage", "pandas", "matplotlib")
+# the argument group of RenderConfig's knobs, listed last in --help
+TUNING = ("tuning (the renderer)",
+          "knobs of the renderer's stages: speed, memory, the paper's variants; the defaults suit most scenes")
+
+
 # ----------------------------------------------------------------------------------------------
 # Commands
 # ----------------------------------------------------------------------------------------------
@@ -31,8 +39,10 @@ def cmd_scene_synth(args) -> None:
 
 
 def cmd_demo(args) -> None:
-    from dmrt.app.demo import run_demo
+    from dmrt.app.demo import check_width, run_demo
 
+    check_width(args.width)
+    check_output(args.out, folder=True)
     page = run_demo(args.out, width=args.width, progress=not args.quiet)
     print(f"open {page}  (DMRT vs DMT vs Embree: frames, depth-error and hole maps, metrics)")
 
@@ -55,6 +65,9 @@ def cmd_reference(args) -> None:
 
 
 def cmd_preprocess(args) -> None:
+    import shutil
+
+    from dmrt.io.atomic import partial_dir
     from dmrt.preprocess.labeling import LabelingConfig
     from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
 
@@ -66,9 +79,15 @@ def cmd_preprocess(args) -> None:
     check_output(args.out, folder=True)
     if args.out.exists() and not args.force:  # refused before the scene is read (minutes on big clouds)
         raise InputError(args.out, "bundle exists (use --force to replace it)")
-    with open_executor(args.dask, workers=args.workers, gpus_per_host=args.dask_gpus) as executor:
-        out = preprocess(args.scene, args.out, config, labeling, force=args.force, progress=not args.quiet,
-                         executor=executor)
+    try:
+        with open_executor(args.dask, workers=args.workers, gpus_per_host=args.dask_gpus) as executor:
+            out = preprocess(args.scene, args.out, config, labeling, force=args.force, progress=not args.quiet,
+                             executor=executor)
+    except BaseException:
+        # the bundle's .partial folder is gone, but a worker process finishing its task (the pool
+        # waits for them) may have written into it again (Ctrl-C, or a task that failed)
+        shutil.rmtree(partial_dir(args.out), ignore_errors=True)
+        raise
     print(f"wrote {out}")
 
 
@@ -120,11 +139,10 @@ def make_renderer(bundle, args):
 
 
 def cmd_render(args) -> None:
-    import json
-
     import numpy as np
 
-    from dmrt.io.atomic import write_text
+    from dmrt.gl.timer import format_timings
+    from dmrt.io.atomic import write_json
     from dmrt.io.bundle import read_bundle
     from dmrt.io.frames import write_frame
 
@@ -158,7 +176,9 @@ def cmd_render(args) -> None:
     check_render_size(size.width, size.height, args)
     renderer, config = make_renderer(bundle, args)
     # A still frame: the first render tells which photos the view needs, then they are made
-    # resident at full resolution and the frame is rendered again with them.
+    # resident at full resolution and the frame is rendered again with them; its own GPU times
+    # (waiting for them costs nothing after the read-back)
+    renderer.timer.wait = True
     renderer.render(camera, args.width, args.height)
     renderer.flush_photos()
     frame = renderer.render(camera, args.width, args.height)
@@ -181,16 +201,15 @@ def cmd_render(args) -> None:
                                                         minlength=config.layers).tolist()
         if "stats" in frame:  # DMT's culling counts
             stats["dmt"] = frame["stats"]
-        write_text(args.stats, json.dumps(stats, indent=1))
-    t = frame["timings"]
-    print(f"wrote {args.out}: " + ", ".join(f"{k} {v:.2f} ms" for k, v in t.items()))
+        write_json(args.stats, stats)
+    print(f"wrote {args.out}: {format_timings(frame['timings'])}")
 
 
 def render_walkthrough(bundle, args) -> None:
-    """Render a camera path into ``--out`` (a folder): one PNG per frame and ``timings.json``."""
-    import json
-
-    from dmrt.io.atomic import atomic_dir
+    """Render a camera path into ``--out`` (a folder): one PNG per frame and ``timings.json`` (each
+    frame's own GPU ms; null where not measured)."""
+    from dmrt.gl.timer import format_ms, is_measured
+    from dmrt.io.atomic import atomic_dir, json_text
     from dmrt.runtime.walkthrough import load_path
 
     cameras = load_path(args.path)
@@ -203,6 +222,7 @@ def render_walkthrough(bundle, args) -> None:
         raise InputError(out, "folder exists and holds files that are not a walkthrough (no timings.json): "
                               "give a new or empty --out folder")
     renderer, config = make_renderer(bundle, args)
+    renderer.timer.wait = True  # each frame's own times (read back anyway: no wait is added)
     from tqdm import tqdm
 
     from dmrt.io.frames import write_frame
@@ -215,9 +235,11 @@ def render_walkthrough(bundle, args) -> None:
             write_frame(tmp / f"frame_{n:05d}.png", frame)
             per_frame.append(frame["timings"])
         totals = [sum(t.values()) for t in per_frame]
-        (tmp / "timings.json").write_text(json.dumps(
-            {"frames": per_frame, "total_ms": totals, "config": dataclasses.asdict(config)}, indent=1))
-    print(f"wrote {len(cameras)} frames to {out}: median {sorted(totals)[len(totals) // 2]:.2f} GPU ms per frame")
+        (tmp / "timings.json").write_text(json_text(
+            {"frames": per_frame, "total_ms": totals, "config": dataclasses.asdict(config)}))
+    measured = sorted(t for t in totals if is_measured(t))
+    median = measured[len(measured) // 2] if measured else None
+    print(f"wrote {len(cameras)} frames to {out}: median GPU time per frame {format_ms(median)}")
 
 
 def cmd_path(args) -> None:
@@ -248,7 +270,7 @@ def cmd_view(args) -> None:
         check_output(args.screenshot, "screenshot", suffixes=(".png",), what="screenshot")
     bundle = read_bundle(args.bundle)
     from dmrt.runtime.renderer import RenderConfig
-    from dmrt.app.viewer import ViewerConfig, available_methods
+    from dmrt.app.viewer import ViewerConfig, available_methods, check_photo
     from dmrt.app.viewer_window import run_viewer
 
     try:
@@ -257,6 +279,7 @@ def cmd_view(args) -> None:
         raise InputError(None, str(exc)) from exc
     if config.method not in available_methods():
         raise InputError(None, f"--method {config.method}: not available here (have: {', '.join(available_methods())})")
+    check_photo(config.photo, bundle)  # before a window opens
     # RenderConfig options that ViewerConfig does not own (its namesakes are the viewer's)
     skip = {f.name for f in dataclasses.fields(ViewerConfig)}
     render = dataclasses.replace(RenderConfig(), **{
@@ -267,6 +290,8 @@ def cmd_view(args) -> None:
 
 
 def cmd_bench(args) -> None:
+    for module in BENCH_EXTRA:  # before any work: else each experiment fails alike
+        require(module, "dmrt bench", "bench")
     from bench.harness import run_bench
 
     try:
@@ -301,12 +326,16 @@ def build_parser() -> argparse.ArgumentParser:
     from dmrt.preprocess.pipeline import PreprocessConfig
     from dmrt.runtime.renderer import RenderConfig, Visibility
 
+    from dmrt.app.demo import MAX_WIDTH as DEMO_MAX_WIDTH
+
     p = argparse.ArgumentParser(prog="dmrt", description="Multi-Depth-Map Raytracing suite")
+    p.add_argument("--version", action="version", version=f"%(prog)s {version()}")
     sub = p.add_subparsers(dest="command", required=True)
 
     demo = sub.add_parser("demo", help="the main job on the built-in scene: a page comparing DMRT, DMT and Embree")
     demo.add_argument("--out", type=Path, default=Path("out/demo"), help="folder to write (default: out/demo)")
-    demo.add_argument("--width", type=int, default=480, help="frame width in pixels (default: 480)")
+    demo.add_argument("--width", type=int, default=480,
+                      help=f"frame width in pixels, at most {DEMO_MAX_WIDTH} (default: 480)")
     demo.add_argument("--quiet", action="store_true", help="no progress output")
     demo.set_defaults(func=cmd_demo)
 
@@ -340,33 +369,36 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("--workers", type=int, help="without --dask: local processes for the CPU phases (octree, "
                      "normals/radii, candidates; default: CPU cores; 1 = all in this process); the bundle does "
                      "not depend on it")
-    add_config_args(pre, PreprocessConfig)
-    add_config_args(pre, LabelingConfig)
+    add_config_args(pre, PreprocessConfig, tuning=pre.add_argument_group("preprocessing"))
+    add_config_args(pre, LabelingConfig, tuning=pre.add_argument_group("proxy labeling"))
     pre.set_defaults(func=cmd_preprocess)
 
-    ren = sub.add_parser("render", help="render a frame (or a walkthrough) of a bundle with DMRT or DMT")
+    ren = sub.add_parser("render", help="render a frame (or a walkthrough) of a bundle with DMRT or DMT",
+                         usage="%(prog)s BUNDLE (--camera NAME | --pose FILE | --path FILE) --out OUT [options]")
     ren.add_argument("bundle", type=Path)
     ren.add_argument("--camera", help="image name of the photo whose camera to use")
     ren.add_argument("--pose", type=Path, help="JSON camera (bundle.json's camera format)")
     ren.add_argument("--path", type=Path, help="camera path JSON (dmrt path): --out is then a folder")
     ren.add_argument("--width", type=int, help="frame width (default: the camera's)")
     ren.add_argument("--height", type=int, help="frame height (default: keeps the camera's aspect)")
-    method = next(f for f in dataclasses.fields(RenderConfig) if f.name == "method")
-    ren.add_argument("--visibility", choices=typing.get_args(Visibility), help=method.metadata["help"])
     ren.add_argument("--method", dest="renderer", choices=["dmrt", "dmt"], default="dmrt",
                      help="renderer: DMRT, or the DMT baseline (depth-map triangulation + stitching)")
-    ren.add_argument("--dmt-resolution", type=int, metavar="W",
-                     help="DMT depth-map width (default: the bundle's); labels computed and cached on first use")
-    ren.add_argument("--dmt-epsilon", type=float, help="DMT stitching threshold, metres (default 0.05)")
-    ren.add_argument("--dmt-labeler", choices=["graphcut", "wta", "own"],
-                     help="DMT labels: graph cut per depth map (default; cached in BUNDLE/dmt/<W>/), "
-                          "winner-take-all, or each map's own photo (no labeling)")
     ren.add_argument("--out", type=Path, required=True, help="frame file, .png (colour) or .exr (all buffers)")
     ren.add_argument("--stats", type=Path, help="write per-stage GPU ms and statistics as JSON")
     ren.add_argument("--dump-stages", type=Path, metavar="DIR",
                      help="also write each stage's buffer as a PNG (Fig. 3 a-d: splat labels, raytraced "
                           "depth, per-pixel labels, textured; iteration heat map; holes)")
-    add_config_args(ren, RenderConfig, skip=("method", "width", "height"))
+    dmt = ren.add_argument_group("the DMT baseline (--method dmt)")
+    dmt.add_argument("--dmt-resolution", type=int, metavar="W",
+                     help="DMT depth-map width (default: the bundle's); labels computed and cached on first use")
+    dmt.add_argument("--dmt-epsilon", type=float, help="DMT stitching threshold, metres (default 0.05)")
+    dmt.add_argument("--dmt-labeler", choices=["graphcut", "wta", "own"],
+                     help="DMT labels: graph cut per depth map (default; cached in BUNDLE/dmt/<W>/), "
+                          "winner-take-all, or each map's own photo (no labeling)")
+    tuning = ren.add_argument_group(*TUNING)
+    method = next(f for f in dataclasses.fields(RenderConfig) if f.name == "method")
+    tuning.add_argument("--visibility", choices=typing.get_args(Visibility), help=method.metadata["help"])
+    add_config_args(ren, RenderConfig, skip=("method", "width", "height"), tuning=tuning)
     ren.set_defaults(func=cmd_render)
 
     path = sub.add_parser("path", help="a walkthrough camera path through a bundle's photo cameras")
@@ -389,14 +421,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     from dmrt.app.viewer import ViewerConfig
 
-    view = sub.add_parser("view", help="interactive viewer: fly through a bundle (DMRT, coarse splats, DMT)")
+    view = sub.add_parser("view", help="interactive viewer: fly through a bundle (DMRT, coarse splats, DMT)",
+                          usage="%(prog)s BUNDLE [options]")
     view.add_argument("bundle", type=Path)
     view.add_argument("--window", default="pyglet", help="moderngl-window backend: pyglet (default), glfw, "
                       "sdl2, ... or headless (no display: renders --frames frames)")
     view.add_argument("--frames", type=int, help="close after this many frames (headless: default 1)")
     view.add_argument("--screenshot", type=Path, help="save a still PNG of the last view on closing")
-    add_config_args(view, ViewerConfig)
-    add_config_args(view, RenderConfig, skip=[f.name for f in dataclasses.fields(ViewerConfig)] + ["method", "raytrace"])
+    add_config_args(view, ViewerConfig, tuning=view.add_argument_group("viewer settings"))
+    add_config_args(view, RenderConfig, skip=[f.name for f in dataclasses.fields(ViewerConfig)] + ["method", "raytrace"],
+                    tuning=view.add_argument_group(*TUNING))
     view.set_defaults(func=cmd_view)
 
     from bench.experiments import EXPERIMENTS
@@ -440,15 +474,31 @@ def error_line(exc: BaseException) -> str:
     return "; ".join(lines) or type(exc).__name__
 
 
+def version() -> str:
+    """The installed distribution's version (``pyproject.toml``), or a note that it is not installed."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("dmrt")
+    except PackageNotFoundError:
+        return "(not installed: pip install -e . in the suite's checkout)"
+
+
 def main(argv=None) -> int:
     """The ``dmrt`` command: 0 on success; bad input (any :class:`DMRTError`) is printed as one
-    line ``dmrt: error: <message>`` on stderr and answered with 2, as argparse answers bad usage."""
-    args = build_parser().parse_args(argv)
+    line ``dmrt: error: <message>`` on stderr and answered with 2, as argparse answers bad usage;
+    Ctrl-C with one line and 130 (128 + SIGINT, as a shell reports it). Every output is written
+    whole or not at all (:mod:`dmrt.io.atomic`), so an interrupted command leaves nothing half-written."""
     try:
+        args = build_parser().parse_args(argv)
         args.func(args)
     except (DMRTError, FileExistsError) as exc:
         print(f"dmrt: error: {error_line(exc)}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("dmrt: error: interrupted (Ctrl-C); no output was left half-written", file=sys.stderr)
+        return 130
     return 0
 
 

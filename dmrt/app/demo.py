@@ -6,7 +6,8 @@ DMT baseline and with the Embree ray-cast ground truth, and writes::
 
     OUT/index.html      the three frames side by side, depth-error and hole maps, a metrics table
     OUT/compare.png     the same figure as one picture
-    OUT/metrics.json    depth error, holes, colour PSNR against Embree; per-stage milliseconds
+    OUT/metrics.json    depth error, holes, colour PSNR against Embree; per-stage GPU milliseconds
+                        (null where not measured: on a software rasterizer)
     OUT/scene/, OUT/bundle/   the scene and its bundle (reused by a later run)
 
 About a minute on 2 CPU cores (Mesa llvmpipe); the milliseconds are then CPU time, not a GPU's.
@@ -15,18 +16,28 @@ About a minute on 2 CPU cores (Mesa llvmpipe); the milliseconds are then CPU tim
 from __future__ import annotations
 
 import html
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
-from dmrt.io.atomic import atomic_file, write_text
+from dmrt.errors import ConfigError
+from dmrt.io.atomic import atomic_file, write_json, write_text
 from dmrt.io.frames import heat_colors
 
 #: shown in the figure, left to right
 METHODS = ("dmrt", "dmt", "embree")
 TITLES = {"dmrt": "DMRT (5 layers)", "dmt": "DMT (256-wide maps)", "embree": "Embree ground truth"}
+# The frame width at most, pixels: the ground truth is ray-cast on the CPU, and a 4096-wide frame
+# already takes minutes there; wider ones only grind.
+MAX_WIDTH = 4096
+
+
+def check_width(width: int) -> None:
+    """:class:`ConfigError` naming ``--width`` unless 1 <= ``width`` <= :data:`MAX_WIDTH`."""
+    if not 1 <= width <= MAX_WIDTH:
+        raise ConfigError("width", f"must be between 1 and {MAX_WIDTH} pixels (the demo ray-casts its ground truth "
+                                   f"on the CPU), not {width}")
 
 
 def _log(progress: bool, text: str) -> None:
@@ -35,7 +46,8 @@ def _log(progress: bool, text: str) -> None:
 
 
 def run_demo(out, width: int = 480, progress: bool = True) -> Path:
-    """Run the demo into folder ``out``; returns the path of ``index.html``."""
+    """Run the demo into folder ``out``; returns the path of ``index.html``. A ``width`` out of
+    range is a :class:`ConfigError` before any work (:func:`check_width`)."""
     from baselines.dmt import DMTConfig, DMTRenderer
     from bench.scenes.synthetic import PRESETS, generate_scene
     from dmrt.io.bundle import read_bundle
@@ -45,6 +57,7 @@ def run_demo(out, width: int = 480, progress: bool = True) -> Path:
     from reference.metrics import compare
     from reference.render import EmbreeReference
 
+    check_width(width)
     out = Path(out)
     t0 = time.perf_counter()
     scene_dir, bundle_dir = out / "scene", out / "bundle"
@@ -72,6 +85,8 @@ def run_demo(out, width: int = 480, progress: bool = True) -> Path:
     for name in METHODS:
         _log(progress, f"rendering with {TITLES[name]}")
         renderer = renderers[name]()
+        if hasattr(renderer, "timer"):  # this frame's own GPU times (Embree's are CPU wall times)
+            renderer.timer.wait = True
         renderer.render(camera, width, height)
         renderer.flush_photos()  # a still: every photo the view needs at full resolution
         t = time.perf_counter()
@@ -90,8 +105,7 @@ def run_demo(out, width: int = 480, progress: bool = True) -> Path:
         from PIL import Image
 
         Image.fromarray(figure).save(tmp)
-    write_text(out / "metrics.json", json.dumps({"camera": camera.name, "size": [width, height],
-                                                 "methods": summary}, indent=1))
+    write_json(out / "metrics.json", {"camera": camera.name, "size": [width, height], "methods": summary})
     page = write_text(out / "index.html", _page(summary, width, height, time.perf_counter() - t0))
     return page
 

@@ -39,7 +39,9 @@ from scipy.spatial.transform import Rotation
 
 from dmrt.io.bundle import Bundle
 from dmrt.camera import Camera
+from dmrt.errors import ConfigError
 from dmrt.gl.context import get_context
+from dmrt.gl.timer import format_ms
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.options import option, validate
 from dmrt.runtime.protocol import GpuColorRenderer, LayeredRenderer
@@ -76,20 +78,22 @@ class ViewerConfig:
     """What ``dmrt view`` starts with; every field is a ``--option`` of the command."""
 
     width: int = option(960, "frame width in pixels; the window opens at this size and the frame follows the "
-                             "window when it is resized", minimum=1)
-    height: int = option(640, "frame height in pixels", minimum=1)
+                             "window when it is resized", minimum=1, level="common")
+    height: int = option(640, "frame height in pixels", minimum=1, level="common")
     method: str = option("dmrt", "method shown first: dmrt, splats (coarse splats: the first splat layer "
-                                 "textured, no raytracing) or dmt; m switches")
+                                 "textured, no raytracing) or dmt; m switches", level="common")
     layers: int = option(5, "label layers k (paper Fig. 13: 3-5 suffice); [ and ] switch", minimum=1,
-                         maximum=MAX_LAYERS)
-    buffer: Buffer = option("color", "buffer shown first; b switches")
-    leveling: bool = option(False, "screen-space leveling (where the renderer implements it); l switches")
-    photo: int = option(0, "photo camera to start at (0-based index into the bundle's cameras)", minimum=0)
+                         maximum=MAX_LAYERS, level="common")
+    buffer: Buffer = option("color", "buffer shown first; b switches", level="common")
+    leveling: bool = option(False, "screen-space leveling (where the renderer implements it); l switches",
+                            level="common")
+    photo: int = option(0, "photo camera to start at (0-based index into the bundle's cameras)", minimum=0,
+                        level="common")
     fov: float | None = option(None, "horizontal field of view, degrees; default the start photo's", minimum=1.0,
-                               maximum=179.0)
+                               maximum=179.0, level="common")
     speed: float | None = option(None, "flying speed, metres per second; default a tenth of the proxies' "
                                        "bounding-box diagonal (a room and a city block take as many seconds to "
-                                       "cross)", minimum=0.0)
+                                       "cross)", minimum=0.0, level="common")
     drag_degrees: float = option(0.2, "turning: degrees per pixel of mouse drag", minimum=0.0)
     turn_rate: float = option(60.0, "turning: degrees per second while an arrow key is held", minimum=0.0)
     overlay: bool = option(True, "overlay with method, layers, buffer, per-stage GPU ms and fps; h toggles")
@@ -154,6 +158,14 @@ def available_methods() -> dict[str, Method]:
 # ----------------------------------------------------------------------------------------------
 # Small helpers
 # ----------------------------------------------------------------------------------------------
+def check_photo(index: int, bundle: Bundle) -> None:
+    """:class:`ConfigError` naming ``--photo`` unless ``index`` is one of ``bundle``'s photos."""
+    n = len(bundle.cameras)
+    if not 0 <= index < n:
+        raise ConfigError("photo", f"{index} is out of range: the bundle {bundle.root} has {n} photos "
+                                   f"(0..{n - 1})")
+
+
 def _rotation(axis, degrees: float) -> np.ndarray:
     """(3, 3) rotation by ``degrees`` about the unit ``axis`` (right-hand rule)."""
     return Rotation.from_rotvec(np.radians(degrees) * np.asarray(axis, np.float64)).as_matrix()
@@ -225,9 +237,8 @@ class Viewer:
         self.ctx = ctx or get_context()
         self.methods = available_methods()
         if config.method not in self.methods:
-            raise ValueError(f"method {config.method!r} is not available here (have: {', '.join(self.methods)})")
-        if not 0 <= config.photo < len(bundle.cameras):
-            raise ValueError(f"photo {config.photo} out of range: the bundle has {len(bundle.cameras)} photos")
+            raise ConfigError("method", f"{config.method!r} is not available here (have: {', '.join(self.methods)})")
+        check_photo(config.photo, bundle)
         self.method, self.layers, self.buffer = config.method, config.layers, config.buffer
         self.leveling = config.leveling and self.methods[self.method].uses_leveling
         self.overlay = config.overlay
@@ -598,7 +609,7 @@ class Viewer:
                  + (f"  REC {len(self.recorded)}" if self.recording else ""),
                  f"{self.fps:.1f} fps  {self.frame_ms:.1f} ms/frame  fov {self.fov:.0f} deg"]
         if self.frame is not None and self.frame.get("timings"):
-            lines.append("GPU ms  " + "  ".join(f"{_STAGE_ABBREV.get(k, k)} {v:.2f}"
+            lines.append("GPU ms  " + "  ".join(f"{_STAGE_ABBREV.get(k, k)} {format_ms(v).removesuffix(' ms')}"
                                                 for k, v in self.frame["timings"].items()))
         if self.message:
             lines.append(self.message)

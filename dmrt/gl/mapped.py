@@ -70,23 +70,35 @@ def _proc_address():
             return egl.eglGetProcAddress
     glx = _lib("libGL.so.1", "libGL.so")
     if glx is None:
-        raise RuntimeError("mapped buffers need libEGL or libGL to reach GL 4.5 entry points")
+        raise RuntimeError("libEGL or libGL is needed to reach GL entry points")
     glx.glXGetProcAddressARB.restype = _p
     glx.glXGetProcAddressARB.argtypes = [ctypes.c_char_p]
     return glx.glXGetProcAddressARB
 
 
-@lru_cache(maxsize=None)  # once a process: glvnd's entry points dispatch to the current context
-def _gl():
-    """The GL entry points above (a namespace of ctypes functions)."""
+def entry_points(signatures: dict, need: str):
+    """GL entry points as a namespace of ctypes functions.
+
+    Parameters
+    ----------
+    signatures : {name: (result type, [argument types])}
+    need : what the caller needs, for the message when the driver lacks one (``"GL 4.5 is
+        needed for mapped buffers"``).
+    """
     get = _proc_address()
     fns = {}
-    for name, (res, args) in _SIGNATURES.items():
+    for name, (res, args) in signatures.items():
         address = get(name.encode())
         if not address:
-            raise RuntimeError(f"the GL driver lacks {name} (GL 4.5 is needed for mapped buffers)")
+            raise RuntimeError(f"the GL driver lacks {name} ({need})")
         fns[name] = staticmethod(ctypes.CFUNCTYPE(res, *args)(address))
     return type("GL", (), fns)
+
+
+@lru_cache(maxsize=None)  # once a process: glvnd's entry points dispatch to the current context
+def _gl():
+    """The GL entry points above."""
+    return entry_points(_SIGNATURES, "GL 4.5 is needed for mapped buffers")
 
 
 class MappedBuffer:

@@ -8,9 +8,13 @@ format by suffix still work) and renamed over the final name; a folder is assemb
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import shutil
+import signal
 import tempfile
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
@@ -59,11 +63,41 @@ def write_text(path, text: str) -> Path:
     return Path(path)
 
 
+def json_text(doc, indent: int | None = 1) -> str:
+    """``doc`` as strict JSON: a float that is not a number (NaN: a time that was not measured) or
+    infinite is ``null``, where Python's ``json`` would write ``NaN``, which JSON readers refuse.
+    numpy scalars and arrays are written as numbers and lists."""
+
+    def plain(v):
+        if isinstance(v, dict):
+            return {k: plain(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [plain(x) for x in v]
+        if hasattr(v, "tolist"):  # numpy scalars and arrays
+            return plain(v.tolist())
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        return v
+
+    return json.dumps(plain(doc), indent=indent, allow_nan=False)
+
+
+def write_json(path, doc) -> Path:
+    """Write ``doc`` to ``path`` atomically as strict JSON (:func:`json_text`); returns ``Path(path)``."""
+    return write_text(path, json_text(doc))
+
+
 def write_bytes(path, data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically; returns ``Path(path)``."""
     with atomic_file(path) as tmp:
         tmp.write_bytes(data)
     return Path(path)
+
+
+def partial_dir(path) -> Path:
+    """The folder :func:`atomic_dir` assembles ``path`` in: ``<path>.partial``."""
+    path = Path(path)
+    return path.with_name(path.name + ".partial")
 
 
 @contextmanager
@@ -87,18 +121,44 @@ def atomic_dir(path, force: bool = True, what: str = "output") -> Iterator[Path]
     path = Path(path)
     if path.exists() and not force:
         raise InputError(path, f"{what} already exists (use --force to replace it)")
-    tmp = path.with_name(path.name + ".partial")
+    tmp = partial_dir(path)
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
         yield tmp
-        if path.exists():
-            # rename the old one aside first: the new one appears in one rename, never half-copied
-            old = path.with_name(f".{path.name}.old-{os.getpid()}")
-            os.replace(path, old)
-            os.replace(tmp, path)
+        old = path.with_name(f".{path.name}.old-{os.getpid()}")
+        try:
+            with _uninterrupted():
+                # the old one renamed aside first: the new one appears in one rename, never half-copied
+                if path.exists():
+                    os.replace(path, old)
+                try:
+                    os.replace(tmp, path)
+                except OSError:
+                    if old.exists():
+                        os.replace(old, path)
+                    raise
+        finally:  # also when Ctrl-C, held during the renames, is raised after them
             shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, path)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+@contextmanager
+def _uninterrupted():
+    """Hold Ctrl-C (SIGINT) back for the block and deliver it after: between the two renames of
+    :func:`atomic_dir` it would leave neither the old folder nor the new one under the name.
+    (Python runs signal handlers in the main thread only; elsewhere the block runs as it is.)"""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught = []
+    previous = signal.signal(signal.SIGINT, lambda *received: caught.append(received))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if caught and callable(previous):
+            previous(*caught[0])  # Python's default handler raises KeyboardInterrupt
+        elif caught and previous == signal.SIG_DFL:
+            raise KeyboardInterrupt

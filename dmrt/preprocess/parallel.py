@@ -77,6 +77,25 @@ class InProcess:
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
+@contextmanager
+def _workers_ignore_interrupts():
+    """SIGINT ignored while the block starts worker processes: Ctrl-C reaches every process of the
+    terminal's group, and a spawned Python keeps an ignored SIGINT ignored, so that this process
+    alone answers it (one line, ``dmrt.app.cli``) rather than each worker with a traceback.
+    (Handlers are set in the main thread only; elsewhere the block runs as it is.)"""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 class ProcessPool:
     """Runs tasks in ``workers`` local processes (``concurrent.futures``, spawned: the parent may
     hold a GL context or Embree threads that a fork would copy half-alive). The GPU phase stays
@@ -101,8 +120,13 @@ class ProcessPool:
         saved = {k: os.environ.get(k) for k in _THREAD_VARS}
         os.environ.update({k: "1" for k in _THREAD_VARS})
         try:
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
-            self._pool.submit(int).result()  # spawns every worker (spawned pools start them all at once)
+            with _workers_ignore_interrupts():
+                self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
+                # every worker now: a spawned pool starts one per task submitted while none is idle
+                # (Python 3.11), so one task each, submitted together; a worker started later would
+                # miss the variables (and take Ctrl-C)
+                for task in [self._pool.submit(int) for _ in range(self.workers)]:
+                    task.result()
         finally:
             for k, v in saved.items():
                 if v is None:

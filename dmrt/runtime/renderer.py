@@ -73,7 +73,7 @@ class RenderConfig:
     field is a ``dmrt render`` / ``dmrt view`` option."""
 
     layers: int = option(5, "label layers k (paper: 3-5 give high quality, Fig. 13; 11 for the worst case)",
-                         minimum=1)
+                         minimum=1, level="common")
     max_steps: int = option(100, "iterative-search steps per layer (paper: <= 100)", minimum=1)
     binary_steps: int = option(20, "refinement steps of a hit at most (paper: 20 bisection steps)", minimum=0)
     refine: Literal["illinois", "bisection"] = option(
@@ -134,7 +134,7 @@ class RenderConfig:
                 "GL_NV_shader_atomic_int64), portable (a depth pass, then a label pass: any GL 4.3) or auto "
                 "(int64 where the driver has it); the same results")
     cache_mb: float = option(1024.0, "GPU memory for the full-resolution photo cache, MiB (paper: 1 GB); 0 = "
-                                     "low-resolution copies only", minimum=0.0)
+                                     "low-resolution copies only", minimum=0.0, level="common")
     async_photos: bool = option(True, "decode photos on background threads so that no frame waits for a disk read "
                                       "(the low-resolution copy stands in until the upload); off, every frame's "
                                       "cache holds exactly its most frequent labels (deterministic colours)")
@@ -169,9 +169,10 @@ class RenderConfig:
                                           "the one turned like the view is the better one)", minimum=0.0)
     photometric: bool = option(True, "addition to the paper: multiply each photo's colours by its gain from the "
                                      "global photometric adjustment of preprocessing (bundle.json photo_gains; a "
-                                     "bundle without them: 1); off, colours are the photos' own")
+                                     "bundle without them: 1); off, colours are the photos' own", level="common")
     leveling: bool = option(False, "screen-space leveling (paper 5.2.3): per-photo colour gains solved each frame "
-                                   "from the seams on screen; off by default so that colours are the photos' own")
+                                   "from the seams on screen; off by default so that colours are the photos' own",
+                            level="common")
     leveling_min_samples: int = option(16, "leveling: seam samples a photo pair needs to count", minimum=1)
     leveling_max_gain: float = option(2.0, "leveling: the bound on a gain and its inverse", minimum=1.0)
     raytrace: bool = option(True, "the raytracing pass; off, the first splat layer is the surface (ablation: "
@@ -224,7 +225,7 @@ class Renderer:
         n = len(self.cameras)
         if n == 0:
             raise ValueError(f"{bundle.root}: the bundle has no photos")
-        self.timer = GpuTimer(self.ctx)
+        self.timer = GpuTimer(self.ctx, wait=False)  # a render loop never waits on its timers
         has_int64 = {"GL_NV_shader_atomic_int64", "GL_ARB_gpu_shader_int64"} <= set(self.ctx.extensions)
         if self.config.atomics == "int64" and not has_int64:
             raise ValueError("RenderConfig.atomics='int64': this driver lacks GL_NV_shader_atomic_int64")
@@ -324,8 +325,8 @@ class Renderer:
             (h, w, 3) float32 unit world normal - plus ``label_raw`` (h, w) int32 (the label of
             the layer whose depth map was hit, before the labeling pass), ``layer_used`` (h, w)
             int32 (0-based layer, -1 = none), ``iterations`` (h, w) int32 (iterative-search steps
-            over all layers tried), ``timings`` {stage: GPU ms} (meaningless on llvmpipe, see
-            :class:`dmrt.gl.GpuTimer`; ``leveling`` 0 when off) and ``cpu_ms``
+            over all layers tried), ``timings`` {stage: GPU ms} of an earlier frame, NaN where
+            unavailable, and ``timings_lag`` (:meth:`dmrt.gl.GpuTimer.frame_timings`) and ``cpu_ms``
             {``status_read``: wall ms reading the frame's status record for the photo choice
             (with ``tile_check="frame"`` it waits for the visibility stage, issued long before;
             with synchronous photos for the frame so far; 0 when the lagged tiles path read its
@@ -493,6 +494,7 @@ class Renderer:
     def release(self) -> None:
         """Free this renderer's GPU resources (cached programs stay with the context)."""
         self._release_frame()
+        self.timer.release()
         self.visibility.release()
         self.splats.release()
         self.shading.release()

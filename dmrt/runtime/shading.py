@@ -158,7 +158,8 @@ class FrameShading:
         -------
         frame : dict
             With ``readback`` the frame contract (``depth``, ``label``, ``color``, ``normal``);
-            always ``timings`` {stage: GPU ms} for ``stages`` and ``cpu_ms``; with leveling
+            always ``timings``, ``part_timings``, ``timings_lag`` for ``stages``
+            (:meth:`dmrt.gl.GpuTimer.frame_timings`) and ``cpu_ms``; with leveling
             ``cpu_ms["leveling"]`` (issuing its passes) and, with ``readback`` only,
             ``leveling_gains`` (n_photos, 3) float32 (reading them waits for the GPU).
         records : (h, w) HIT_DTYPE or None (without ``readback``)
@@ -202,9 +203,7 @@ class FrameShading:
             if self.leveler is not None:
                 frame["leveling_gains"] = self.leveler.read_gains(self.staging)
         timer.check_executed(what)
-        ms = timer.ms
-        frame["timings"] = {stage: ms.get(stage, 0.0) for stage in stages}
-        frame["part_timings"] = {k: v for k, v in timer.part_ms.items() if ":" in k}
+        frame.update(timer.frame_timings(stages))
         frame["cpu_ms"] = cpu_ms
         return frame, records
 
