@@ -153,11 +153,13 @@ class RenderConfig:
     photo_choice: Literal["labels", "view"] = option(
         "view", "the photo of each pixel: labels (the paper: the label fixed per proxy in preprocessing, from the "
                   "labeling pass) or view (addition to the paper: among the photos whose depth maps see the pixel's "
-                  "point, those whose rays are closest in angle to the view ray: dmrt/runtime/view_choice.py)")
+                  "point, those whose rays are closest in angle to the view ray: dmrt/runtime/view_choice.py)",
+        level="common")
     view_blend: int = option(3, "view photo choice: photos mixed per pixel with unstructured-lumigraph weights "
-                                "(smooth as the camera moves); 1 = the best alone", minimum=1, maximum=MAX_BLEND)
-    # 8: the kitchen's 8 held-out views (every 25th of 200 frames) 23.09 dB against 22.85 with 16, and
-    # half the per-pixel arithmetic (shaders/dmrt_view_choice.glsl)
+                                "(smooth as the camera moves); 1 = the best alone", minimum=1, maximum=MAX_BLEND,
+                             level="common")
+    # 8: the kitchen's 8 held-out views (every 25th of 200 frames) 23.09 dB against 22.85 with 16 (before
+    # the distance and turn terms), and half the per-pixel arithmetic (shaders/dmrt_view_choice.glsl)
     view_candidates: int = option(8, "view photo choice: photos each pixel tests besides its label, the frame's best "
                                      "scored (the per-pixel cost); 0 = the label only", minimum=0)
     # distance 0.3 and turn 0.5: the kitchen's 8 held-out frames (every 25th) 25.2 dB, against 23.1 with
