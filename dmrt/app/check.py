@@ -29,7 +29,7 @@ def cmd_check(args) -> None:
     from PIL import Image
 
     from dmrt.io.scene import load_scene
-    from dmrt.preprocess.registration import CheckConfig, check_photos, sample_cloud
+    from dmrt.preprocess.registration import MIN_POINTS, CheckConfig, check_photos, sample_cloud
 
     config = config_from_args(CheckConfig, args)
     out = Path(args.out) if args.out is not None else Path("out/check") / Path(args.scene).resolve().name
@@ -52,7 +52,7 @@ def cmd_check(args) -> None:
         failed = [c for c in checks if c.problems]
         summary = {
             "scene": str(Path(args.scene).resolve()), "photos": len(checks), "failed": len(failed),
-            "verdict": "fail" if failed else "pass",
+            "verdict": "fail" if failed else "pass", "min_points": MIN_POINTS,
             "sample": {"points": len(sample.positions), "of": sample.of, "stride": sample.stride,
                        "brightness": sample.source, "seen_by_no_photo": float(1 - seen_any.mean())},
             "config": dataclasses.asdict(config),
@@ -98,7 +98,8 @@ pass)</h1>
 <p>Scene <code>{html.escape(summary['scene'])}</code>. {s['points']:,} of its {s['of']:,} points (1 in
 {s['stride']}, in file order) splatted into every photo {cfg['width']} pixels wide; {100 * s['seen_by_no_photo']:.0f}%
 of them are seen by no photo. Point brightness: {s['brightness'] or 'none (the edge contrast decides)'}.</p>
-<p>A photo fails when the points cover less than {100 * cfg['min_coverage']:.0f}% of it, or when its brightness
+<p>A photo fails when the points cover less than {100 * cfg['min_coverage']:.0f}% of it or it sees fewer than
+{summary['min_points']} sample points, or when its brightness
 correlates less than {cfg['min_agreement']} with the brightness of the points it sees (agreement; aligned photos
 score near 1, misplaced ones near 0); for a cloud without colour or intensity, when its gradient at the points'
 depth edges is less than {cfg['min_edge_contrast']}&times; its gradient elsewhere (edge contrast). In the pictures:
