@@ -41,7 +41,7 @@ def test_tiny_scene_passes_and_moved_photos_fail(tiny_scene, tmp_path, capfd):
     assert "verdict: pass: 12 of 12" in out
     doc = json.loads((tmp_path / "ok" / "check.json").read_text())
     assert doc["verdict"] == "pass" and doc["sample"]["brightness"] == "colour"
-    # measured 0.87-0.97 (registration.py's docstring): a clear margin over the 0.5 threshold
+    # measured 0.88-0.97 (registration.py's docstring): a clear margin over the 0.5 threshold
     assert min(p["agreement"] for p in doc["per_photo"]) > 0.75
     assert len(list((tmp_path / "ok" / "overlays").glob("*.png"))) == 12
     assert "overlays/photo_0000.png" in (tmp_path / "ok" / "index.html").read_text()
@@ -114,3 +114,22 @@ def test_coverage_summary_and_bundle_counts(tiny_bundle):
     counts = json.loads((Path(tiny_bundle) / "bundle.json").read_text())["counts"]
     assert 0 < counts["proxies_seen_by_no_photo"] < Coverage.WARN_UNSEEN * counts["proxies"]  # no warning
     assert counts["photos_seeing_no_proxy"] == 0
+
+
+def test_verdict_rules():
+    from dmrt.preprocess.registration import CheckConfig, PhotoCheck, photo_problems
+
+    cfg = CheckConfig()
+
+    def problems(has_brightness=True, **values):
+        base = dict(name="p", coverage=0.9, points_seen=5000, points_share=0.05, agreement=0.9, edge_pixels=500,
+                    edge_contrast=1.2)
+        return photo_problems(PhotoCheck(**{**base, **values}), has_brightness, cfg)
+
+    assert problems() == [] and problems(agreement=None) == []
+    assert "sees almost nothing" in problems(coverage=0.01)[0]
+    assert "sees almost nothing (30 sample points" in problems(points_seen=30)[0]
+    assert "brightness agreement 0.20" in problems(agreement=0.2)[0]
+    assert problems(edge_contrast=0.5) == []  # with brightness, edges only inform
+    assert "edge contrast 0.50" in problems(False, agreement=None, edge_contrast=0.5)[0]
+    assert problems(False, agreement=None, edge_contrast=None) == []  # too few edges: no verdict

@@ -43,7 +43,8 @@ def cmd_check(args) -> None:
     checks, seen_any = [], np.zeros(len(sample.positions), bool)
     with atomic_dir(out, force=True, what="check") as tmp:
         (tmp / "overlays").mkdir()
-        for check, picture, seen in check_photos(scene, sample, config, progress=not args.quiet and sys.stderr.isatty()):
+        bar = not args.quiet and sys.stderr.isatty()  # a terminal only: stderr stays the warnings
+        for check, picture, seen in check_photos(scene, sample, config, progress=bar):
             Image.fromarray(picture).save(tmp / "overlays" / _overlay_name(check.name))
             for problem in check.problems:
                 print(f"dmrt check: warning: {check.name}: {problem}", file=sys.stderr, flush=True)
