@@ -91,6 +91,16 @@ def cmd_preprocess(args) -> None:
     print(f"wrote {out}")
 
 
+def cmd_scene_rgbd(args) -> None:
+    from dmrt.io.rgbd import RGBDConfig, rgbd_scene
+
+    check_output(args.out, folder=True)
+    made = rgbd_scene(args.frames, args.out, config_from_args(RGBDConfig, args), force=args.force,
+                      progress=not args.quiet)
+    print(f"wrote {args.out}: {made['points']:,} points (voxel filter of {made['readings']:,} depth readings from "
+          f"{made['frames']} of the {made['photos']} frames)")
+
+
 def cmd_scene_mesh(args) -> None:
     from dmrt.io.scene import load_scene
     from reference.poisson import build_scene_mesh
@@ -354,6 +364,27 @@ def build_parser() -> argparse.ArgumentParser:
     mesh.add_argument("--depth", type=int, default=9, help="Poisson octree depth (default 9)")
     mesh.add_argument("--out", type=Path, help="mesh file (default SCENE/mesh.ply)")
     mesh.set_defaults(func=cmd_scene_mesh)
+
+    from dmrt.app.check import cmd_check
+    from dmrt.preprocess.registration import CheckConfig
+
+    chk = sub.add_parser("check", help="registration check: do the photos fit the points? (verdicts, a page)")
+    chk.add_argument("scene", type=Path)
+    chk.add_argument("--out", type=Path, help="folder for the page (default: out/check/<scene folder name>)")
+    chk.add_argument("--strict", action="store_true", help="exit 1 when a photo fails (bad input: 2)")
+    chk.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_config_args(chk.add_argument_group("measures and thresholds"), CheckConfig)
+    chk.set_defaults(func=cmd_check)
+
+    from dmrt.io.rgbd import RGBDConfig
+
+    rgbd = scene.add_parser("rgbd", help="a scene from RGB-D frames (depth/ 16-bit PNGs, images/, sparse/)")
+    rgbd.add_argument("frames", type=Path, help="folder with depth/, images/, sparse/ and optionally mesh.ply")
+    rgbd.add_argument("--out", type=Path, required=True, help="scene directory to write")
+    rgbd.add_argument("--force", action="store_true", help="replace an existing scene")
+    rgbd.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_config_args(rgbd, RGBDConfig)
+    rgbd.set_defaults(func=cmd_scene_rgbd)
 
     pre = sub.add_parser("preprocess", help="scene -> bundle: depth maps, proxy points, labels")
     pre.add_argument("scene", type=Path)

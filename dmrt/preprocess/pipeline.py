@@ -41,6 +41,7 @@ from dmrt.preprocess.labeling import LabelingConfig
 from dmrt.preprocess.parallel import InProcess, check_gpu_worker, default_workers
 from dmrt.preprocess.photometric import solve_for_proxies
 from dmrt.preprocess.proxies import choose_proxy_levels, label_proxies
+from dmrt.preprocess.registration import coverage_summary
 from dmrt.io.scene import Scene, load_scene
 
 
@@ -456,6 +457,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         tic("photos_s", t0)
 
         bw.write_proxy(**proxies.proxy)
+        coverage = coverage_summary(proxies.candidates, [c.name for c in scene.cameras])
         shutil.rmtree(work)
         timings["total_s"] = round(time.perf_counter() - t_all, 3)
         meta = {
@@ -478,7 +480,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                 "points": octree.n_points, "photos": len(scene.cameras), **proxies.counts(),
                 "proxy_levels": k, "octree_level_counts": list(octree.level_counts),
                 "lod_counts": lod_counts, "subsampling_factors": octree.subsampling_factors(),
-                "normals_estimated": not has_normals,
+                "normals_estimated": not has_normals, **coverage.counts(),
             },
             # how the out-of-core phases cut the cloud, and the octree's passes in seconds
             "octree": {k: octree.meta.get(k) for k in ("bucket_level", "n_buckets", "max_bucket_points",
@@ -491,5 +493,11 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         }
         if executor.distributed:  # outside "parameters": workers do not change the bundle
             meta["dask" if executor.gpu_tasks else "processes"] = executor.record()
-        return bw.finish(meta)
+        done = bw.finish(meta)
+    # the end of every run: which proxies and photos the candidates left unseen, and a warning
+    # when a registration mistake is likely (dmrt.preprocess.registration.Coverage)
+    print(coverage.line(), file=sys.stderr)
+    if coverage.warning():
+        print(coverage.warning(), file=sys.stderr)
+    return done
 
