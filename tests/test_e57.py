@@ -631,7 +631,7 @@ def test_real_files_list_their_images(tmp_path, capfd):
 
 class Equirect:
     """The rays of a whole-sphere panorama ``width`` x ``width/2`` from ``center``, its frame turned
-    by ``rotation_``: what :func:`bench.scenes.synthetic.photograph` asks of a camera, so that it
+    by ``rotation_``: what :meth:`bench.scenes.synthetic.Studio.photograph` asks of a camera, so that it
     renders the panorama as it renders the scene's photos."""
 
     def __init__(self, width, center, rotation_):
@@ -664,16 +664,14 @@ def test_panoramas_texture_the_scene_like_its_photos(tiny_scene, tmp_path, ctx):
     import json
     import shutil
 
-    from bench.scenes.synthetic import PRESETS, build_geometry, make_materials, photograph
+    from bench.scenes.synthetic import PRESETS, Studio
     from dmrt.io.bundle import read_bundle
     from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
     from dmrt.runtime.renderer import RenderConfig, Renderer
-    from reference.raycast import MeshRaycaster
 
     meta = json.loads((tiny_scene / "synthetic.json").read_text())
     offset = np.asarray(meta["config"]["offset"], float)
-    geom = build_geometry(PRESETS["tiny"])
-    raycaster, materials = MeshRaycaster(geom.vertices, geom.faces, origin=np.zeros(3)), make_materials()
+    studio = Studio(PRESETS["tiny"])  # the tiny scene as its photos see it (supersampled 2 x 2)
     scene = load_scene(tiny_scene)
     pc = scene.read_points()
     pick = np.sort(np.random.default_rng(0).choice(len(pc), 60_000, replace=False))
@@ -681,8 +679,7 @@ def test_panoramas_texture_the_scene_like_its_photos(tiny_scene, tmp_path, ctx):
     near = np.argsort([np.linalg.norm(c.center - scene.cameras[0].center) for c in scene.cameras])[:2]
     cameras = [scene.cameras[i] for i in near]
     turn = rotation((0.1, 0.05, 1.0), 35.0)
-    panoramas = [spherical_entry(f"pano{k}", photograph(Equirect(512, c.center - offset, turn), geom, raycaster,
-                                                        materials, 2, np.ones(3)),
+    panoramas = [spherical_entry(f"pano{k}", studio.photograph(Equirect(512, c.center - offset, turn), np.ones(3)),
                                  (quaternion((0.1, 0.05, 1.0), 35.0), c.center))
                  for k, c in enumerate(cameras)]  # no exposure gain: shaded as the photos, divided by theirs
     fields = {"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2],
