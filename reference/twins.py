@@ -651,11 +651,14 @@ def view_scores(camera: Camera, depth: np.ndarray, cameras, depthmaps, stride: i
 
 
 def view_choice(camera: Camera, depth: np.ndarray, label: np.ndarray, cameras, depthmaps, candidates, blend: int,
-                tolerance: float, distance_weight: float, turn_weight: float) -> tuple[np.ndarray, np.ndarray]:
+                tolerance: float, distance_weight: float, turn_weight: float,
+                quads: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The per-pixel view-dependent choice (``shaders/dmrt_view_choice.glsl``): each pixel's label
     and the candidates ranked by :func:`view_penalties`, the ``blend`` best that see the point kept
     with unstructured-lumigraph weights ``(1 - p_i / p_t) / p_i`` normalised (``p_t`` the next best
-    visible penalty, pi if none).
+    visible penalty, pi if none). With ``quads`` (``dmrt.runtime.view_choice.quads``), a 2x2 quad
+    (even corners) of one surface - one label, depths within ``tolerance`` - takes its top-left
+    pixel's choice.
 
     Parameters
     ----------
@@ -699,7 +702,21 @@ def view_choice(camera: Camera, depth: np.ndarray, label: np.ndarray, cameras, d
     photos = np.where(wts > 0, best[:, :blend], -1)
     photos[:, 0] = best[:, 0]
     wts[~valid], photos[~valid] = 0, -1
-    return photos.reshape(h, w, blend), wts.reshape(h, w, blend)
+    photos, wts = photos.reshape(h, w, blend), wts.reshape(h, w, blend)
+    if not quads:
+        return photos, wts
+    # one choice a 2x2 quad (even corners) of one surface: its top-left pixel's, where the four hits
+    # have one label and depths (float32, as on the GPU) within the tolerance
+    qh, qw = h // 2, w // 2
+    d = np.asarray(depth, np.float32)[:2 * qh, :2 * qw].reshape(qh, 2, qw, 2)
+    lq = label[:2 * qh, :2 * qw].reshape(qh, 2, qw, 2)
+    agree = ((d > 0).all((1, 3)) & (lq[:, :1, :, :1] >= 0).all((1, 3)) & (lq == lq[:, :1, :, :1]).all((1, 3))
+             & (d.max((1, 3)) - d.min((1, 3)) <= np.float32(tolerance)))
+    for out in (photos, wts):
+        top_left = out[0:2 * qh:2, 0:2 * qw:2]
+        for dy, dx in ((0, 1), (1, 0), (1, 1)):
+            out[dy:2 * qh:2, dx:2 * qw:2][agree] = top_left[agree]
+    return photos, wts
 
 
 # ---------------------------------------------------------------------------------------------

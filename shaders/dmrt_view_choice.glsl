@@ -12,6 +12,8 @@
 // The best photo becomes the pixel's final label (the label histogram, the photo cache and the
 // leveling follow it); with BLEND > 1 the others and all weights go to B_VIEW_BLEND for the
 // texturing pass. Nothing visible (all candidates fail the test): the final label stays, alone.
+//
+// At high resolutions one choice serves a 2x2 quad of pixels where the quad is one surface (main).
 #include "splat_depth_common.glsl"
 #include "dmrt_frame.glsl"
 #include "dmrt_photos.glsl"
@@ -26,7 +28,10 @@
 #define CANDIDATES 16
 #endif
 
+// One invocation per 2x2 quad of pixels with u_quads, else per pixel; 8x8 a workgroup.
 layout(local_size_x = 8, local_size_y = 8) in;
+
+uniform bool u_quads;
 
 layout(std430, binding = B_VIEW_CANDIDATES) readonly buffer Candidates {
     uint header[STATUS_HEADER_WORDS];  // header[1]: the number of candidates (dmrt_photo_choice.glsl)
@@ -40,17 +45,12 @@ layout(std430, binding = B_VIEW_BLEND) writeonly buffer Blend { ivec4 blend[]; }
 
 const float NONE = 1e30;
 
-void main() {
-    ivec2 p = ivec2(gl_GlobalInvocationID.xy);
-    if (p.x >= u_size.x || p.y >= u_size.y) return;
-    uint pix = uint(p.y * u_size.x + p.x);
-    Hit hit = hits[pix];
-    if (hit.depth <= 0.0 || hit.final_label < 0) {  // background (texturing writes it)
-#if BLEND > 1
-        blend[pix] = ivec4(-1, -1, -1, 0);
-#endif
-        return;
-    }
+// The candidates' turn penalties: one per photo and frame, computed once a workgroup.
+shared float s_turn[CANDIDATES > 0 ? CANDIDATES : 1];
+
+// The choice at pixel p whose hit is `hit` (depth > 0, final_label >= 0): the final label, and with
+// BLEND > 1 the blend record.
+int choose(ivec2 p, Hit hit, int n, out ivec4 record) {
     vec3 q, dir;
     float dist;
     view_ray(p, hit.depth, q, dir, dist);
@@ -60,13 +60,12 @@ void main() {
     // BLEND + 1 fetches a pixel whatever the candidates' order. Fixed-size arrays indexed only by
     // unrolled loops with constant bounds, so that they stay in registers.
     float cpen[CANDIDATES + 1];
-    int n = min(int(header[1]), CANDIDATES);
     for (int i = 0; i <= CANDIDATES; ++i) {
         cpen[i] = NONE;
         int l = i == 0 ? hit.final_label : (i <= n ? candidates[i - 1] : -1);
         if (l < 0 || (i > 0 && l == hit.final_label)) continue;
         Photo ph = photos[l];
-        float penalty = view_penalty(ph, to_photo(ph, q), dir, dist);
+        float penalty = view_penalty(ph, to_photo(ph, q), dir, dist, i == 0 ? turn_penalty(ph) : s_turn[i - 1]);
         if (penalty >= 0.0) cpen[i] = penalty;
     }
     float pen[BLEND + 1];
@@ -92,7 +91,7 @@ void main() {
         lab[0] = hit.final_label;
         pen[0] = MIN_PENALTY;
     }
-    hits[pix].final_label = lab[0];
+    record = ivec4(-1, -1, -1, 0);
 #if BLEND > 1
     float threshold = lab[BLEND] >= 0 ? pen[BLEND] : 3.14159265;
     vec4 w = vec4(0.0);
@@ -100,11 +99,60 @@ void main() {
         if (lab[k] >= 0) w[k] = max(1.0 - pen[k] / threshold, 0.0) / pen[k];
     float total = w.x + w.y + w.z + w.w;
     w = total > 0.0 ? w / total : vec4(1.0, 0.0, 0.0, 0.0);
-    ivec4 others = ivec4(-1);
-    for (int k = 1; k < BLEND; ++k) others[k - 1] = w[k] > 0.0 ? lab[k] : -1;
-    others.w = int(packUnorm4x8(w));
-    blend[pix] = others;
+    for (int k = 1; k < BLEND; ++k) record[k - 1] = w[k] > 0.0 ? lab[k] : -1;
+    record.w = int(packUnorm4x8(w));
 #endif
+    return lab[0];
+}
+
+void write_choice(ivec2 p, int label, ivec4 record) {
+    uint pix = uint(p.y * u_size.x + p.x);
+    if (label >= 0) hits[pix].final_label = label;
+#if BLEND > 1
+    blend[pix] = record;
+#endif
+}
+
+// Pixel k (0..3: row-major) of the quad whose top-left pixel is p0.
+ivec2 quad_pixel(ivec2 p0, int k) { return p0 + ivec2(k & 1, k >> 1); }
+
+void main() {
+    int n = min(int(header[1]), CANDIDATES);
+    uint li = gl_LocalInvocationIndex;
+    if (li < uint(n)) s_turn[li] = turn_penalty(photos[candidates[li]]);
+    barrier();
+
+    // With u_quads, one choice for a whole 2x2 quad, at its top-left pixel's point, where the quad is
+    // one surface: four hits with one label and depths within the visibility tolerance. The caller
+    // sets it where two pixels are at most a texel of the finest depth map (at 3840x2160 with the
+    // paper's maps, a pixel is about half a texel): the maps cannot tell the quad's pixels apart, and
+    // per-pixel choices would fetch the same texels four times. Elsewhere each pixel chooses alone
+    // (without u_quads: one invocation a pixel).
+    ivec2 p0 = (u_quads ? 2 : 1) * ivec2(gl_GlobalInvocationID.xy);
+    if (p0.x >= u_size.x || p0.y >= u_size.y) return;
+    Hit h0 = hits[p0.y * u_size.x + p0.x];
+    bool agree = u_quads && p0.x + 1 < u_size.x && p0.y + 1 < u_size.y && h0.depth > 0.0 && h0.final_label >= 0;
+    float zmin = h0.depth, zmax = h0.depth;
+    for (int k = 1; k < 4 && agree; ++k) {
+        ivec2 p = quad_pixel(p0, k);
+        Hit hk = hits[p.y * u_size.x + p.x];
+        agree = hk.depth > 0.0 && hk.final_label == h0.final_label;
+        zmin = min(zmin, hk.depth);
+        zmax = max(zmax, hk.depth);
+    }
+    agree = agree && zmax - zmin <= u_view_tol;
+    for (int k = 0; k < (u_quads && !agree ? 4 : 1); ++k) {
+        ivec2 p = quad_pixel(p0, k);
+        if (p.x >= u_size.x || p.y >= u_size.y) continue;
+        Hit hit = k == 0 ? h0 : hits[p.y * u_size.x + p.x];
+        int label = -1;
+        ivec4 record = ivec4(-1, -1, -1, 0);  // background (texturing writes it)
+        if (hit.depth > 0.0 && hit.final_label >= 0) label = choose(p, hit, n, record);
+        if (agree)
+            for (int j = 0; j < 4; ++j) write_choice(quad_pixel(p0, j), label, record);
+        else
+            write_choice(p, label, record);
+    }
 }
 
 #endif

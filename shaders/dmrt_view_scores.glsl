@@ -41,7 +41,7 @@ void main() {
             view_ray(p, depth, q, dir, dist);
             Photo ph = photos[l];
             vec3 pc = to_photo(ph, q);
-            float penalty = view_penalty(ph, pc, dir, dist);
+            float penalty = view_penalty(ph, pc, dir, dist, turn_penalty(ph));
             if (penalty > 0.0 && view_sees(l, ph, pc)) atomicAdd(group_score, uint(SCORE_SCALE / penalty));
         }
     }

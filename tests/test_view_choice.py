@@ -10,7 +10,7 @@ import pytest
 from dmrt.io.bundle import read_bundle
 from dmrt.io.exr import write_depth_exr
 from dmrt.runtime.renderer import RenderConfig, Renderer
-from dmrt.runtime.view_choice import sample_grid
+from dmrt.runtime.view_choice import quads, sample_grid
 from helpers import novel_camera
 from reference import twins
 
@@ -21,12 +21,13 @@ SYNC = {"async_photos": False, "max_uploads_per_frame": 0}
 def _render(bundle, ctx, camera, **cfg):
     r = Renderer(bundle, RenderConfig(**SYNC, **cfg), ctx)
     try:
-        frame = r.render(camera, W, H)
+        frame = r.render(camera, camera.width, camera.height)
         extra = {}
         if r.view_choice is not None:
             extra["candidates"] = r.view_choice.read_candidates()
+            extra["quads"] = quads(camera.fx, r.view_choice.map_focal)
             if r.config.view_blend > 1:
-                extra["others"], extra["weights"] = r.view_choice.read_blend(W, H)
+                extra["others"], extra["weights"] = r.view_choice.read_blend(camera.width, camera.height)
         return frame, extra
     finally:
         r.release()
@@ -36,9 +37,10 @@ def _local(bundle, cams):
     return [c.relative_to(bundle.origin) for c in cams]
 
 
-def test_view_choice_matches_numpy_twin(ctx, bundle, depthmaps):
+@pytest.mark.parametrize("scale", [1, 5.5])  # 5.5: a frame pixel under half a texel, one choice per 2x2 quad
+def test_view_choice_matches_numpy_twin(ctx, bundle, depthmaps, scale):
     cams = bundle.cameras
-    view = novel_camera(cams[0], cams[3], 0.4).resized(W, H)
+    view = novel_camera(cams[0], cams[3], 0.4).resized(int(W * scale), int(H * scale))
     cfg = {"view_blend": 3, "view_candidates": 4, "view_distance_weight": 0.3, "view_turn_weight": 0.5}
     paper, _ = _render(bundle, ctx, view, photo_choice="labels")  # the labels the choice starts from
     frame, extra = _render(bundle, ctx, view, photo_choice="view", **cfg)
@@ -48,14 +50,15 @@ def test_view_choice_matches_numpy_twin(ctx, bundle, depthmaps):
 
     # the candidates: the 4 best-scored photos. float32 against float64 scores may differ by a unit
     # where 64 / penalty lies on an integer, so a candidate must score within 1 % of the 4th best.
-    stride, grid = sample_grid(W, H)
+    assert extra["quads"] == (scale > 1)
+    stride, grid = sample_grid(view.width, view.height)
     scores = twins.view_scores(local, frame["depth"], photos, depthmaps, stride, grid, tol, 0.3, 0.5)
     assert len(extra["candidates"]) == min(4, int((scores > 0).sum())) >= 2
     fourth = np.sort(scores)[::-1][len(extra["candidates"]) - 1]
     assert (scores[extra["candidates"]] >= 0.99 * fourth).all(), (scores, extra["candidates"])
 
     best, weights = twins.view_choice(local, frame["depth"], paper["label"], photos, depthmaps,
-                                      extra["candidates"], 3, tol, 0.3, 0.5)
+                                      extra["candidates"], 3, tol, 0.3, 0.5, extra["quads"])
     hit = frame["depth"] > 0
     assert hit.mean() > 0.5
     # float32 angles on the GPU: a pixel whose two best penalties lie within rounding of each other
@@ -69,6 +72,13 @@ def test_view_choice_matches_numpy_twin(ctx, bundle, depthmaps):
     np.testing.assert_allclose(extra["weights"][both][:, :3], weights[both], atol=1.5 / 255)
     assert (extra["weights"][~hit] == 0).all() and (extra["others"][~hit] == -1).all()
     assert len(np.unique(frame["label"][hit])) >= 2  # the view really mixes photos here
+    if extra["quads"]:  # where one choice per quad and per pixel differ, the GPU took the quad's
+        _, alone = twins.view_choice(local, frame["depth"], paper["label"], photos, depthmaps,
+                                     extra["candidates"], 3, tol, 0.3, 0.5, quads=False)
+        moved = hit & same & (np.abs(alone - weights).max(-1) > 3 / 255)
+        assert moved.sum() >= 100, moved.sum()  # measured 883: adjacent pixels' weights differ little
+        followed = np.abs(extra["weights"][moved][:, :3] - weights[moved]).max(-1) <= 1.5 / 255
+        assert followed.mean() > 0.95, followed.mean()
 
 
 def test_view_choice_rejects_a_photo_whose_depth_map_shows_an_occluder(ctx, bundle, depthmaps, tmp_path):

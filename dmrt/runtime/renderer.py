@@ -282,7 +282,8 @@ class Renderer:
         if self.config.photo_choice == "view":
             self.view_choice = ViewChoice(self.ctx, n, self.config.view_candidates, self.config.view_blend,
                                           self.config.view_distance_weight, self.config.view_turn_weight,
-                                          self.config.label_check_tolerance)
+                                          self.config.label_check_tolerance,
+                                          max(c.fx * s[0] / c.width for c, s in zip(self.cameras, self.depth_sizes)))
         self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
         self.step_stats = self.ctx.buffer(reserve=16 * self.config.layers * STEP_BINS) if self.config.statistics else None
         self._size: tuple[int, int] | None = None

@@ -18,7 +18,9 @@ fetch a photo, which photos see the raytraced point. Per frame, after the final 
    the best that see the point (depth map within ``tolerance``) are kept, the first becomes the
    final label (histogram, photo cache and leveling follow it) and with ``blend`` > 1 the texturing
    pass mixes the ``blend`` best with unstructured-lumigraph weights, which fall smoothly to 0 as a
-   photo is overtaken (no popping seams as the camera moves).
+   photo is overtaken (no popping seams as the camera moves). Where two frame pixels span at most a
+   texel of the finest depth map (:func:`quads`: 3840x2160 over the paper's maps), one choice serves
+   a 2x2 quad of one surface.
 
 ``reference.twins.view_scores`` and ``reference.twins.view_choice`` are the numpy twins.
 """
@@ -55,6 +57,13 @@ def sample_grid(width: int, height: int, samples: int = SAMPLES) -> tuple[int, t
     return stride, (-(-width // stride), -(-height // stride))
 
 
+def quads(frame_focal: float, map_focal: float) -> bool:
+    """Whether a frame of focal length ``frame_focal`` (pixels) chooses once per 2x2 quad of one
+    surface: where two of its pixels span at most a texel of the finest depth map (focal length
+    ``map_focal`` texels), which cannot tell them apart (``shaders/dmrt_view_choice.glsl``)."""
+    return frame_focal >= 2.0 * map_focal
+
+
 class ViewChoice:
     """The view-dependent photo choice of one renderer.
 
@@ -72,6 +81,10 @@ class ViewChoice:
         Radians of penalty per radian the photo's optical axis turns from the view's.
     tolerance : float
         Metres: a photo whose depth map differs by more from the point's depth does not see it.
+    map_focal : float
+        The finest depth map's focal length, texels (the largest ``fx`` of the photos' maps): a frame
+        whose focal length is at least twice it chooses once per 2x2 quad of one surface
+        (:func:`quads`).
 
     Attributes
     ----------
@@ -80,8 +93,9 @@ class ViewChoice:
     """
 
     def __init__(self, ctx: moderngl.Context, n_photos: int, candidates: int, blend: int,
-                 distance_weight: float, turn_weight: float, tolerance: float):
+                 distance_weight: float, turn_weight: float, tolerance: float, map_focal: float):
         self.ctx, self.n_photos, self.blend = ctx, int(n_photos), int(blend)
+        self.map_focal = float(map_focal)
         self.n_candidates = int(candidates)
         self._uniforms = {"u_distance_weight": float(distance_weight), "u_turn_weight": float(turn_weight),
                           "u_view_tol": float(tolerance)}
@@ -131,8 +145,9 @@ class ViewChoice:
             self.candidates.bind_to_storage_buffer(abi.B_VIEW_CANDIDATES)
             if self.blend_buffer is not None:
                 self.blend_buffer.bind_to_storage_buffer(abi.B_VIEW_BLEND)
-            set_uniforms(self._choice, u_depthmaps=0, **self._uniforms, **cam_uniforms)
-            self._choice.run(groups(w, 8), groups(h, 8))
+            step = 2 if quads(cam_uniforms["u_K"][0], self.map_focal) else 1
+            set_uniforms(self._choice, u_depthmaps=0, u_quads=step == 2, **self._uniforms, **cam_uniforms)
+            self._choice.run(groups(-(-w // step), 8), groups(-(-h // step), 8))
             ctx.memory_barrier(_BARRIER)
 
     def read_candidates(self) -> np.ndarray:
