@@ -88,8 +88,8 @@ class DMTConfig:
     max_uploads_per_frame: int = option(4, "as RenderConfig's: photo uploads per frame (0 = no bound)", minimum=0)
     cpu_cache_mb: float = option(1024.0, "as RenderConfig's: CPU MiB of decoded photos", minimum=0.0)
     progress: bool = option(True, "a progress bar when the labels must be computed")
-    photometric: bool = option(True, "as RenderConfig's: the photos' gains from preprocessing's photometric "
-                                     "adjustment")
+    photometric: bool = option(False, "as RenderConfig's: the photos' gains from preprocessing's photometric "
+                                      "adjustment")
     leveling: bool = option(False, "screen-space leveling, as RenderConfig's")
     leveling_min_samples: int = option(16, "leveling: seam samples a photo pair needs to count", minimum=1)
     leveling_max_gain: float = option(2.0, "leveling: the bound on a gain and its inverse", minimum=1.0)
