@@ -1,12 +1,12 @@
 // Colour of a photo at a world point: from the full-resolution cache when image management holds
-// that photo there, else from the always-resident low-resolution copy (bilinear both), times the
+// that photo there, else from the low-resolution copy (resident with its depth map; bilinear both), times the
 // photo's photometric gain (dmrt.preprocess.photometric; all 1 when off). Included after
 // dmrt_photos.glsl; no #version.
 
 layout(std430, binding = B_SLOTS) readonly buffer Slots { int slots[]; };  // photo -> cache layer, -1
 layout(std430, binding = B_PHOTO_GAINS) readonly buffer PhotoGains { vec4 photo_gains[]; };  // RGB gain, unused
 
-uniform sampler2DArray u_low;   // low-resolution photos, layer = photo index
+uniform sampler2DArray u_low;   // low-resolution photos, layer = map_layer(photo index)
 uniform sampler2DArray u_high;  // full-resolution cache, layer = slot
 uniform vec2 u_low_dims;        // width, height of the arrays (photos fill the top-left corner)
 uniform vec2 u_high_dims;
@@ -22,7 +22,11 @@ vec3 photo_color_raw(int l, vec3 q) {
         return textureLod(u_high, vec3(px / u_high_dims, float(slot)), 0.0).rgb;
     }
     vec2 px = clamp(uvn * ph.size.zw, vec2(0.5), ph.size.zw - 0.5);
-    return textureLod(u_low, vec3(px / u_low_dims, float(l)), 0.0).rgb;
+    int layer = map_layer(l);
+#if MAP_SLOTS
+    if (layer < 0) return vec3(0.0);  // flagged: the frame is rendered again with it
+#endif
+    return textureLod(u_low, vec3(px / u_low_dims, float(layer)), 0.0).rgb;
 }
 
 // RGB of photo l at world point q after the photometric adjustment (may exceed 1: callers clamp

@@ -10,9 +10,35 @@ struct Photo {
 
 layout(std430, binding = B_PHOTOS) readonly buffer Photos { Photo photos[]; };
 
-// All depth maps, one layer per photo (R32F camera z, 0 = empty; row 0 = the photo's top row);
+// The depth maps, one layer per photo (R32F camera z, 0 = empty; row 0 = the photo's top row);
 // a map smaller than the array only fills its top-left corner: lookups use texelFetch.
 uniform sampler2DArray u_depthmaps;
+
+// Layer = photo index, unless the scene has more photos than the arrays hold (dmrt/runtime/maps.py):
+// then MAP_SLOTS maps a photo to its layer, and a photo whose map is not resident is flagged for
+// the renderer, which loads it and renders the frame again.
+#ifndef MAP_SLOTS
+#define MAP_SLOTS 0
+#endif
+#ifndef MAP_FLAGS  // 0: a missing map only reads as no surface (a pass that tests every photo)
+#define MAP_FLAGS 1
+#endif
+#if MAP_SLOTS
+layout(std430, binding = B_MAP_SLOTS) readonly buffer MapSlots { int map_slots[]; };
+layout(std430, binding = B_MAP_MISSING) writeonly buffer MapMissing { uint map_missing[]; };
+
+// The layer of photo l's map and low-resolution copy; -1 (and l flagged) when not resident.
+int map_layer(int l) {
+    int s = map_slots[l];
+    if (MAP_FLAGS != 0 && s < 0) {
+        map_missing[0] = 1u;
+        map_missing[1 + l] = 1u;
+    }
+    return s;
+}
+#else
+int map_layer(int l) { return l; }
+#endif
 
 vec3 to_photo(Photo ph, vec3 q) {
     return vec3(dot(ph.r0.xyz, q) + ph.r0.w, dot(ph.r1.xyz, q) + ph.r1.w, dot(ph.r2.xyz, q) + ph.r2.w);
@@ -35,8 +61,12 @@ vec2 photo_uv(Photo ph, vec3 pc) {
 bool fetch_quad(int l, vec2 size, ivec2 i0, out vec4 d) {
     d = vec4(0.0);
     if (any(lessThan(i0, ivec2(0))) || any(greaterThanEqual(i0 + 1, ivec2(size)))) return false;
+    int layer = map_layer(l);
+#if MAP_SLOTS
+    if (layer < 0) return false;
+#endif
     vec2 corner = vec2(i0 + 1) / vec2(textureSize(u_depthmaps, 0).xy);
-    d = textureGather(u_depthmaps, vec3(corner, float(l))).wzxy;
+    d = textureGather(u_depthmaps, vec3(corner, float(layer))).wzxy;
     return true;
 }
 

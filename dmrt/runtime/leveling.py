@@ -141,14 +141,14 @@ class ScreenLeveler:
 
     def __init__(self, ctx, n_photos: int, min_samples: int = 16, max_gain: float = 2.0,
                  threshold: float = 0.20, visibility_tol: float = 0.05, regularization: float = REGULARIZATION,
-                 p_in_shared: bool | None = None):
+                 p_in_shared: bool | None = None, map_defines: dict | None = None):
         self.ctx, self.n = ctx, int(n_photos)
         self.min_samples, self.max_gain, self.regularization = min_samples, max_gain, float(regularization)
         self.threshold, self.visibility_tol = float(threshold), float(visibility_tol)
         n = self.n
         if p_in_shared is None:
             p_in_shared = 12 * n + 48 * SOLVE_THREADS + 16 <= GL_SHARED_BYTES  # s_p, s_red, s_used
-        self._seams = load_program(ctx, "dmrt_leveling_seams")
+        self._seams = load_program(ctx, "dmrt_leveling_seams", map_defines)
         self._solve = load_program(ctx, "dmrt_leveling_solve", {"N_PHOTOS": n, "THREADS": SOLVE_THREADS,
                                                                 "P_SHARED": bool(p_in_shared), "LOG_SCALE": LOG_SCALE})
         self._apply = load_program(ctx, "dmrt_leveling_apply")

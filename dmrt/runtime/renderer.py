@@ -55,6 +55,7 @@ from dmrt.gl.context import get_context
 from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups, max_groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
+from dmrt.runtime.maps import MapCache
 from dmrt.runtime.shading import FrameShading, camera_uniforms, hit_depth_at
 from dmrt.runtime.tiles import DEFAULT_BATCH, DEFAULT_TOP, SPARSE_MIN
 from dmrt.runtime.view_choice import MAX_BLEND, ViewChoice
@@ -65,6 +66,11 @@ STAGES = ("visibility", "raytracing", "labeling", "image_management", "texturing
 
 
 Visibility = Literal["tiles", "compute", "kbuffer", "raster"]
+
+
+# Renderings of one frame at most: once, once more after the tile list grew or missing depth maps
+# were loaded, and twice more for maps that only a later rendering's results needed.
+RENDER_ATTEMPTS = 4
 
 
 @dataclass
@@ -141,6 +147,10 @@ class RenderConfig:
     max_uploads_per_frame: int = option(4, "photos uploaded to the cache per frame at most; 0 = no bound",
                                         minimum=0)
     cpu_cache_mb: float = option(1024.0, "decoded photos kept in CPU memory, MiB", minimum=0.0)
+    map_cache_mb: float = option(0.0, "GPU memory for the photos' depth maps and low-resolution copies, MiB; 0 = "
+                                      "as many as one texture array holds (2048 photos on NVIDIA and Mesa). With "
+                                      "fewer slots than photos they are a cache: a frame that finds a map missing "
+                                      "loads it and is rendered again (dmrt/runtime/maps.py)", minimum=0.0)
     labeling: bool = option(True, "the per-pixel labeling pass (paper 5.2.1); off keeps the raytraced layer's "
                                   "label (ablation)")
     label_check: bool = option(True, "addition to the paper: a labeling-pass label whose depth map does not see the "
@@ -238,26 +248,14 @@ class Renderer:
             raise ValueError("RenderConfig.atomics='int64': this driver lacks GL_NV_shader_atomic_int64")
         self.int64 = self.config.atomics == "int64" or (self.config.atomics == "auto" and has_int64)
 
-        # depth maps: one R32F layer each, written one at a time (no n x h x w host copy)
-        self.depth_sizes = []
-        for i in range(n):
-            m = bundle.depth_map(i)
-            self.depth_sizes.append((m.shape[1], m.shape[0]))
-            if i == 0:
-                # maps share one width; heights follow each photo's aspect (dmrt.preprocess.depthmaps rule)
-                w0 = m.shape[1]
-                h0 = max([m.shape[0]] + [int(round(w0 * c.height / c.width)) for c in self.cameras])
-                dims = self._depth_dims = (w0, h0)
-                self.depthmaps = self.ctx.texture_array((*dims, n), 1, dtype="f4")
-                self.depthmaps.filter = (moderngl.NEAREST, moderngl.NEAREST)
-            if m.shape[0] > dims[1] or m.shape[1] > dims[0]:
-                raise InputError(bundle.path("depthmaps", i), f"depth map {m.shape[1]}x{m.shape[0]} "
-                                 f"larger than the first one's {dims[0]}x{dims[1]}")
-            self.depthmaps.write(np.ascontiguousarray(m, np.float32).tobytes(),
-                                 viewport=(0, 0, i, m.shape[1], m.shape[0], 1))
+        # depth maps and low-resolution photos: every one resident, or a cache of them
+        self.maps = MapCache(self.ctx, bundle, self.config.map_cache_mb)
+        self._centres = np.array([c.center for c in self.cameras])
+        self.depthmaps, self.depth_sizes = self.maps.depthmaps, self.maps.depth_sizes
+        map_defines = self.maps.defines
         # the end of the frame (histogram, photo cache, texturing, leveling) is DMT's too
         self.shading = FrameShading(self.ctx, bundle, self.timer, self.depth_sizes, self.config,
-                                    self.config.label_check_tolerance)
+                                    self.config.label_check_tolerance, self.maps)
         self.images, self.photos, self.leveler = self.shading.images, self.shading.photos, self.shading.leveler
         labels = np.asarray(bundle.proxy["labels"])
         if len(labels) and labels.max() >= n:
@@ -268,10 +266,11 @@ class Renderer:
                                           self.config.kbuffer_slots or 6 * self.config.layers + 2, n,
                                           self.config.tile_check, self.shading.status, hit_masks=self.config.labeling,
                                           tile_batch=self.config.tile_batch, tile_top=self.config.tile_hits,
-                                          tile_walk=self.config.tile_walk)
+                                          tile_walk=self.config.tile_walk, map_defines=map_defines)
         defines = {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
                    "SECANT": int(self.config.search == "secant"), "RAYTRACE": int(self.config.raytrace),
-                   "STATISTICS": int(self.config.statistics), "ILLINOIS": int(self.config.refine == "illinois")}
+                   "STATISTICS": int(self.config.statistics), "ILLINOIS": int(self.config.refine == "illinois"),
+                   **map_defines}
         # the search and fill programs, by whether the frame is read back: only such a frame has
         # normals, and leaving their code out of the others' programs (NORMALS 0, not just u_normals 0)
         # made the search 15 % faster at 3840x2160 on the H100 (6 % at 1280x720; reports/frame-h200)
@@ -288,13 +287,13 @@ class Renderer:
             self.view_choice = ViewChoice(self.ctx, n, self.config.view_candidates, self.config.view_blend,
                                           self.config.view_distance_weight, self.config.view_turn_weight,
                                           self.config.label_check_tolerance,
-                                          max(c.fx * s[0] / c.width for c, s in zip(self.cameras, self.depth_sizes)))
-        self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64)})
+                                          max(c.fx * s[0] / c.width for c, s in zip(self.cameras, self.depth_sizes)),
+                                          map_defines)
+        self._finalize = load_program(self.ctx, "dmrt_label_finalize", {"PACKED_LABELS": int(self.int64), **map_defines})
         self.step_stats = self.ctx.buffer(reserve=16 * self.config.layers * STEP_BINS) if self.config.statistics else None
         self._size: tuple[int, int] | None = None
         self._buffers: dict = {}
-        self.gpu_bytes = {"depthmaps": self._depth_dims[0] * self._depth_dims[1] * n * 4, **self.shading.nbytes,
-                          "proxies": self.splats.nbytes}
+        self.gpu_bytes = {**self.shading.nbytes, **self.maps.nbytes, "proxies": self.splats.nbytes}
 
     @property
     def config(self) -> RenderConfig:
@@ -343,19 +342,26 @@ class Renderer:
             (the gains are solved on the GPU)}. With ``config.leveling`` and ``readback`` also
             ``leveling_gains`` (n_photos, 3) float32; with ``config.statistics`` also
             ``step_stats`` (see :meth:`_read_step_stats`). A frame whose tile list outgrew its
-            buffer (``tile_check="frame"``) is rendered again with a larger one and carries
-            ``rerendered`` True; its timings are those of the second rendering.
+            buffer (``tile_check="frame"``), or that wanted depth maps the cache did not hold
+            (``map_cache_mb``, more photos than one texture array holds), is rendered again and
+            carries ``rerendered`` True; its timings are those of the last rendering. With a
+            partial map cache also ``maps_missing``: the maps the frame still did not find (0
+            unless it needs more maps than the cache holds).
         """
-        frame = self._frame(camera, width, height, readback)
-        if frame is None:  # the tile list outgrew its buffer, grown now: the frame once more
-            frame = self._frame(camera, width, height, readback)
-            if frame is None:
-                raise RuntimeError("the tile list outgrew its buffer twice for the same view")
-            frame["rerendered"] = True
-        return frame
+        # None: the tile list outgrew its buffer (grown now), or depth maps were missing (loaded
+        # now; a frame's second rendering may find a map that only its first's results needed)
+        for attempt in range(RENDER_ATTEMPTS):
+            frame = self._frame(camera, width, height, readback, retry=attempt == RENDER_ATTEMPTS - 1)
+            if frame is not None:
+                if attempt:
+                    frame["rerendered"] = True
+                return frame
+        raise RuntimeError("the tile list outgrew its buffer twice for the same view")
 
-    def _frame(self, camera: Camera, width: int | None, height: int | None, readback: bool) -> dict | None:
-        """One rendering of :meth:`render`'s frame; None if its tile list outgrew its buffer."""
+    def _frame(self, camera: Camera, width: int | None, height: int | None, readback: bool,
+               retry: bool = False) -> dict | None:
+        """One rendering of :meth:`render`'s frame; None if its tile list outgrew its buffer, or
+        (unless ``retry``) if it wanted depth maps that were not resident (loaded now)."""
         cfg = self.config
         cam = camera.resized(width or cfg.width, height or cfg.height)
         w, h = cam.width, cam.height
@@ -369,6 +375,13 @@ class Renderer:
         timer.reset()
         self.splats.begin_frame()
         self.shading.begin_frame()
+        self.maps.bind()
+        if self.maps.partial and self.view_choice is not None:
+            # the view choice's candidates are scored from resident maps: the photos nearest the
+            # camera come in before the frame
+            # (a quarter of the slots at most: the rest hold the maps the labels need)
+            near = np.argsort(np.linalg.norm(self._centres - cam.center, axis=1))
+            self.maps.ensure(near[:min(4 * self.config.view_candidates, self.maps.n_slots // 4)])
 
         self.visibility.run(cam_uniforms, (w, h), cfg.layers, b["layer_depth"], b["layer_label"], timer)
 
@@ -450,6 +463,13 @@ class Renderer:
                                           "rendering a DMRT frame", readback, blend)
         if tiles is not None and tiles.end_frame():
             return None
+        if self.maps.partial:  # maps the frame wanted and did not find: loaded, and the frame again
+            counts = self.shading.read_counts()
+            missing = self.maps.missing(counts)
+            # the photos this frame used stay: the missing ones take the least recently used others
+            if len(missing) and self.maps.ensure([*missing, *np.flatnonzero(counts)]) and not retry:
+                return None
+            frame["maps_missing"] = len(missing)
         if readback:
             frame["label_raw"] = hits["label"].copy()
             frame["layer_used"], frame["iterations"] = hit_layer_iters(hits)
@@ -506,7 +526,7 @@ class Renderer:
         self.visibility.release()
         self.splats.release()
         self.shading.release()
-        for obj in (self.depthmaps, self.step_stats, self.view_choice):
+        for obj in (self.maps, self.step_stats, self.view_choice):
             if obj is not None:
                 obj.release()
 

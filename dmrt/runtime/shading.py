@@ -105,6 +105,8 @@ class FrameShading:
         ``cpu_cache_mb``, ``photometric``, ``leveling``, ``leveling_min_samples``, ``leveling_max_gain``,
         ``discontinuity_threshold``; ``photo_choice``: "view" counts the candidates bound at
         ``abi.B_VIEW_CANDIDATES`` in the histogram)
+    maps : dmrt.runtime.maps.MapCache, optional
+        DMRT's depth maps, which hold the low-resolution photos too
 
     Attributes
     ----------
@@ -114,11 +116,11 @@ class FrameShading:
         path writes and reads them too)
     """
 
-    def __init__(self, ctx, bundle, timer, depth_sizes, config, seam_tolerance: float):
+    def __init__(self, ctx, bundle, timer, depth_sizes, config, seam_tolerance: float, maps=None):
         n = len(bundle.cameras)
         self.ctx, self.timer = ctx, timer
         self.images = ImageCache(ctx, bundle, config.cache_mb, config.max_uploads_per_frame, config.async_photos,
-                                 config.cpu_cache_mb)
+                                 config.cpu_cache_mb, maps)
         self.photos = ctx.buffer(photo_params(bundle.cameras, bundle.origin, depth_sizes,
                                               self.images.low_sizes).tobytes())
         self.photo_gains = (bundle.photo_gains if config.photometric else np.ones((n, 3), np.float32)).copy()
@@ -133,7 +135,8 @@ class FrameShading:
         self.status = FrameStatus(ctx, self.images.n_slots)
         self.sync_photos = not config.async_photos
         self.leveler = ScreenLeveler(ctx, n, config.leveling_min_samples, config.leveling_max_gain,
-                                     config.discontinuity_threshold, seam_tolerance) if config.leveling else None
+                                     config.discontinuity_threshold, seam_tolerance,
+                                     map_defines=self.images.defines) if config.leveling else None
         self.staging = Staging(ctx)  # frame read-backs (and the renderers' own, e.g. their layers)
 
     @property
@@ -143,6 +146,10 @@ class FrameShading:
         if self.leveler is not None:
             out["leveling"] = self.leveler.nbytes
         return out
+
+    def read_counts(self) -> np.ndarray:
+        """(n_photos,) uint32 the last frame's label histogram (waits for the GPU)."""
+        return np.frombuffer(self._counts_gpu.read(), np.uint32)
 
     def begin_frame(self):
         """Start a frame: its status record (:meth:`dmrt.runtime.status.FrameStatus.begin`)."""

@@ -1,7 +1,9 @@
 """DMRT image management and texturing (paper Sections 5.2.2 and 5.2.3).
 
 * Low-resolution copies of every photo (the bundle's ``images_low``, paper: 256x171) stay on the
-  GPU in one RGB8 texture array, one layer per photo: the fallback of every lookup.
+  GPU in one RGB8 texture array, one layer per photo: the fallback of every lookup. DMRT keeps
+  them with the depth maps (:class:`dmrt.runtime.maps.MapCache`: beyond one texture array's
+  layers they are cached with them).
 * Full-resolution photos are cached in a second RGB8 texture array of as many layers ("slots")
   as ``cache_mb`` holds. Relevance of a photo = the frequency of its label in the frame's final
   label buffer, counted on the GPU, and the most relevant photos (count > 0, at most as many as
@@ -55,10 +57,13 @@ class ImageCache:
         Decode photos on background threads (see the module doc).
     cpu_cache_mb : float
         Decoded photos kept in CPU memory, MiB (least recently used dropped first).
+    maps : dmrt.runtime.maps.MapCache, optional
+        Where the low-resolution copies live (DMRT's); None: a texture array of its own.
 
     Attributes
     ----------
     low_sizes : list of (width, height) of the low-resolution copies.
+    defines : dict, the shader defines of programs that read ``low`` (:attr:`MapCache.defines`)
     n_slots : int, number of full-resolution slots.
     slot_of : (n_photos,) int32, the cache slot of each photo, -1 = not resident.
     slots : moderngl.Buffer, ``slot_of`` on the GPU.
@@ -73,15 +78,20 @@ class ImageCache:
     SLOT_TEXEL_BYTES = 4
 
     def __init__(self, ctx, bundle: Bundle, cache_mb: float, max_uploads: int = 0, asynchronous: bool = False,
-                 cpu_cache_mb: float = 1024.0):
+                 cpu_cache_mb: float = 1024.0, maps=None):
         self.ctx, self.bundle = ctx, bundle
         n = len(bundle.cameras)
-        low = [bundle.image(i, low=True) for i in range(n)]  # small: 0.13 MB each (paper)
-        self.low_sizes = [(im.shape[1], im.shape[0]) for im in low]
-        self.low_dims = (max(s[0] for s in self.low_sizes), max(s[1] for s in self.low_sizes))
-        self.low = ctx.texture_array((*self.low_dims, n), 3)
-        for i, im in enumerate(low):
-            self.low.write(np.ascontiguousarray(im).tobytes(), viewport=(0, 0, i, im.shape[1], im.shape[0], 1))
+        self._maps = maps
+        self.defines = maps.defines if maps is not None else {}
+        if maps is not None:  # the low-resolution copies live with the depth maps
+            self.low, self.low_sizes, self.low_dims = maps.low, maps.low_sizes, maps.low_dims
+        else:
+            low = [bundle.image(i, low=True) for i in range(n)]  # small: 0.13 MB each (paper)
+            self.low_sizes = [(im.shape[1], im.shape[0]) for im in low]
+            self.low_dims = (max(s[0] for s in self.low_sizes), max(s[1] for s in self.low_sizes))
+            self.low = ctx.texture_array((*self.low_dims, n), 3)
+            for i, im in enumerate(low):
+                self.low.write(np.ascontiguousarray(im).tobytes(), viewport=(0, 0, i, im.shape[1], im.shape[0], 1))
         self.full_dims = (max(c.width for c in bundle.cameras), max(c.height for c in bundle.cameras))
         slot_bytes = self.full_dims[0] * self.full_dims[1] * self.SLOT_TEXEL_BYTES
         self.n_slots = int(min(n, max(0.0, cache_mb) * 2 ** 20 // slot_bytes))
@@ -116,7 +126,7 @@ class ImageCache:
     @property
     def nbytes(self) -> dict:
         """GPU bytes: ``images_low`` and ``image_cache``."""
-        return {"images_low": self.low.width * self.low.height * self.low.layers * 3,
+        return {"images_low": 0 if self._maps is not None else self.low.width * self.low.height * self.low.layers * 3,
                 "image_cache": self.high.width * self.high.height * self.high.layers * self.SLOT_TEXEL_BYTES
                 if self.n_slots else 0}
 
@@ -232,7 +242,7 @@ class ImageCache:
     def release(self) -> None:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
-        for obj in (self.low, self.high, self.slots):
+        for obj in (self.high, self.slots) if self._maps is not None else (self.low, self.high, self.slots):
             obj.release()
 
 
@@ -296,7 +306,7 @@ def texture_frame(ctx, timer, images: ImageCache, wanted: np.ndarray, hits, colo
         images.update(wanted)
     t2 = time.perf_counter()
     w, h = cam_uniforms["u_size"]
-    program = load_program(ctx, "dmrt_texturing", {"BLEND": MAX_BLEND} if blend is not None else None)
+    program = load_program(ctx, "dmrt_texturing", {**images.defines, **({"BLEND": MAX_BLEND} if blend is not None else {})})
     with timer.section("texturing"):
         hits.bind_to_storage_buffer(abi.B_HITS)
         photos.bind_to_storage_buffer(abi.B_PHOTOS)

@@ -124,7 +124,7 @@ class TileVisibility:
 
     def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = DEFAULT_BATCH, top: int = DEFAULT_TOP,
                  max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None,
-                 hit_masks: bool = True, warp_blocks: bool = True, walk: str = "auto"):
+                 hit_masks: bool = True, warp_blocks: bool = True, walk: str = "auto", map_defines: dict | None = None):
         if not 1 <= tile <= 32:
             raise ValueError(f"tile must be 1..32 (tile^2 invocations per workgroup), not {tile}")
         if batch < 1:
@@ -139,7 +139,7 @@ class TileVisibility:
         self.tile, self.check, self.batch, self.top = int(tile), check, int(batch), int(top)
         self.hit_masks = bool(hit_masks) and self.tile * self.tile == MASK_DISCS
         self._defines = {"TILE": self.tile, "BATCH": int(batch), "HIT_MASKS": int(self.hit_masks),
-                         "WARP_BLOCKS": int(bool(warp_blocks))}
+                         "WARP_BLOCKS": int(bool(warp_blocks)), **(map_defines or {})}
         self._bin = {(scatter, large): load_program(ctx, "dmrt_tiles_bin", {**self._defines, "SCATTER": scatter,
                                                                             "LARGE": large,
                                                                             "MAX_THREAD_TILES": max_thread_tiles})

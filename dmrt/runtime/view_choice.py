@@ -85,6 +85,8 @@ class ViewChoice:
         The finest depth map's focal length, texels (the largest ``fx`` of the photos' maps): a frame
         whose focal length is at least twice it chooses once per 2x2 quad of one surface
         (:func:`quads`).
+    map_defines : dict, optional
+        :attr:`dmrt.runtime.maps.MapCache.defines`.
 
     Attributes
     ----------
@@ -93,7 +95,8 @@ class ViewChoice:
     """
 
     def __init__(self, ctx: moderngl.Context, n_photos: int, candidates: int, blend: int,
-                 distance_weight: float, turn_weight: float, tolerance: float, map_focal: float):
+                 distance_weight: float, turn_weight: float, tolerance: float, map_focal: float,
+                 map_defines: dict | None = None):
         self.ctx, self.n_photos, self.blend = ctx, int(n_photos), int(blend)
         self.map_focal = float(map_focal)
         self.n_candidates = int(candidates)
@@ -102,10 +105,12 @@ class ViewChoice:
         self.scores = ctx.buffer(reserve=4 * self.n_photos)
         self.candidates = ctx.buffer(reserve=4 * (STATUS_HEADER_WORDS + max(self.n_candidates, 1)))
         self.candidates.write(np.zeros(STATUS_HEADER_WORDS, np.uint32).tobytes())  # no candidates
-        self._scores = load_program(ctx, "dmrt_view_scores")
+        # the scores test every photo: a map not resident is no candidate, not a miss
+        self._scores = load_program(ctx, "dmrt_view_scores", {**map_defines, "MAP_FLAGS": 0} if map_defines else None)
         self._rank = load_program(ctx, "dmrt_photo_choice", {
             "N_PHOTOS": self.n_photos, "COUNTS_BINDING": "B_VIEW_SCORES", "STATUS_BINDING": "B_VIEW_CANDIDATES"})
-        self._choice = load_program(ctx, "dmrt_view_choice", {"BLEND": self.blend, "CANDIDATES": self.n_candidates})
+        self._choice = load_program(ctx, "dmrt_view_choice", {"BLEND": self.blend, "CANDIDATES": self.n_candidates,
+                                                              **(map_defines or {})})
         self.blend_buffer: moderngl.Buffer | None = None
 
     @property

@@ -152,7 +152,7 @@ class VisibilityStage:
     def __init__(self, ctx: moderngl.Context, splats: ProxySplats, method: str = "compute", int64: bool = False,
                  slots: int = 16, n_labels: int = 256, tile_check: str = "frame", status=None,
                  hit_masks: bool = True, tile_batch: int = DEFAULT_BATCH, tile_top: int = DEFAULT_TOP,
-                 tile_walk: str = "auto"):
+                 tile_walk: str = "auto", map_defines: dict | None = None):
         if method not in ("compute", "raster", "kbuffer", "tiles"):
             raise ValueError(f"RenderConfig.method must be 'compute', 'kbuffer', 'tiles' or 'raster', not {method!r}")
         self.ctx, self.splats, self.method = ctx, splats, method
@@ -160,7 +160,8 @@ class VisibilityStage:
         self._size = None
         self._packed = None
         self.tiles = (TileVisibility(ctx, splats, batch=tile_batch, top=tile_top, check=tile_check, status=status,
-                                     hit_masks=hit_masks, walk=tile_walk) if method == "tiles" else None)
+                                     hit_masks=hit_masks, walk=tile_walk, map_defines=map_defines)
+                      if method == "tiles" else None)
         if method == "kbuffer":
             label_bits = max(1, int(n_labels - 1).bit_length())
             if label_bits > 16:

@@ -1,0 +1,56 @@
+"""The depth-map cache (dmrt/runtime/maps.py): with fewer slots than photos, frames equal those
+rendered with every map resident, the misses loaded and the frame rendered again; a frame that
+needs more maps than the cache holds says so."""
+
+import numpy as np
+import pytest
+
+from dmrt.errors import ConfigError
+from dmrt.runtime.renderer import RenderConfig, Renderer
+from helpers import novel_camera
+
+SYNC = {"async_photos": False, "max_uploads_per_frame": 0}
+
+
+def _slot_mb(renderer, slots: float) -> float:
+    """MiB of ``slots`` slots (a depth map and a low-resolution copy each)."""
+    return slots * sum(renderer.maps.nbytes.values()) / renderer.maps.n_slots / 2 ** 20
+
+
+@pytest.mark.parametrize("choice", ["labels", "view"])
+def test_a_walk_with_fewer_slots_than_photos_renders_the_same_frames(ctx, bundle, choice):
+    full = Renderer(bundle, RenderConfig(**SYNC, photo_choice=choice), ctx)
+    assert not full.maps.partial and full.maps.n_slots == len(bundle.cameras) == 12
+    # 8 slots: every view of this walk needs at most 7 maps (the labels, the label check's, the
+    # view choice's candidates), so the cache can hold each frame's own
+    small = Renderer(bundle, RenderConfig(**SYNC, photo_choice=choice, map_cache_mb=_slot_mb(full, 8.5)), ctx)
+    try:
+        assert small.maps.partial and small.maps.n_slots == 8 and small.maps.defines == {"MAP_SLOTS": 1}
+        assert small.gpu_bytes["depthmaps"] == full.gpu_bytes["depthmaps"] * 8 // 12
+        rerendered = 0
+        for t in np.linspace(0.0, 1.0, 6):
+            view = novel_camera(bundle.cameras[0], bundle.cameras[5], t).resized(96, 64)
+            a, b = full.render(view), small.render(view)
+            assert b["maps_missing"] == 0
+            rerendered += bool(b.get("rerendered"))
+            for key in ("depth", "label", "color"):
+                np.testing.assert_array_equal(a[key], b[key], err_msg=f"{key} at t={t}")
+        assert rerendered >= 1 and small.maps.loads >= 2  # the walk really went past the first fill
+    finally:
+        full.release()
+        small.release()
+
+
+def test_a_frame_that_needs_more_maps_than_the_cache_holds_says_so(ctx, bundle):
+    full = Renderer(bundle, RenderConfig(**SYNC, photo_choice="labels"), ctx)
+    small = Renderer(bundle, RenderConfig(**SYNC, photo_choice="labels", map_cache_mb=_slot_mb(full, 3.5)), ctx)
+    try:
+        view = novel_camera(bundle.cameras[0], bundle.cameras[5], 1.0).resized(96, 64)
+        a, b = full.render(view), small.render(view)
+        assert len(np.unique(a["label"][a["label"] >= 0])) > 3  # more photos than the 3 slots
+        assert b["maps_missing"] > 0 and b["rerendered"]
+    finally:
+        full.release()
+        small.release()
+    with pytest.raises(ConfigError, match="--map-cache-mb: .* holds no photo"):
+        Renderer(bundle, RenderConfig(map_cache_mb=0.001), ctx)
