@@ -48,7 +48,7 @@ def main(argv=None) -> None:
         hits = ctx.buffer(records.tobytes())
         truth = np.bincount(labels[labels >= 0].ravel(), minlength=args.photos)
         for column in (16, 64, 256):
-            prog = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": args.photos, "PIXELS_PER_THREAD": column})
+            prog = load_program(ctx, "dmrt_label_histogram", {"PIXELS_PER_THREAD": column})
             hits.bind_to_storage_buffer(abi.B_HITS)
             counts.bind_to_storage_buffer(abi.B_COUNTS)
             set_uniforms(prog, u_size=(w, h))

@@ -119,3 +119,30 @@ def test_image_cache_preload(ctx, bundle):
     finally:
         streamed.release()
         synced.release()
+
+
+def test_label_histogram_counts_labels_of_any_number_of_photos(ctx):
+    """The histogram pass's per-workgroup hash table against np.bincount: long runs of one label,
+    and blocks of more distinct labels (of 5,000 photos) than the table holds, which count globally."""
+    from dmrt.gl import abi
+    from dmrt.gl.kernels import groups
+    from dmrt.gl.shaders import load_program, set_uniforms
+    from dmrt.runtime.shading import HISTOGRAM_RUN
+
+    w, h, n = 200, 70, 5000
+    labels = np.random.default_rng(1).integers(-1, n, (h, w))
+    labels[:, :90] = 7
+    hits = np.zeros(h * w, abi.HIT_DTYPE)
+    hits["depth"], hits["final_label"] = 1.0, labels.ravel()
+    hits_buffer, counts = ctx.buffer(hits.tobytes()), ctx.buffer(np.zeros(n, np.uint32).tobytes())
+    try:
+        program = load_program(ctx, "dmrt_label_histogram", {"PIXELS_PER_THREAD": HISTOGRAM_RUN})
+        hits_buffer.bind_to_storage_buffer(abi.B_HITS)
+        counts.bind_to_storage_buffer(abi.B_COUNTS)
+        set_uniforms(program, u_size=(w, h))
+        program.run(groups(w, 64), groups(h, HISTOGRAM_RUN))
+        np.testing.assert_array_equal(np.frombuffer(counts.read(), np.uint32),
+                                      np.bincount(labels[labels >= 0], minlength=n))
+    finally:
+        hits_buffer.release()
+        counts.release()

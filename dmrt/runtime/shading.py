@@ -129,7 +129,7 @@ class FrameShading:
         self._counts_gpu = ctx.buffer(reserve=4 * n)
         # with the view-dependent photo choice its candidates are counted too (shaders/dmrt_label_histogram.glsl)
         view = getattr(config, "photo_choice", "labels") == "view"
-        self._histogram = load_program(ctx, "dmrt_label_histogram", {"N_PHOTOS": n, "PIXELS_PER_THREAD": HISTOGRAM_RUN,
+        self._histogram = load_program(ctx, "dmrt_label_histogram", {"PIXELS_PER_THREAD": HISTOGRAM_RUN,
                                                                      "VIEW_CANDIDATES": int(view)})
         self._choice = load_program(ctx, "dmrt_photo_choice", {"N_PHOTOS": n})
         self.status = FrameStatus(ctx, self.images.n_slots)
