@@ -45,6 +45,7 @@ from baselines.dmt.geometry import bounding_box, box_corners, dmt_size, load_dep
 from baselines.dmt.labeling import DMTLabelingConfig, Labeler, dmt_labels
 from dmrt.io.bundle import Bundle
 from dmrt.camera import Camera
+from dmrt.errors import InputError
 from dmrt.gl.context import get_context
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
@@ -132,6 +133,10 @@ class DMTRenderer:
         n = len(self.cameras)
         if n == 0:
             raise ValueError(f"{bundle.root}: the bundle has no photos")
+        layers = self.ctx.info["GL_MAX_ARRAY_TEXTURE_LAYERS"]
+        if n > layers:  # DMRT caches its maps (dmrt/runtime/maps.py); this baseline keeps every one
+            raise InputError(bundle.root, f"{n} photos: DMT holds every depth map in one texture array, "
+                                          f"at most {layers} on this GPU (DMRT has no such limit)")
         stored = [bundle.depth_map(i) for i in range(n)]
         self.width = int(cfg.width or stored[0].shape[1])
         depths = [load_depth_map(bundle, i, self.width, stored[i]) for i in range(n)]

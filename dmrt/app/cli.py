@@ -211,6 +211,9 @@ def cmd_render(args) -> None:
                                                         minlength=config.layers).tolist()
         if "stats" in frame:  # DMT's culling counts
             stats["dmt"] = frame["stats"]
+        if "maps_missing" in frame:  # DMRT's depth-map cache (more photos than one texture array holds)
+            stats["maps"] = {"slots": renderer.maps.n_slots, "loads": renderer.maps.loads,
+                             "missing": frame["maps_missing"], "rerendered": bool(frame.get("rerendered"))}
         write_json(args.stats, stats)
     print(f"wrote {args.out}: {format_timings(frame['timings'])}")
 
