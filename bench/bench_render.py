@@ -92,6 +92,8 @@ def main(argv=None) -> None:
     p.add_argument("--tile-check", nargs="+", default=["frame"], help="tiles list checks (RenderConfig.tile_check)")
     p.add_argument("--photo-choice", nargs="+", default=["labels"], choices=["labels", "view"],
                    help="photo choices (RenderConfig.photo_choice), each with the other options at their defaults")
+    p.add_argument("--map-cache-mb", type=float, nargs="+", default=[0.0],
+                   help="depth-map cache budgets (RenderConfig.map_cache_mb; 0 = one texture array's worth)")
     p.add_argument("--max-steps", type=int, nargs="+", default=[100],
                    help="iterative-search steps per layer (RenderConfig.max_steps; the paper: 100). A lower cap "
                         "shortens the few searches that do not converge, which set their warps' time; it also "
@@ -120,16 +122,17 @@ def main(argv=None) -> None:
     for size in args.sizes:
         w, h = (int(v) for v in size.lower().split("x"))
         path = camera_path(keys, args.frames, w, h)
-        for method, refine, check, steps, k, choice in itertools.product(
-                args.methods, args.refine, args.tile_check, args.max_steps, args.layers, args.photo_choice):
+        for method, refine, check, steps, k, choice, maps_mb in itertools.product(
+                args.methods, args.refine, args.tile_check, args.max_steps, args.layers, args.photo_choice,
+                args.map_cache_mb):
             if check != "frame" and method != "tiles":
                 continue
             config = RenderConfig(layers=k, method=method, leveling=args.leveling, refine=refine, tile_check=check,
-                                  max_steps=steps, photo_choice=choice)
+                                  max_steps=steps, photo_choice=choice, map_cache_mb=maps_mb)
             depths: list[np.ndarray] = []
             keep = (lambda f: depths.append(f["depth"].copy())) if len(args.max_steps) > 1 else None
-            r = measure_walkthrough(bundle, config, path, f"{method} {choice} k={k} {w}x{h}", fenced=args.fenced,
-                                    passes=args.passes, on_frame=keep)
+            r = measure_walkthrough(bundle, config, path, f"{method} {choice} maps={maps_mb:g}MB k={k} {w}x{h}",
+                                    fenced=args.fenced, passes=args.passes, on_frame=keep)
             r.pop("stage_ms_per_frame")
             if args.cpu_profile:
                 r["cpu_profile"] = profile_walkthrough(bundle, config, path)
@@ -138,9 +141,9 @@ def main(argv=None) -> None:
                 if first is not depths:
                     r["depth_vs_first_cap"] = _depth_change(first_steps, first, depths)
             runs.append({"method": method, "refine": refine, "tile_check": check, "max_steps": steps, "layers": k,
-                         "photo_choice": choice, **r})
+                         "photo_choice": choice, "map_cache_mb": maps_mb, **r})
             stages = "  ".join(f"{s} {v:.3f}" for s, v in {**r["median_ms"], **r["median_part_ms"]}.items())
-            print(f"{w}x{h} {method:8s} {choice:6s} {refine:9s} {check:6s} steps={steps:3d} k={k:2d}  {stages}"
+            print(f"{w}x{h} {method:8s} {choice:6s} maps={r['map_cache']['slots']} {refine:9s} {check:6s} steps={steps:3d} k={k:2d}  {stages}"
                   + f"  | GPU median {r['median_total_ms']:.3f} p95 {r['p95_total_ms']:.3f} ms, wall median "
                     f"{r['median_wall_ms']:.3f} p95 {r['p95_wall_ms']:.3f} ms, sustained {r['sustained_ms']:.3f} "
                     f"ms/frame, {r['mean_iterations']:.2f} steps, status reads {r['status_reads_per_frame']:.2f}/frame, "

@@ -177,7 +177,9 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         per frame ``total_ms_per_frame``, ``stage_ms_per_frame`` {stage: list}, ``wall_ms_per_frame``
         (``render()`` wall clock), ``median_cpu_ms``, ``mean_iterations`` (over the pixels with a
         surface), ``surface_fraction``, ``photo_uploads`` (in the timed passes: 0 once the cache is
-        steady), ``warm_up`` {``loops``, ``uploads``, ``steady``} (:func:`warm_photo_cache`), ``gpu_bytes`` and ``tile_stats`` (the tiles
+        steady), ``warm_up`` {``loops``, ``uploads``, ``steady``} (:func:`warm_photo_cache`), ``gpu_bytes``,
+        ``map_cache`` {``slots``, ``partial``, ``loads_before_timed``, ``loads_timed``, ``rerendered_timed``}
+        (the depth-map cache: :mod:`dmrt.runtime.maps`) and ``tile_stats`` (the tiles
         path's :meth:`~dmrt.runtime.tiles.TileVisibility.stats` of the last frame, else None).
     """
     from tqdm import tqdm
@@ -197,7 +199,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
             if on_frame is not None:
                 on_frame(f)
         warm_up = warm_photo_cache(renderer, cameras, list(wanted))
-        uploads0 = renderer.images.uploads
+        uploads0, map_loads0, rerendered = renderer.images.uploads, renderer.maps.loads, 0
         clocks_before = gpu_clocks()  # the statistics pass just ran back to back: clocks are up
         timings, parts, cpu, wall = [], [], [], []
         renderer.timer.fenced = fenced
@@ -207,6 +209,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
             f = renderer.render(cam, readback=False)
             wall.append((time.perf_counter() - t0) * 1e3)
             timings.append(f["timings"])
+            rerendered += bool(f.get("rerendered"))
             parts.append(f.get("part_timings", {}))
             cpu.append(f.get("cpu_ms", {}))
         clocks = {"before": clocks_before, "after": gpu_clocks()}
@@ -252,6 +255,9 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
                 "mean_iterations": float(np.mean(iters)), "surface_fraction": float(np.mean(surface)),
                 "photo_uploads": int(renderer.images.uploads - uploads0), "warm_up": warm_up,
                 "gpu_bytes": dict(renderer.gpu_bytes),
+                "map_cache": {"slots": renderer.maps.n_slots, "partial": renderer.maps.partial,
+                              "loads_before_timed": map_loads0, "loads_timed": renderer.maps.loads - map_loads0,
+                              "rerendered_timed": rerendered},
                 "tile_stats": tile_stats}
     finally:
         renderer.release()
