@@ -54,3 +54,26 @@ def test_a_frame_that_needs_more_maps_than_the_cache_holds_says_so(ctx, bundle):
         small.release()
     with pytest.raises(ConfigError, match="--map-cache-mb: .* holds no photo"):
         Renderer(bundle, RenderConfig(map_cache_mb=0.001), ctx)
+
+
+def test_frames_left_on_the_gpu_load_their_missing_maps_two_frames_late(ctx, bundle):
+    """Without a read-back the renderer does not wait for a frame's flags: it reads those of the
+    frame two before and loads what they name, so the third frame has its maps."""
+    full = Renderer(bundle, RenderConfig(**SYNC, photo_choice="labels"), ctx)
+    small = Renderer(bundle, RenderConfig(**SYNC, photo_choice="labels", map_cache_mb=_slot_mb(full, 8.5)), ctx)
+    try:
+        view = novel_camera(bundle.cameras[0], bundle.cameras[5], 1.0).resized(96, 64)
+        a = full.render(view)
+        assert not np.isin(np.unique(a["label"][a["label"] >= 0]), np.arange(8)).all()  # past the first fill
+        loads = []
+        for _ in range(3):
+            small.render(view, readback=False)
+            loads.append(small.maps.loads)
+        assert loads[0] == loads[1] == 0 < loads[2]  # the first frame's flags, read by the third
+        b = small.render(view)
+        assert "rerendered" not in b and b["maps_missing"] == 0
+        for key in ("depth", "label", "color"):
+            np.testing.assert_array_equal(a[key], b[key])
+    finally:
+        full.release()
+        small.release()

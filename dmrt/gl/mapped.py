@@ -167,10 +167,11 @@ class MappedBuffer:
         self._gl.glCopyNamedBufferSubData(src.glo, self.glo, 0, 0, n)
         self._place_fence()  # a copy, not a shader write: the fence alone makes it visible
 
-    def read(self) -> bytes:
-        """The contents once the passes up to the last :meth:`written` have run."""
+    def read(self, nbytes: int | None = None) -> bytes:
+        """The contents (the first ``nbytes``, default all) once the passes up to the last
+        :meth:`written` have run."""
         self._wait()
-        return ctypes.string_at(self._ptr, self.size)
+        return ctypes.string_at(self._ptr, self.size if nbytes is None else min(int(nbytes), self.size))
 
     def write(self, data: bytes) -> None:
         """Overwrite the start of the buffer from the CPU, once the passes up to the last

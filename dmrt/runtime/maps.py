@@ -9,12 +9,16 @@ on NVIDIA's driver and on Mesa), and 10,000 maps of 1024x684 are 28 GB. So:
 * otherwise the slots are a cache. ``B_MAP_SLOTS`` gives each photo's slot (-1: not resident); the
   programs that read maps or low-resolution photos are compiled with :attr:`MapCache.defines`
   (``MAP_SLOTS``, ``shaders/dmrt_photos.glsl``) and flag in ``B_MAP_MISSING`` each photo whose map
-  they wanted and did not find. After the frame the renderer reads the flags (:meth:`missing`),
-  loads those maps (:meth:`ensure`: the least recently used photos make room) and renders the frame
-  again: a frame never shows a missing map unless it needs more maps than the cache holds.
+  they wanted and did not find. Each frame's flags are copied into a ring of records in mapped host
+  memory (as :mod:`dmrt.runtime.status`'s) and cleared (:meth:`end_frame`). A frame that is read
+  back reads its own record (a wait for the frame), loads the missing maps (:meth:`ensure`: the
+  least recently used photos make room) and is rendered again: it never shows a missing map unless
+  it needs more maps than the cache holds. A frame left on the GPU (a viewer's, the benchmarks'
+  sustained frames) reads the record of two frames back, whose passes are done: no wait, and a
+  newly needed map shows as a hole for two frames at most.
 
-Which photos a frame used comes from its label histogram (labels and view-choice candidates): they
-are the most recently used.
+The photos a frame used are those its photo cache wanted (its label histogram's most frequent,
+view-choice candidates included): they become the most recently used.
 """
 
 from __future__ import annotations
@@ -27,6 +31,10 @@ import numpy as np
 
 from dmrt.errors import ConfigError, InputError
 from dmrt.gl import abi
+from dmrt.gl.kernels import fill_u32
+from dmrt.gl.mapped import MappedBuffer
+
+RING = 3  # flag records in flight: a frame left on the GPU reads the one written two frames before
 
 
 class MapCache:
@@ -91,8 +99,9 @@ class MapCache:
         self._frame = 0
         self.loads = 0
         self.slots = ctx.buffer(reserve=4 * n)
-        self.missing_flags = ctx.buffer(reserve=4 * (n + 1))  # [0]: any missing; [1 + j]: photo j's
-        self.missing_flags.write(np.zeros(n + 1, np.uint32).tobytes())
+        zeros = np.zeros(n + 1, np.uint32).tobytes()  # [0]: any map missing; [1 + j]: photo j's
+        self.flags = ctx.buffer(zeros)
+        self._records = [MappedBuffer(ctx, zeros) for _ in range(RING)] if self.partial else []
         self._load(list(range(self.n_slots)), first={0: first}, low=low)
         self.loads = 0
 
@@ -105,21 +114,35 @@ class MapCache:
     def bind(self) -> None:
         """Bind the slot table and the missing flags (a frame's passes read and write them)."""
         self.slots.bind_to_storage_buffer(abi.B_MAP_SLOTS)
-        self.missing_flags.bind_to_storage_buffer(abi.B_MAP_MISSING)
+        self.flags.bind_to_storage_buffer(abi.B_MAP_MISSING)
 
-    def missing(self, counts: np.ndarray | None = None) -> np.ndarray:
-        """After a frame (``partial`` only; waits for the GPU): the photos whose maps its passes
-        wanted and did not find, as (m,) int64, and the flags cleared for the next frame. ``counts``
-        (n_photos,), the frame's label histogram: the photos with a count were used now."""
+    def end_frame(self, used, wait: bool) -> np.ndarray:
+        """After a frame's passes (``partial`` only): its flags into the ring, cleared for the next.
+
+        Parameters
+        ----------
+        used : photo indices the frame used (they become the most recently used)
+        wait : bool
+            True: read this frame's own flags (waits for the frame); False: those of the frame two
+            before, whose passes are done (no wait).
+
+        Returns
+        -------
+        (m,) int64, the photos whose maps that frame wanted and did not find
+        """
         self._frame += 1
-        if counts is not None:
-            used = self.slot_of[np.flatnonzero(counts)]
-            self._last_used[used[used >= 0]] = self._frame
-        if not np.frombuffer(self.missing_flags.read(4), np.uint32)[0]:
+        record = self._records[self._frame % RING]
+        record.copy_from(self.flags, barriers=moderngl.SHADER_STORAGE_BARRIER_BIT)
+        fill_u32(self.ctx, self.flags, 0, self.n_photos + 1)
+        slots = self.slot_of[np.asarray(used, np.int64)]
+        self._last_used[slots[slots >= 0]] = self._frame
+        back = 0 if wait else RING - 1
+        if self._frame - back < 1:  # no frame that far back
             return np.zeros(0, np.int64)
-        flags = np.frombuffer(self.missing_flags.read(), np.uint32)[1:]
-        self.missing_flags.write(np.zeros(self.n_photos + 1, np.uint32).tobytes())
-        return np.flatnonzero(flags)
+        record = self._records[(self._frame - back) % RING]
+        if not np.frombuffer(record.read(4), np.uint32)[0]:
+            return np.zeros(0, np.int64)
+        return np.flatnonzero(np.frombuffer(record.read(), np.uint32)[1:])
 
     def ensure(self, photos) -> int:
         """Make ``photos`` resident (indices, most needed first; at most ``n_slots``), loading
@@ -168,5 +191,5 @@ class MapCache:
         return len(photos)
 
     def release(self) -> None:
-        for obj in (self.depthmaps, self.low, self.slots, self.missing_flags):
+        for obj in (self.depthmaps, self.low, self.slots, self.flags, *self._records):
             obj.release()

@@ -346,7 +346,9 @@ class Renderer:
             (``map_cache_mb``, more photos than one texture array holds), is rendered again and
             carries ``rerendered`` True; its timings are those of the last rendering. With a
             partial map cache also ``maps_missing``: the maps the frame still did not find (0
-            unless it needs more maps than the cache holds).
+            unless it needs more maps than the cache holds); without ``readback`` the frame is not
+            rendered again, and ``maps_missing`` counts those the frame two before did not find,
+            loaded now (:mod:`dmrt.runtime.maps`).
         """
         # None: the tile list outgrew its buffer (grown now), or depth maps were missing (loaded
         # now; a frame's second rendering may find a map that only its first's results needed)
@@ -463,11 +465,12 @@ class Renderer:
                                           "rendering a DMRT frame", readback, blend)
         if tiles is not None and tiles.end_frame():
             return None
-        if self.maps.partial:  # maps the frame wanted and did not find: loaded, and the frame again
-            counts = self.shading.read_counts()
-            missing = self.maps.missing(counts)
+        if self.maps.partial:  # maps a frame wanted and did not find: loaded (and a read-back frame again)
+            used = self.images.wanted
+            missing = self.maps.end_frame(used, wait=readback)
             # the photos this frame used stay: the missing ones take the least recently used others
-            if len(missing) and self.maps.ensure([*missing, *np.flatnonzero(counts)]) and not retry:
+            loaded = self.maps.ensure([*missing, *used]) if len(missing) else 0
+            if readback and loaded and not retry:
                 return None
             frame["maps_missing"] = len(missing)
         if readback:

@@ -147,10 +147,6 @@ class FrameShading:
             out["leveling"] = self.leveler.nbytes
         return out
 
-    def read_counts(self) -> np.ndarray:
-        """(n_photos,) uint32 the last frame's label histogram (waits for the GPU)."""
-        return np.frombuffer(self._counts_gpu.read(), np.uint32)
-
     def begin_frame(self):
         """Start a frame: its status record (:meth:`dmrt.runtime.status.FrameStatus.begin`)."""
         return self.status.begin()
