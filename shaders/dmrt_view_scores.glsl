@@ -29,6 +29,9 @@ shared uint group_score;
 
 void main() {
     int l = u_photo0 + int(gl_WorkGroupID.y);
+#if MAP_SLOTS
+    if (map_layer(l) < 0) return;  // not resident (the whole workgroup): no candidate, nothing flagged
+#endif
     if (gl_LocalInvocationIndex == 0u) group_score = 0u;
     barrier();
     int s = int(gl_GlobalInvocationID.x);
