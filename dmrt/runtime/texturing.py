@@ -94,7 +94,7 @@ class ImageCache:
                 self.low.write(np.ascontiguousarray(im).tobytes(), viewport=(0, 0, i, im.shape[1], im.shape[0], 1))
         self.full_dims = (max(c.width for c in bundle.cameras), max(c.height for c in bundle.cameras))
         slot_bytes = self.full_dims[0] * self.full_dims[1] * self.SLOT_TEXEL_BYTES
-        self.n_slots = int(min(n, max(0.0, cache_mb) * 2 ** 20 // slot_bytes))
+        self.n_slots = int(min(n, max(0.0, cache_mb) * 2 ** 20 // slot_bytes, ctx.info["GL_MAX_ARRAY_TEXTURE_LAYERS"]))
         # a 1x1 stand-in keeps the sampler bound when the cache has no slot
         self.high = ctx.texture_array((*self.full_dims, self.n_slots) if self.n_slots else (1, 1, 1),
                                       self.SLOT_TEXEL_BYTES)
