@@ -9,14 +9,15 @@ layout(std430, binding = B_SPLATS) readonly buffer Splats { float splats[]; };
 // 0xFFFFFFFF (a NaN pattern, above every finite float) marks an empty pixel.
 layout(std430, binding = B_DEPTH_BITS) buffer Depth { uint depth_bits[]; };
 
-// Splats too big for one thread, deferred to splat_depth_compute_large: count, then splat indices.
+// Splats too big for one thread, deferred to splat_depth_compute_large: count, then splat indices
+// (in the batch, of every run splatted into the batch since the count was reset).
 layout(std430, binding = B_DEPTH_LARGE) buffer Large { uint n_large; uint large[]; };
 
 #ifndef CHECK_BEFORE_ATOMIC
 #define CHECK_BEFORE_ATOMIC 1
 #endif
 
-uniform uint u_count;  // number of splats in this batch
+uniform uint u_count;  // number of splats in this batch (splat_depth_compute: in this run of it)
 
 Splat load_splat(uint k) {
     uint o = 7u * k;
