@@ -395,13 +395,16 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         cpu_s[name] = round(now - cpu_mark[0], 2)
         cpu_mark[0] = now
 
-    def tic(name, t0):
-        timings[name] = round(time.perf_counter() - t0, 3)
+    def ended(name):
         cpu_tic(name)
         # peak resident memory so far (MiB), so the phase that raised it can be read off, and the
         # phase's own peak of anonymous memory (what --memory-limit-mb governs: dmrt.preprocess.memory)
         peak_rss[name] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
         peak_anon[name] = anon.take()
+
+    def tic(name, t0):
+        timings[name] = round(time.perf_counter() - t0, 3)
+        ended(name)
 
     with BundleWriter(out, force=force) as bw, anon:
         work = Path(bw.tmp).resolve() / "work"
@@ -437,13 +440,8 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                  "hd_radii": np.asarray(attrs.radii[:n_proxy], np.float32)}
         read_s = time.perf_counter() - t0
         proxies = label_proxies(proxy, cams_local, _DepthFiles(work.parent, depth_files), _Photos(scene),
-                                config, labeling, progress=progress, executor=executor)
+                                config, labeling, progress=progress, executor=executor, phase_done=ended)
         timings.update(proxies.timings, proxies_s=round(proxies.timings["proxies_s"] + read_s, 3))
-        peak = anon.take()
-        cpu_tic("proxies_candidates_labeling_s")
-        for name in ("proxies_s", "candidates_s", "labeling_s"):
-            peak_rss[name] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
-            peak_anon[name] = peak
 
         # 6b. photometric adjustment: one gain per photo and channel from the proxies' colours in
         # the photos that share them (dmrt.preprocess.photometric)
