@@ -26,7 +26,9 @@ void main() {
         if (box.x > box.z || box.y > box.w) continue;
         int area = (box.z - box.x + 1) * (box.w - box.y + 1);
         if (area > MAX_THREAD_PIXELS) {
-            large[atomicAdd(n_large, 1u)] = k;
+            uint i = atomicAdd(n_large, 1u);
+            large[i] = k;
+            atomicMax(groups_x, min(i + 1u, LARGE_GROUPS));
             continue;
         }
         for (int row = box.y; row <= box.w; ++row)

@@ -48,12 +48,10 @@ import numpy as np
 from dmrt.camera import Camera
 from dmrt.gl import abi
 from dmrt.gl.abi import EMPTY_BITS, EMPTY_Z, SPLAT_FLOATS
-from dmrt.gl.kernels import fill_u32
+from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.preprocess.frustum import Buckets
-
-_LARGE_GROUPS = 1024  # workgroups of the large-disc compute pass (they stride over the list)
 
 
 @dataclass
@@ -174,7 +172,7 @@ class DepthMapRenderer:
             defines = {"MAX_THREAD_PIXELS": int(self.config.max_thread_pixels)}
             self._cs = load_program(ctx, "splat_depth_compute", defines)
             self._cs_large = load_program(ctx, "splat_depth_compute_large")
-            self._large = ctx.buffer(reserve=4 * (1 + self.config.chunk_points))
+            self._large = ctx.buffer(reserve=16 + 4 * self.config.chunk_points)
             self._programs = (self._cs, self._cs_large)
         else:
             self._points = load_program(ctx, "splat_depth_raster")
@@ -454,7 +452,7 @@ class DepthMapRenderer:
             self._splat_raster(splats, target, runs)
 
     def _splat_compute(self, splats: _Splats, target: _Target, runs) -> None:
-        self._large.write(b"\0\0\0\0")  # empty large-disc list
+        self._large.write(EMPTY_DISPATCH)  # empty large-disc list
         splats.buffer.bind_to_storage_buffer(abi.B_SPLATS)
         target.depth.bind_to_storage_buffer(abi.B_DEPTH_BITS)
         self._large.bind_to_storage_buffer(abi.B_DEPTH_LARGE)
@@ -462,8 +460,9 @@ class DepthMapRenderer:
         for first, n in runs:
             set_uniforms(self._cs, u_first=first, u_count=n)
             self._cs.run(min(-(-n // 64), 65535))
-        self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)  # pass 2 reads the list
-        self._cs_large.run(_LARGE_GROUPS)
+        # pass 2 reads the list, and its dispatch the list's group count
+        self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT)
+        self._cs_large.run_indirect(self._large)
         self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)  # the next batch's atomics
 
     def _splat_raster(self, splats: _Splats, target: _Target, runs) -> None:
