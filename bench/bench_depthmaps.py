@@ -122,7 +122,9 @@ def run_one(ctx, method: str, chunks, cameras, width: int, resident_mb: float, c
         "splat_gpu_ms": gpu.get("depthmap", 0.0), "splat_gpu_ms_per_photo": gpu.get("depthmap", 0.0) / n,
         "readback_gpu_ms": gpu.get("depthmap_readback", 0.0), "readback_wall_s": stats["readback_s"],
         "total_wall_s": total_s, "wall_ms_per_photo": 1e3 * total_s / n,
+        # every point for every photo, as before the frustum culling; and what the culling sent
         "splats_per_s": points * n / splat_s if splat_s > 0 else None,
+        "splats_sent": stats["splats"], "splats_sent_per_s": stats["splats"] / splat_s if splat_s > 0 else None,
         "splats_per_s_wall": points * n / total_s,
         "timer_sections": counts, "coverage_mean": float(np.mean(coverage)),
         "equal_to_render": equal,

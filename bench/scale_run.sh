@@ -13,14 +13,8 @@ set -u
 out=${1:?usage: bench/scale_run.sh OUT_DIR}
 mkdir -p "$out/results"
 rm -f "$out/done.txt"  # a record left by an earlier run on a warm machine would end bench/poll_run.sh at once
-echo -e "unix_s\tdisk_used_mb\tmem_used_mb\tload_1min" >"$out/results/samples.tsv"
-( while true; do
-    echo -e "$(date +%s)\t$(df -B1M --output=used "$out" | tail -1 | tr -d ' ')\t$(free -m | awk '/Mem:/{print $3}')\t$(cut -d' ' -f1 /proc/loadavg)"
-    sleep 5
-  done >>"$out/results/samples.tsv" ) &
+"$(dirname "$0")/samples.sh" "$out" &  # gpus.csv, df_before.txt, samples.tsv
 sampler=$!
-nvidia-smi --query-gpu=name,clocks.sm,clocks.max.sm,memory.total --format=csv >"$out/results/gpus.csv" 2>&1
-df -h "$out" >"$out/results/df_before.txt" 2>&1
 t0=$(date +%s)
 /usr/bin/time -v -o "$out/results/time_v.txt" python3 -m dmrt.app.cli bench --preset paper-full \
     --out "$out/results" --work "$out/work" --only table1 >>"$out/log.txt" 2>&1

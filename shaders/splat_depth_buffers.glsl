@@ -9,14 +9,21 @@ layout(std430, binding = B_SPLATS) readonly buffer Splats { float splats[]; };
 // 0xFFFFFFFF (a NaN pattern, above every finite float) marks an empty pixel.
 layout(std430, binding = B_DEPTH_BITS) buffer Depth { uint depth_bits[]; };
 
-// Splats too big for one thread, deferred to splat_depth_compute_large: count, then splat indices.
-layout(std430, binding = B_DEPTH_LARGE) buffer Large { uint n_large; uint large[]; };
+// Splats too big for one thread, deferred to splat_depth_compute_large: its indirect dispatch
+// (groups_x = min(count, LARGE_GROUPS), 1, 1: no workgroups at all when no disc is large, which
+// llvmpipe would otherwise spend ~10 ms per map starting), the count, then the splat indices (in
+// the batch, of every run splatted into the batch since the list was reset).
+layout(std430, binding = B_DEPTH_LARGE) buffer Large { uint groups_x; uint groups_y; uint groups_z; uint n_large; uint large[]; };
+
+#ifndef LARGE_GROUPS
+#define LARGE_GROUPS 1024u
+#endif
 
 #ifndef CHECK_BEFORE_ATOMIC
 #define CHECK_BEFORE_ATOMIC 1
 #endif
 
-uniform uint u_count;  // number of splats in this batch
+uniform uint u_count;  // number of splats in this batch (splat_depth_compute: in this run of it)
 
 Splat load_splat(uint k) {
     uint o = 7u * k;

@@ -14,16 +14,21 @@
 
 layout(local_size_x = 64) in;
 
+uniform uint u_first;  // this dispatch splats u_count splats from splat u_first on (a run of the batch)
+
 void main() {
     // grid-stride loop: a batch may hold more than 65535 workgroups' worth of splats
     uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
-    for (uint k = gl_GlobalInvocationID.x; k < u_count; k += stride) {
+    for (uint i = gl_GlobalInvocationID.x; i < u_count; i += stride) {
+        uint k = u_first + i;
         Splat s = load_splat(k);
         ivec4 box = splat_pixel_box(s);
         if (box.x > box.z || box.y > box.w) continue;
         int area = (box.z - box.x + 1) * (box.w - box.y + 1);
         if (area > MAX_THREAD_PIXELS) {
-            large[atomicAdd(n_large, 1u)] = k;
+            uint i = atomicAdd(n_large, 1u);
+            large[i] = k;
+            atomicMax(groups_x, min(i + 1u, LARGE_GROUPS));
             continue;
         }
         for (int row = box.y; row <= box.w; ++row)

@@ -9,7 +9,7 @@
 layout(local_size_x = 256) in;
 
 void main() {
-    // a fixed number of workgroups strides over the list, whose length only the GPU knows
+    // up to LARGE_GROUPS workgroups (the indirect dispatch's) stride over the list
     for (uint i = gl_WorkGroupID.x; i < n_large; i += gl_NumWorkGroups.x) {
         Splat s = load_splat(large[i]);
         ivec4 box = splat_pixel_box(s);

@@ -184,11 +184,10 @@ def test_renderer_reuse_timer_and_size(ctx, random_scene):
         DepthMapRenderer(ctx, DepthMapConfig(width=W)).render(camera, [(p, n[:5], r)])
 
 
-@pytest.mark.parametrize("variant", VARIANTS)
-def test_discs_through_the_camera_plane_match_reference(ctx, variant):
-    # Discs whose bounding sphere reaches the camera plane (z <= r) have no bounded projection, but
-    # those beside the optical axis (|x| > r or |y| > r) reach into the view from one side only.
-    # Every wall and floor of a room scan has such discs near each camera.
+def _camera_plane_scene():
+    """Discs whose bounding sphere reaches the camera plane (z <= r) have no bounded projection, but
+    those beside the optical axis (|x| > r or |y| > r) reach into the view from one side only.
+    Every wall and floor of a room scan has such discs near each camera. Returns camera, p, n, r."""
     rng = np.random.default_rng(5)
     camera = Camera.look_at("plane", eye=(0.0, 0.0, 0.0), target=(0.0, 1.0, 0.0), **PHOTO)
     n = 80
@@ -209,6 +208,12 @@ def test_discs_through_the_camera_plane_match_reference(ctx, variant):
     p = np.concatenate([p, wall]).astype(np.float32)
     nrm = np.concatenate([nrm, np.tile([0.0, 1.0, 0.0], (len(u), 1))]).astype(np.float32)
     r = np.concatenate([r, np.full(len(u), 0.15)]).astype(np.float32)
+    return camera, p, nrm, r
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_discs_through_the_camera_plane_match_reference(ctx, variant):
+    camera, p, nrm, r = _camera_plane_scene()
     ref, ambiguous = splat_depth_map(camera, p, nrm, r, W, H)
     near = (ref > 0) & (ref < 1.0)
     assert 0.2 < near.mean() < 0.8  # the camera-plane discs cover part of the map, not all of it
@@ -217,6 +222,28 @@ def test_discs_through_the_camera_plane_match_reference(ctx, variant):
     bad = _mismatch(depth, ref, 1e-4) & covered
     assert bad.sum() <= 0.01 * covered.sum()
     assert not (bad & ~ambiguous).any(), np.argwhere(bad & ~ambiguous)[:10]
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("scene", ["random", "camera-plane"])
+def test_frustum_culling_is_exact(ctx, variant, scene):
+    # one disc per bucket: each disc's own box against the frustum, the closest the culling gets
+    # (discs behind the camera, beside the view reaching in, through the camera plane)
+    camera, p, n, r = (_random_scene() if scene == "random" else _camera_plane_scene())
+    whole = _render(ctx, variant, camera, [(p, n, r)], cull_points=0)
+    method, tweak = VARIANTS[variant]
+    renderer = DepthMapRenderer(ctx, DepthMapConfig(width=W, method=method, cull_points=1, **{
+        k: v for k, v in tweak.items() if k != "max_point_size"}))
+    renderer.max_point_size = tweak.get("max_point_size", getattr(renderer, "max_point_size", None))
+    try:
+        (_, culled), = renderer.render_many([camera], lambda: iter([(p, n, r)]))
+        stats = renderer.last_stats
+        again = renderer.render(camera, [(p, n, r)])  # render() culls on the CPU before the upload
+    finally:
+        renderer.release()
+    np.testing.assert_array_equal(culled, whole)
+    np.testing.assert_array_equal(again, whole)
+    assert stats["splats_all"] == len(p) and stats["splats"] < 0.95 * len(p)  # it did cull
 
 
 # -- many cameras, one upload ------------------------------------------------------------------
@@ -234,7 +261,7 @@ def many_scene():
 
 
 @pytest.mark.parametrize("method", ["compute", "raster"])
-@pytest.mark.parametrize("mode", ["resident", "grouped", "streamed"])
+@pytest.mark.parametrize("mode", ["resident", "grouped", "camera-groups", "streamed"])
 def test_render_many_equals_render(ctx, many_scene, method, mode):
     cams, chunks = many_scene
     chunk_points = 256
@@ -247,8 +274,11 @@ def test_render_many_equals_render(ctx, many_scene, method, mode):
         assert maps == W * (H + 72) * (4 if method == "compute" else 8)
         batch = chunk_points * 7 * 4
         cloud = sum(len(c[0]) for c in chunks) * 7 * 4
-        # resident: the whole cloud; grouped: the maps and three batches; streamed: not even the maps
-        budget = {"resident": cloud, "grouped": maps + 3 * batch, "streamed": maps}[mode]
+        # resident: the whole cloud; grouped: the maps and three batches; camera-groups: one map and
+        # three batches (a group per camera); streamed: not even one map and a batch
+        one = max(renderer.map_bytes(c) for c in cams)
+        budget = {"resident": cloud, "grouped": maps + 3 * batch, "camera-groups": one + 3 * batch,
+                  "streamed": one + batch - 1}[mode]
         assert budget < cloud or mode == "resident"
         calls = []
 
@@ -259,7 +289,7 @@ def test_render_many_equals_render(ctx, many_scene, method, mode):
         timer.reset()
         got = list(renderer.render_many(cams, chunks_fn, resident_mb=budget / 2**20))
         stats = renderer.last_stats
-        assert stats["mode"] == mode
+        assert stats["mode"] == mode.replace("camera-groups", "grouped")
         assert [i for i, _ in got] == list(range(len(cams)))
         for (_, depth), want in zip(got, expected):
             assert depth.dtype == np.float32 and depth.shape == want.shape
@@ -272,10 +302,14 @@ def test_render_many_equals_render(ctx, many_scene, method, mode):
             # the first try uploads up to the budget, then the source is read once more
             assert len(calls) == 2 and stats["groups"] == -(-cloud // (3 * batch))
             assert timer.counts["depthmap_upload"] < 2 * -(-cloud // batch)
+        elif mode == "camera-groups":  # the first group reads the rest of the cloud, the second all of it
+            assert stats["camera_groups"] == 2 and len(calls) == 3
         else:
             assert len(calls) == 1 + len(cams)
         if mode != "streamed":
             assert stats["points"] == cloud // 28
+        # frustum culling: every point counted once per camera, the splats sent among them
+        assert stats["splats_all"] == len(cams) * (cloud // 28) and 0 < stats["splats"] <= stats["splats_all"]
         assert timer.counts["depthmap_readback"] == len(cams)
         # stopping early is fine: the generator frees what it holds
         first = renderer.render_many(cams, chunks_fn, resident_mb=budget / 2**20)
@@ -325,3 +359,39 @@ def test_exr_errors_name_the_file(tmp_path):
         read_depth_exr(negative)
     with pytest.raises(ValueError):
         write_depth_exr(tmp_path / "bad.exr", np.ones((2, 2, 2), np.float32))
+
+
+# -- the tiny scene: phase 3 of preprocessing with and without the frustum culling --------------
+def test_culled_depth_maps_of_the_tiny_scene_equal_the_whole_ones(tiny_scene, tmp_path):
+    from dataclasses import replace
+
+    from dmrt.io.scene import load_scene
+    from dmrt.preprocess.config import PreprocessConfig
+    from dmrt.preprocess.pipeline import normals_radii_phase, octree_phase, render_depth_maps
+
+    config = PreprocessConfig(depthmap_width=128, chunk_points=50_000)
+    scene = load_scene(tiny_scene, chunk_size=config.chunk_points)
+    work = tmp_path / "work"
+    octree = octree_phase(scene, work, config)
+    cams = [c.relative_to(scene.origin) for c in scene.cameras]
+    _, has_normals = normals_radii_phase(octree, cams, work, config)
+    # four photos, two per room; culled: in camera groups of two maps (1.5 MB = one 1.4 MB batch of
+    # 50k points and two 128 x 85 maps), the octree read once per group
+    cams, names = cams[:4], [c.name for c in cams[:4]]
+    runs = {"whole": replace(config, cull_points=0),
+            "culled": replace(config, cull_points=1024, resident_mb=1.5)}
+    maps, walls = {}, {}
+    for name, cfg in runs.items():
+        walls[name] = {}
+        rels, _, _, _ = render_depth_maps(cams, names, work, tmp_path / name, has_normals,
+                                          cfg, wall=walls[name])
+        maps[name] = [read_depth_exr(tmp_path / name / rel) for rel in rels]
+    for whole, culled in zip(maps["whole"], maps["culled"]):
+        assert (whole > 0).mean() > 0.9
+        np.testing.assert_array_equal(culled, whole)
+    whole, culled = walls["whole"], walls["culled"]
+    assert whole["mode"] == "resident" and whole["splats"] == whole["splats_all"] == 4 * octree.n_points
+    assert culled["mode"] == "grouped" and culled["camera_groups"] == 2
+    # each photo sees about one of the two rooms; buckets of 1024 points (a level's Morton order)
+    # keep a margin around that: 62 % of the splats were sent
+    assert culled["splats_all"] == 4 * octree.n_points and culled["splats"] < 0.7 * culled["splats_all"]

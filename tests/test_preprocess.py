@@ -121,6 +121,28 @@ def test_labels_are_candidates_and_graph_cut_beats_wta_and_icm(tiny_bundle, tiny
     assert all(a >= b_ - 1e-9 for a, b_ in zip(sweeps, sweeps[1:]))
 
 
+def test_frustum_culling_keeps_the_candidates(tiny_bundle, tiny_scene):
+    """Projecting only the proxies of the buckets a photo's frustum meets (cull_points) finds the
+    candidates of projecting all of them, colours included."""
+    import dataclasses
+
+    b = read_bundle(tiny_bundle)
+    scene = load_scene(tiny_scene)
+    cams = [c.relative_to(b.origin) for c in b.cameras]
+    found = {cull: find_candidates(b.proxy["positions"], b.proxy["normals"], b.proxy["hd_radii"], cams, b.depth_map,
+                                   scene.read_image, dataclasses.replace(PreprocessConfig(), cull_points=cull),
+                                   progress=False, radii=b.proxy["radii"])
+             for cull in (0, 64)}
+    assert found[0].nnz > 0
+    from dmrt.preprocess.frustum import Buckets
+
+    buckets = Buckets.of(b.proxy["positions"], None, 64)
+    kept = [buckets.visible(c.scaled(*b.depth_map(j).shape[::-1])).mean() for j, c in enumerate(cams)]
+    assert min(kept) < 0.7  # each photo sees about its room: the culling leaves buckets out
+    for name in ("indptr", "photos", "colors"):
+        np.testing.assert_array_equal(getattr(found[64], name), getattr(found[0], name))
+
+
 def test_rim_test_restricts_candidates(tiny_bundle, tiny_scene):
     """``candidate_rim_fraction``: a candidate must also see the disc's rim. Against the centre-only
     test: a subset of its pairs; every point keeps at least one candidate; the dropped pairs are

@@ -7,6 +7,7 @@ import numpy as np
 from tqdm import tqdm
 
 from dmrt.preprocess.config import PreprocessConfig
+from dmrt.preprocess.frustum import Buckets
 from dmrt.preprocess.labeling import Candidates
 
 
@@ -103,15 +104,19 @@ def photo_candidates(js, positions: np.ndarray, normals: np.ndarray, hd_radii: n
         tol = config.occlusion_tolerance * hd_radii[idx] + config.occlusion_texels * z / cam.fx
         return inside & (d > 0) & (np.abs(d - z) <= tol)
 
+    # only the points of the buckets a photo's frustum meets are projected (dmrt.preprocess.frustum);
+    # the others would fail the test below anyway
+    buckets = Buckets.of(positions, None, config.cull_points) if config.cull_points else None
     found = []
     for j in tqdm(js, desc="candidates", unit="photo", disable=not progress):
         cam = cameras[j]
         depth = depth_maps(j)
         h, w = depth.shape
         dm_cam = cam.scaled(w, h)
-        uv, z = dm_cam.project(p)
+        rows = slice(None) if buckets is None else buckets.rows(buckets.visible(dm_cam))
+        uv, z = dm_cam.project(p[rows])
         inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        idx = np.flatnonzero(inside)
+        idx = np.flatnonzero(inside) if buckets is None else rows[inside]
         to_eye = cam.center - p[idx]
         cos = np.abs(np.einsum("ij,ij->i", to_eye, normals[idx])) / np.linalg.norm(to_eye, axis=1)
         idx = idx[(cos >= config.candidate_min_cos) & seen(dm_cam, depth, p[idx], idx)]

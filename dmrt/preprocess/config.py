@@ -45,6 +45,10 @@ class PreprocessConfig:
     lowres_width: int = option(256, "width of the low-resolution photo copies (paper: 256x171)", minimum=1)
     chunk_points: int = option(1_000_000, "points read per chunk", minimum=1)
     resident_mb: float = option(4096, "GPU memory for P_HD while the depth maps are rendered, MiB", minimum=1.0)
+    cull_points: int = option(4096, "frustum culling: each photo's depth map splats, and its candidate test "
+                                    "projects, only the runs of this many consecutive points (octree order) whose "
+                                    "box meets its frustum; 0 = every point for every photo (the same result, "
+                                    "slower)", minimum=0)
 
     def __post_init__(self):
         validate(self)

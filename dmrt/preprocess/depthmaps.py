@@ -21,7 +21,16 @@ Two GPU paths produce the same maps (``DepthMapConfig.method``):
 Neither path cuts large discs: a disc close to the camera covers all of its pixels.
 For many photos of one cloud (preprocessing renders one map per photo), use
 ``DepthMapRenderer.render_many``: it uploads the cloud once and splats it for every camera (or, when
-the cloud exceeds its GPU budget, uploads it in parts, each splatted into every camera's map).
+the cloud exceeds its GPU budget, uploads it in parts, each splatted into every camera's map of a
+group of cameras whose maps fit).
+
+Each camera splats only what its frustum can reach (``DepthMapConfig.cull_points``): every batch is
+cut into buckets of consecutive points (never across two input chunks: the octree's levels come
+as separate chunks), each with the box of its discs (:class:`~dmrt.preprocess.frustum.Buckets`),
+and a camera splats the runs of buckets whose box meets its frustum. The culling is conservative
+and nearest-wins is order-free, so the maps are bit-identical to splatting everything; what it
+saves is in ``last_stats`` (``splats`` against ``splats_all``). Given the octree's order (Morton
+order within each level), a photo that sees one room of a long gallery splats about that room.
 The module also reads and writes depth maps as OpenEXR files with one float32 channel ``Z``.
 """
 
@@ -39,11 +48,10 @@ import numpy as np
 from dmrt.camera import Camera
 from dmrt.gl import abi
 from dmrt.gl.abi import EMPTY_BITS, EMPTY_Z, SPLAT_FLOATS
-from dmrt.gl.kernels import fill_u32
+from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
-
-_LARGE_GROUPS = 1024  # workgroups of the large-disc compute pass (they stride over the list)
+from dmrt.preprocess.frustum import Buckets
 
 
 @dataclass
@@ -60,6 +68,10 @@ class DepthMapConfig:
     # Compute path: a disc whose pixel box exceeds this many pixels is splatted by a whole
     # workgroup instead of one thread, so that one near disc does not stall its warp (16 x 16).
     max_thread_pixels: int = 256
+    # Frustum culling: points per bucket whose box is tested against each camera (0: every
+    # camera splats every point). Smaller buckets cull closer to the frustum but cost more tests
+    # and more dispatches (one per run of visible buckets).
+    cull_points: int = 4096
 
 
 def depth_map_size(camera: Camera, width: int) -> tuple[int, int]:
@@ -96,10 +108,12 @@ class _Target:
 
 class _Splats:
     """A batch of splats on the GPU: ``count`` rows of 7 float32 in ``buffer`` (the raster path
-    also gets its two vertex arrays over the buffer)."""
+    also gets its two vertex arrays over the buffer), and the rows' ``buckets`` for culling (None:
+    no culling)."""
 
-    def __init__(self, renderer: "DepthMapRenderer", buffer: moderngl.Buffer, count: int = 0):
-        self.buffer, self.count = buffer, count
+    def __init__(self, renderer: "DepthMapRenderer", buffer: moderngl.Buffer, count: int = 0,
+                 buckets: Buckets | None = None):
+        self.buffer, self.count, self.buckets = buffer, count, buckets
         self.vaos = ()
         if renderer.config.method == "raster":
             layout = [(buffer, "3f 3f 1f", "in_position", "in_normal", "in_radius")]
@@ -134,10 +148,14 @@ class DepthMapRenderer:
     ----------
     last_stats : dict
         Set by :meth:`render_many`: ``mode`` (``"resident"``, ``"grouped"`` or ``"streamed"``),
-        ``groups`` (parts the cloud was uploaded in; streamed: once whole per camera), ``points``
-        (points in the cloud; None when streamed), ``upload_s`` / ``readback_s`` (wall seconds in
-        uploads, producing and packing the chunks included, and in read-backs, waiting for the GPU
-        to finish the map included).
+        ``groups`` (parts the cloud was uploaded in, over all camera groups; streamed: once whole
+        per camera), ``camera_groups`` (groups of cameras whose maps were kept on the GPU together,
+        each reading the cloud once), ``points`` (points in the cloud; None when streamed),
+        ``upload_s`` / ``readback_s`` (wall seconds in uploads, producing, packing and bucketing
+        the chunks included, and in read-backs, waiting for the GPU to finish the map included),
+        ``splats`` (splats sent to the GPU, summed over the cameras) and ``splats_all`` (what
+        splatting every point for every camera would have sent: the culling kept ``splats /
+        splats_all``).
     """
 
     def __init__(self, ctx: moderngl.Context, config: DepthMapConfig | None = None,
@@ -148,13 +166,13 @@ class DepthMapRenderer:
         self.last_stats: dict = {}
         if self.config.method not in ("compute", "raster"):
             raise ValueError(f"DepthMapConfig.method must be 'compute' or 'raster', not {self.config.method!r}")
-        if self.config.chunk_points < 1 or self.config.width < 1:
-            raise ValueError("DepthMapConfig.width and chunk_points must be positive")
+        if self.config.chunk_points < 1 or self.config.width < 1 or self.config.cull_points < 0:
+            raise ValueError("DepthMapConfig.width and chunk_points must be positive, cull_points >= 0")
         if self.config.method == "compute":
             defines = {"MAX_THREAD_PIXELS": int(self.config.max_thread_pixels)}
             self._cs = load_program(ctx, "splat_depth_compute", defines)
             self._cs_large = load_program(ctx, "splat_depth_compute_large")
-            self._large = ctx.buffer(reserve=4 * (1 + self.config.chunk_points))
+            self._large = ctx.buffer(reserve=16 + 4 * self.config.chunk_points)
             self._programs = (self._cs, self._cs_large)
         else:
             self._points = load_program(ctx, "splat_depth_raster")
@@ -166,7 +184,9 @@ class DepthMapRenderer:
         stream = ctx.buffer(reserve=self.config.chunk_points * SPLAT_FLOATS * 4, dynamic=True)
         self._stream = _Splats(self, stream)
         self._targets: dict[int, _Target] = {}  # reusable maps, by slot (render_many alternates two)
-        self._wall = {"upload_s": 0.0, "readback_s": 0.0}  # wall seconds spent, ever (for last_stats)
+        self._camera: Camera | None = None  # the programs' camera, at its map's size (for culling)
+        # wall seconds spent and splats sent, ever (last_stats are their differences)
+        self._totals = {"upload_s": 0.0, "readback_s": 0.0, "splats": 0, "splats_all": 0}
 
     # -- public -------------------------------------------------------------------------------
     def render(self, camera: Camera, chunks: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
@@ -189,12 +209,18 @@ class DepthMapRenderer:
         """
         target = self._begin(camera, self._target(camera, slot=0))
         t0 = time.perf_counter()
-        for data in _batches(chunks, self.config.chunk_points):
+        for data, breaks in _batches(chunks, self.config.chunk_points):
+            buckets, n = self._buckets(data, breaks), len(data)
+            if buckets is not None:  # only what this camera can see goes to the GPU
+                data = data[buckets.rows(buckets.visible(self._camera, lines=True))]
+            self._totals["splats_all"] += n - len(data)  # _splat counts the rest
+            if not len(data):
+                continue
             with self._timed("depthmap_upload"):
                 self._stream.buffer.orphan(self._stream.buffer.size)  # the GPU may still read the last batch
                 self._stream.buffer.write(data)
             self._stream.count = len(data)
-            self._wall["upload_s"] += time.perf_counter() - t0
+            self._totals["upload_s"] += time.perf_counter() - t0
             with self._timed("depthmap"):
                 self._splat(self._stream, target)
             t0 = time.perf_counter()
@@ -210,15 +236,20 @@ class DepthMapRenderer:
 
         ``"resident"``
             The cloud (28 bytes per point) fits in ``resident_mb``: it is uploaded once, then
-            splatted whole for each camera in turn.
+            splatted for each camera in turn.
         ``"grouped"``
-            It does not, but one depth map per camera (4 bytes per pixel compute, 8 raster:
-            :meth:`map_bytes`) plus one batch of ``config.chunk_points`` do: the maps stay on the GPU
-            while the cloud is uploaded in parts of what is left of the budget, each part splatted
-            into every map; the maps are read back at the end. The first attempt at ``"resident"``
-            uploaded a part already: ``chunks_fn()`` is iterated a second time, skipping that part.
+            It does not, but one depth map (4 bytes per pixel compute, 8 raster: :meth:`map_bytes`)
+            plus one batch of ``config.chunk_points`` do. The cameras are cut into consecutive
+            groups whose maps fit beside one batch (one group when all of them do); a group's
+            maps stay on the GPU while the cloud is uploaded in parts of what is left of the
+            budget, each part splatted into every map of the group; the maps are read back at
+            the end of the group. The cloud is read once per group: the first attempt at
+            ``"resident"`` uploaded a part already, which the first group keeps as far as it fits
+            beside its maps (``chunks_fn()`` is iterated once more, skipping that part), and each
+            further group iterates ``chunks_fn()`` again.
         ``"streamed"``
-            Not even the maps fit: :meth:`render` per camera (``chunks_fn()`` once per camera).
+            Not even one map and a batch fit: :meth:`render` per camera (``chunks_fn()`` once per
+            camera).
 
         Parameters
         ----------
@@ -241,36 +272,43 @@ class DepthMapRenderer:
         """
         cameras = list(cameras)
         budget = float(resident_mb) * 2**20
-        stats = self.last_stats = {"mode": None, "groups": 0, "points": None, "upload_s": 0.0, "readback_s": 0.0}
+        stats = self.last_stats = {"mode": None, "groups": 0, "camera_groups": 0, "points": None}
         bar = _progress_bar(len(cameras), progress)
-        wall = dict(self._wall)
+        totals = dict(self._totals)
         try:
             # try to upload the whole cloud, stopping before the batch that would exceed the budget
             group, pending = self._upload_until(_batches(chunks_fn(), self.config.chunk_points), budget)
             if pending is None:
-                stats.update(mode="resident", groups=1, points=sum(s.count for s in group))
+                stats.update(mode="resident", groups=1, camera_groups=1, points=sum(s.count for s in group))
                 yield from self._render_resident(cameras, group, bar)
                 return
-            room = budget - sum(self.map_bytes(c) for c in cameras)  # left for points beside the maps
-            if room < self.config.chunk_points * SPLAT_FLOATS * 4:
+            batch = self.config.chunk_points * SPLAT_FLOATS * 4
+            sizes = [self.map_bytes(c) for c in cameras]
+            if max(sizes, default=0) + batch > budget:
                 _release(group)
-                stats.update(mode="streamed", groups=len(cameras))
+                stats.update(mode="streamed", groups=len(cameras), camera_groups=len(cameras))
                 for i, camera in enumerate(cameras):
                     yield i, self.render(camera, chunks_fn())
                     bar.update()
                 return
             stats["mode"] = "grouped"
-            # keep the part of the first upload that fits beside the maps, re-read the rest
-            keep, used = 0, 0
-            while keep < len(group) and used + group[keep].buffer.size <= room:
-                used += group[keep].buffer.size
-                keep += 1
-            _release(group[keep:])
-            group = group[:keep]
-            rest = itertools.islice(_batches(chunks_fn(), self.config.chunk_points), keep, None)
-            yield from self._render_grouped(cameras, group, rest, room, bar)
+            for first, stop in _camera_groups(sizes, budget - batch):
+                room = budget - sum(sizes[first:stop])  # left for points beside the group's maps
+                if first == 0:  # keep the part of the first upload that fits, re-read the rest
+                    keep, used = 0, 0
+                    while keep < len(group) and used + group[keep].buffer.size <= room:
+                        used += group[keep].buffer.size
+                        keep += 1
+                    _release(group[keep:])
+                    group = group[:keep]
+                    rest = itertools.islice(_batches(chunks_fn(), self.config.chunk_points), keep, None)
+                else:
+                    group, rest = [], _batches(chunks_fn(), self.config.chunk_points)
+                stats["camera_groups"] += 1
+                stats["points"] = 0  # counted again by each group: the cloud's points
+                yield from self._render_grouped(cameras[first:stop], first, group, rest, room, bar)
         finally:
-            stats.update({k: self._wall[k] - wall[k] for k in wall})
+            stats.update({k: self._totals[k] - totals[k] for k in totals})
             bar.close()
 
     def map_bytes(self, camera: Camera) -> int:
@@ -308,7 +346,10 @@ class DepthMapRenderer:
         finally:
             _release(splats)
 
-    def _render_grouped(self, cameras, group, rest, room, bar):
+    def _render_grouped(self, cameras, first, group, rest, room, bar):
+        """One camera group of the "grouped" mode: ``cameras`` are ``cameras[first:]`` of
+        :meth:`render_many`; ``group`` the part of the cloud already uploaded, ``rest`` the
+        batches still to upload in parts within ``room`` bytes."""
         stats = self.last_stats
         targets = [_Target(self.ctx, self.config.method, *depth_map_size(c, self.config.width)) for c in cameras]
         try:
@@ -317,7 +358,7 @@ class DepthMapRenderer:
             pending = next(rest, None)
             while True:
                 stats["groups"] += 1
-                stats["points"] = (stats["points"] or 0) + sum(s.count for s in group)
+                stats["points"] += sum(s.count for s in group)
                 for camera, target in zip(cameras, targets):
                     self._set_camera(camera)
                     with self._timed("depthmap"):
@@ -328,7 +369,7 @@ class DepthMapRenderer:
                     break
                 group, pending = self._upload_until(itertools.chain([pending], rest), room)
             for i, target in enumerate(targets):
-                yield i, self._read(target)
+                yield first + i, self._read(target)
                 target.release()  # the maps' memory goes as they go
                 bar.update()
         finally:
@@ -343,15 +384,16 @@ class DepthMapRenderer:
         group, used = [], 0
         t0 = time.perf_counter()
         try:
-            for data in batches:
+            for data, breaks in batches:
                 if used + data.nbytes > budget:
-                    return group, data
+                    return group, (data, breaks)
+                buckets = self._buckets(data, breaks)
                 with self._timed("depthmap_upload"):
-                    group.append(_Splats(self, self.ctx.buffer(data), len(data)))
+                    group.append(_Splats(self, self.ctx.buffer(data), len(data), buckets))
                 used += data.nbytes
             return group, None
         finally:
-            self._wall["upload_s"] += time.perf_counter() - t0
+            self._totals["upload_s"] += time.perf_counter() - t0
 
     # -- internals ----------------------------------------------------------------------------
     def _target(self, camera: Camera, slot: int) -> _Target:
@@ -364,9 +406,15 @@ class DepthMapRenderer:
             target = self._targets[slot] = _Target(self.ctx, self.config.method, *size)
         return target
 
+    def _buckets(self, data: np.ndarray, breaks) -> Buckets | None:
+        """The culling buckets of a batch (``data`` (m, 7) float32 rows, new chunks at ``breaks``)."""
+        if not self.config.cull_points:
+            return None
+        return Buckets.of(data[:, 0:3], data[:, 6], self.config.cull_points, breaks)
+
     def _set_camera(self, camera: Camera) -> None:
         w, h = depth_map_size(camera, self.config.width)
-        cam = camera.scaled(w, h)
+        cam = self._camera = camera.scaled(w, h)
         for program in self._programs:
             set_uniforms(program, u_R=cam.R.T.ravel(), u_t=cam.t, u_size=(w, h),
                          u_K=(cam.fx, cam.fy, cam.cx, cam.cy))
@@ -386,27 +434,38 @@ class DepthMapRenderer:
         return self.timer.section(name) if self.timer is not None else nullcontext()
 
     def _splat(self, splats: _Splats, target: _Target) -> None:
+        """Splat the runs of ``splats`` that the current camera can see into ``target``."""
         if splats.count == 0:
             return
-        if self.config.method == "compute":
-            self._splat_compute(splats, target)
+        if splats.buckets is None:
+            firsts, counts = np.zeros(1, np.int64), np.array([splats.count])
         else:
-            self._splat_raster(splats, target)
+            firsts, counts = splats.buckets.runs(splats.buckets.visible(self._camera, lines=True))
+        self._totals["splats"] += int(counts.sum())
+        self._totals["splats_all"] += splats.count
+        if not len(firsts):
+            return
+        runs = list(zip(firsts.tolist(), counts.tolist()))
+        if self.config.method == "compute":
+            self._splat_compute(splats, target, runs)
+        else:
+            self._splat_raster(splats, target, runs)
 
-    def _splat_compute(self, splats: _Splats, target: _Target) -> None:
-        n = splats.count
-        self._large.write(b"\0\0\0\0")  # empty large-disc list
+    def _splat_compute(self, splats: _Splats, target: _Target, runs) -> None:
+        self._large.write(EMPTY_DISPATCH)  # empty large-disc list
         splats.buffer.bind_to_storage_buffer(abi.B_SPLATS)
         target.depth.bind_to_storage_buffer(abi.B_DEPTH_BITS)
         self._large.bind_to_storage_buffer(abi.B_DEPTH_LARGE)
-        set_uniforms(self._cs, u_count=n)
-        set_uniforms(self._cs_large, u_count=n)
-        self._cs.run(min(-(-n // 64), 65535))
-        self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)  # pass 2 reads the list
-        self._cs_large.run(_LARGE_GROUPS)
+        # the runs' first passes only add atomically (to the map, to the list): no barrier between
+        for first, n in runs:
+            set_uniforms(self._cs, u_first=first, u_count=n)
+            self._cs.run(min(-(-n // 64), 65535))
+        # pass 2 reads the list, and its dispatch the list's group count
+        self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT)
+        self._cs_large.run_indirect(self._large)
         self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)  # the next batch's atomics
 
-    def _splat_raster(self, splats: _Splats, target: _Target) -> None:
+    def _splat_raster(self, splats: _Splats, target: _Target, runs) -> None:
         ctx = self.ctx
         set_uniforms(self._points, u_max_point_size=self.max_point_size)
         set_uniforms(self._quads, u_max_point_size=self.max_point_size)
@@ -415,8 +474,9 @@ class DepthMapRenderer:
             # the exact nearest float32 z
             ctx.depth_func, ctx.blend_equation = "<=", moderngl.MIN
             try:
-                for vao in splats.vaos:
-                    vao.render(moderngl.POINTS, vertices=splats.count)
+                for first, n in runs:
+                    for vao in splats.vaos:
+                        vao.render(moderngl.POINTS, vertices=n, first=first)
             finally:
                 # moderngl cannot read these back: restore its defaults
                 ctx.depth_func, ctx.blend_equation = "<", moderngl.FUNC_ADD
@@ -437,7 +497,7 @@ class DepthMapRenderer:
                 depth = np.empty((h, w), dtype=np.float32)
                 target.color.read_into(depth)
                 depth[depth >= EMPTY_Z] = 0.0
-        self._wall["readback_s"] += time.perf_counter() - t0
+        self._totals["readback_s"] += time.perf_counter() - t0
         return depth
 
 
@@ -462,14 +522,17 @@ class _NoBar:
         pass
 
 
-def _batches(chunks, size: int) -> Iterator[np.ndarray]:
+def _batches(chunks, size: int) -> Iterator[tuple[np.ndarray, list[int]]]:
     """Interleave (positions, normals, radii) chunks into (m, 7) float32 rows (position, normal,
     radius), in batches of exactly ``size`` rows (the last one: fewer) whatever the chunks' sizes.
-    Each value is copied once, straight into its batch."""
-    batch, n = np.empty((size, SPLAT_FLOATS), np.float32), 0
+    Each value is copied once, straight into its batch. Yields ``(rows, breaks)``: ``breaks`` are
+    the rows where a chunk begins inside the batch (the culling buckets are cut there)."""
+    batch, n, breaks = np.empty((size, SPLAT_FLOATS), np.float32), 0, []
     for chunk in chunks:
         positions, normals, radii = _checked(*chunk)
         start, m = 0, len(positions)
+        if n and m:
+            breaks.append(n)
         while start < m:
             take = min(m - start, size - n)
             rows, part = batch[n:n + take], slice(start, start + take)
@@ -478,10 +541,23 @@ def _batches(chunks, size: int) -> Iterator[np.ndarray]:
             rows[:, 6] = radii[part]
             n, start = n + take, start + take
             if n == size:
-                yield batch
-                batch, n = np.empty((size, SPLAT_FLOATS), np.float32), 0
+                yield batch, breaks
+                batch, n, breaks = np.empty((size, SPLAT_FLOATS), np.float32), 0, []
     if n:
-        yield batch[:n]
+        yield batch[:n], breaks
+
+
+def _camera_groups(sizes: list[int], room: float) -> Iterator[tuple[int, int]]:
+    """Consecutive ``[first, stop)`` ranges of maps of ``sizes`` bytes, each within ``room``
+    bytes (every single map fits)."""
+    first, used = 0, 0
+    for i, size in enumerate(sizes):
+        if used + size > room:
+            yield first, i
+            first, used = i, 0
+        used += size
+    if first < len(sizes):
+        yield first, len(sizes)
 
 
 def _checked(positions, normals, radii):

@@ -157,7 +157,8 @@ def _depth_renderer(work, ranges, has_normals: bool, config: PreprocessConfig):
     timer = GpuTimer(ctx)
     # GPU batches of one read chunk: on a CPU renderer (llvmpipe) GPU buffers are host memory
     renderer = DepthMapRenderer(ctx, DepthMapConfig(width=config.depthmap_width, method=config.depthmap_method,
-                                                    chunk_points=config.chunk_points), timer=timer)
+                                                    chunk_points=config.chunk_points,
+                                                    cull_points=config.cull_points), timer=timer)
     return renderer, hd_chunks, timer
 
 
@@ -203,10 +204,23 @@ def render_depth_maps(cameras, names, work, out_dir, has_normals: bool, config: 
 def _wall_seconds(renderer, render_s: float) -> dict:
     """Where a render_many loop's ``render_s`` wall seconds went: ``upload_s`` (reading, packing
     and uploading the cloud), ``readback_s`` (waiting for and copying back the maps), the rest being
-    splatting and the caller's work between maps; with ``mode`` (:attr:`DepthMapRenderer.last_stats`)."""
+    splatting and the caller's work between maps; with ``mode``, ``camera_groups`` and the frustum
+    culling's ``splats`` sent of ``splats_all`` (:attr:`DepthMapRenderer.last_stats`)."""
     stats = renderer.last_stats
-    return {"mode": stats.get("mode"), "render_s": round(render_s, 3),
-            **{k: round(stats.get(k, 0.0), 3) for k in ("upload_s", "readback_s")}}
+    return {"mode": stats.get("mode"), "camera_groups": stats.get("camera_groups"), "render_s": round(render_s, 3),
+            **{k: round(stats.get(k, 0.0), 3) for k in ("upload_s", "readback_s")},
+            **{k: int(stats.get(k, 0)) for k in ("splats", "splats_all")}}
+
+
+def culling_summary(wall: dict) -> dict:
+    """bundle.json's ``depthmap_splats`` record from :func:`render_depth_phase`'s ``wall``: splats sent to
+    the GPU and splats of every point for every photo (summed over the GPUs' shares on Dask), the
+    fraction the frustum culling left out, and the wall seconds per stage."""
+    parts = wall.get("parts", [wall])
+    sent, every = (sum(p.get(k, 0) for p in parts) for k in ("splats", "splats_all"))
+    return {"splats": sent, "splats_all": every, "culled_fraction": round(1 - sent / every, 4) if every else 0.0,
+            "modes": sorted({str(p.get("mode")) for p in parts}),
+            "camera_groups": max((p.get("camera_groups") or 0 for p in parts), default=0), "wall": wall}
 
 
 def render_depth_part(item, cameras, work, has_normals: bool, config: PreprocessConfig) -> tuple[dict, str, dict]:
@@ -381,13 +395,16 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         cpu_s[name] = round(now - cpu_mark[0], 2)
         cpu_mark[0] = now
 
-    def tic(name, t0):
-        timings[name] = round(time.perf_counter() - t0, 3)
+    def ended(name):
         cpu_tic(name)
         # peak resident memory so far (MiB), so the phase that raised it can be read off, and the
         # phase's own peak of anonymous memory (what --memory-limit-mb governs: dmrt.preprocess.memory)
         peak_rss[name] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
         peak_anon[name] = anon.take()
+
+    def tic(name, t0):
+        timings[name] = round(time.perf_counter() - t0, 3)
+        ended(name)
 
     with BundleWriter(out, force=force) as bw, anon:
         work = Path(bw.tmp).resolve() / "work"
@@ -404,9 +421,10 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         # 3. depth maps: in process, or on the GPU workers each with its share of P_HD (read from
         # the work folder)
         t0 = time.perf_counter()
+        depth_wall: dict = {}
         depth_files, depth_sizes, gpu_ms, gl_renderers = render_depth_phase(
             executor, octree, cams_local, [c.name for c in scene.cameras], work, work.parent, has_normals,
-            config, progress)
+            config, progress, wall=depth_wall)
         tic("depthmaps_s", t0)
         timings["depthmaps_gpu_ms"] = {k: round(v, 3) for k, v in gpu_ms.items()}
 
@@ -422,13 +440,8 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                  "hd_radii": np.asarray(attrs.radii[:n_proxy], np.float32)}
         read_s = time.perf_counter() - t0
         proxies = label_proxies(proxy, cams_local, _DepthFiles(work.parent, depth_files), _Photos(scene),
-                                config, labeling, progress=progress, executor=executor)
+                                config, labeling, progress=progress, executor=executor, phase_done=ended)
         timings.update(proxies.timings, proxies_s=round(proxies.timings["proxies_s"] + read_s, 3))
-        peak = anon.take()
-        cpu_tic("proxies_candidates_labeling_s")
-        for name in ("proxies_s", "candidates_s", "labeling_s"):
-            peak_rss[name] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
-            peak_anon[name] = peak
 
         # 6b. photometric adjustment: one gain per photo and channel from the proxies' colours in
         # the photos that share them (dmrt.preprocess.photometric)
@@ -488,6 +501,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
             "normals_radii": {"margin_m": attrs.margin, "buckets": attrs.n_buckets,
                               "max_bucket_points": attrs.max_bucket_points, "unverified_points": attrs.n_unverified},
             "labeling": proxies.labeling_meta(),
+            "depthmap_splats": culling_summary(depth_wall),
             "photo_gains": photometric.gains.tolist(),
             "photometric": photometric.meta(),
         }

@@ -67,7 +67,7 @@ class ProxySet:
 
 def label_proxies(proxy: dict, cameras, depth_maps, photos, config: PreprocessConfig | None = None,
                   labeling: LabelingConfig | None = None, relabel: bool = True,
-                  progress: bool = False, executor=None) -> ProxySet:
+                  progress: bool = False, executor=None, phase_done=None) -> ProxySet:
     """Steps 4-6 of preprocessing for one proxy set: radii, candidates, labels.
 
     Parameters
@@ -83,7 +83,10 @@ def label_proxies(proxy: dict, cameras, depth_maps, photos, config: PreprocessCo
         labels are kept, as the viewer does for an interactive switch.
     executor : optional, :mod:`dmrt.preprocess.parallel`: runs the candidates' per-photo tests as
         tasks (``depth_maps`` and ``photos`` must then pickle); the labeling stays global, here.
+    phase_done : callable, optional: called with ``"proxies_s"``, ``"candidates_s"`` and
+        ``"labeling_s"`` as each step ends (preprocessing records each step's memory and CPU time).
     """
+    phase_done = phase_done or (lambda name: None)
     config = config or PreprocessConfig()
     proxy = dict(proxy)
     out = ProxySet(proxy)
@@ -92,6 +95,7 @@ def label_proxies(proxy: dict, cameras, depth_maps, photos, config: PreprocessCo
     proxy["normals"] = np.asarray(proxy["normals"], np.float32)
     proxy["radii"] = splat_radii(proxy["positions"], k=config.radius_k, scale=config.radius_scale)
     out.timings["proxies_s"] = round(time.perf_counter() - t0, 3)
+    phase_done("proxies_s")
     if not relabel:
         return out
     t0 = time.perf_counter()
@@ -99,9 +103,11 @@ def label_proxies(proxy: dict, cameras, depth_maps, photos, config: PreprocessCo
                                      cameras, depth_maps, photos, config, progress, radii=proxy["radii"],
                                      executor=executor)
     out.timings["candidates_s"] = round(time.perf_counter() - t0, 3)
+    phase_done("candidates_s")
     t0 = time.perf_counter()
     out.labeling = label_points(proxy["positions"], proxy["normals"], out.candidates, cameras,
                                 config=labeling or LabelingConfig(), progress=progress)
     out.timings["labeling_s"] = round(time.perf_counter() - t0, 3)
+    phase_done("labeling_s")
     proxy["labels"] = out.labeling.labels
     return out
