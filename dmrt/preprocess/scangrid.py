@@ -1,0 +1,643 @@
+"""Splat radii and normals from the scan's grid of beams, where each point's station and grid cell
+are known (:mod:`dmrt.io.stations`): no nearest-neighbour search.
+
+A terrestrial scanner samples each station's surroundings on an angular grid, so the gap between a
+point and its neighbours on the surface is its range times the angular step, stretched where the
+surface tilts away from the beam, and the surface's tangents are the differences to the neighbours
+of its grid row and column.
+
+* **Radii** follow the kNN radii's convention (:func:`dmrt.preprocess.normals.radius_factor`): the
+  disc that covers a cell of the sampling grid, half the cell's diagonal, times ``scale``
+  (``--radius-scale``)::
+
+      radius = scale * range * sqrt((a_r s_r)^2 + (a_c s_c)^2) / 2
+
+  with ``a_r``, ``a_c`` the angles between neighbouring beams along the grid's rows and columns
+  (radians) and ``s = min(4, sqrt(1 + (n . e)^2 / (n . d)^2))`` the stretch of that spacing on a
+  surface of normal ``n`` seen along the beam ``d`` (``e``: the direction of the axis on the
+  sphere of beams). On a square grid of step ``h`` facing the beam this is ``scale * range * h /
+  sqrt(2)``: what the kNN radius gives on a square grid of spacing ``range * h`` (its 8th neighbour
+  is the diagonal one, ``sqrt(2) range h``, times ``radius_factor(8) = 1/2``). The stretch is capped
+  at 4, where the kNN radius saturates too (a row of the grid alone then holds the 8 neighbours).
+  A spherical grid (``scans.json``) gives the angles and axes exactly: ``a_r`` = the elevation
+  step, ``a_c`` = the azimuth step at the point's elevation (``2 asin(cos(el) sin(step / 2))``;
+  beams crowd toward the zenith). An E57 grid states no angles: they are measured between the
+  point's beam and the nearest beam within ``REACH`` cells along each axis (its direction, whatever
+  range it hit), the other axis's where one axis has none, the median of the block's points of its
+  station where neither has (``isolated_points``).
+* **Normals**: ``t_c x t_r`` of the tangents along the columns and rows (central differences, or
+  one-sided at an edge), oriented toward the station. A neighbour counts when its range differs by
+  at most ``TAU`` grid spacings (``range * a``) from the point's, so a silhouette's point takes the
+  side of its own surface. Where an axis has no such neighbour (a beam that returned nothing, a
+  one-point-wide pole), the normal is the least-squares plane of the point's ``k`` nearest points
+  (3D) among its station's points within ``REACH`` rows and columns (a kNN restricted to the grid
+  window), counted as ``fallback_normals``; with fewer than 3 such points it faces the station.
+  Where the input has normals, they are kept and only give the stretch.
+
+Out of core: the input is streamed once in its chunks; each chunk is processed with a halo of the
+points up to ``REACH`` scan lines before and after it in file order (``Station.line``: scanners
+write line after line), and the results go to ``(n,)`` / ``(n, 3)`` float32 arrays in input order
+on disk. Chunks are processed on threads (sorting, lookups and the arithmetic release the GIL).
+Neighbours farther in file order than the halo (a file not written line by line) are not seen:
+their points fall back as above. :meth:`ScanResult.attach` hands the results to the octree build
+as attributes of the points, so they arrive in octree order with the points.
+
+Measured on the ``small`` synthetic scene (2.0M points, 6 stations, 2 mm range noise), against the
+kNN path on the same points (``python -m bench.bench_scangrid --preset small``): see
+``README.md`` ("Radii and normals from the scan's grid") for the figures.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dmrt.errors import ConfigError, InputError
+from dmrt.io.stations import MAX_INDEX, ScanStructure
+from dmrt.preprocess.octree import _progress
+from dmrt.preprocess.parallel import default_workers
+
+__all__ = ["ScanResult", "scan_attributes", "scan_phase", "REACH", "TAU", "STRETCH_MAX"]
+
+REACH = 3  # grid cells searched along an axis for a beam, and the fallback window's half width
+# A grid neighbour is on the point's surface when their ranges differ by at most TAU spacings: a
+# plane tilted by theta from the beam changes range by tan(theta) spacings a step, so 8 keeps
+# surfaces up to 83 degrees from the beam and 2 mm noise at 2.4 mm spacings (paper-full at 3 m),
+# and cuts a pole 20 cm in front of a wall from it wherever the spacing is below 2.5 cm.
+TAU = 8.0
+HALF = 2  # the normals' grid window: (2 HALF + 1)^2 cells
+STRETCH_MAX = 4.0  # cap of the incidence stretch (module docstring)
+_LINE = 1 << 14  # beams of a scan line where the input does not say (E57 without indexBounds)
+_BITS = 24  # bits of a row or column in a packed key (station << 48 | row << 24 | column)
+_MASK = (1 << _BITS) - 1
+
+
+@dataclass
+class ScanResult:
+    """Normals and radii from the scan grid, in input order (:func:`scan_attributes`).
+
+    Attributes
+    ----------
+    folder : Path
+        Holds ``radii.npy`` ((n,) float32, metres) and, when computed, ``normals.npy`` ((n, 3)
+        float32 unit, toward the station).
+    n_points : int
+    normals : bool
+        Whether normals were computed (False: the input's were kept).
+    counts : dict
+        ``fallback_normals`` (kNN in the grid window), ``isolated_points`` (no beam along either
+        axis: spacing from the station's median), ``off_grid_points`` (a direction more than a
+        quarter step from every beam of its grid: a cloud that does not match its scans.json).
+    stations : int
+    source : str
+        Where the structure came from: ``scans.json`` or ``e57``.
+    seconds : float
+    """
+
+    folder: Path
+    n_points: int
+    normals: bool
+    counts: dict = field(default_factory=dict)
+    stations: int = 0
+    source: str = ""
+    seconds: float = 0.0
+
+    def names(self) -> list[str]:
+        return ["normals", "radii"] if self.normals else ["radii"]
+
+    def attach(self, source) -> "ScanAttrs":
+        """``source`` (chunks ``(positions, attrs)`` in input order) with ``radii`` and, when
+        computed, ``normals`` added to each chunk's attributes: the octree build's input."""
+        return ScanAttrs(source, str(self.folder), tuple(self.names()))
+
+    def finish(self, octree, attrs_dir):
+        """The radii the octree carried, in octree order, as ``attrs_dir/radii.npy`` (the file the
+        kNN path writes); returns a :class:`~dmrt.preprocess.normals.ChunkedResult` over it."""
+        from dmrt.io.atomic import atomic_file
+        from dmrt.preprocess.normals import ChunkedResult
+
+        t0 = time.perf_counter()
+        path = Path(attrs_dir) / "radii.npy"
+        with atomic_file(path) as tmp:
+            out = np.lib.format.open_memmap(tmp, "w+", np.float32, (octree.n_points,))
+            g = 0
+            for level in range(octree.levels):  # level files are raw float32: copied chunk by chunk
+                for ch in octree.iter_level_chunks(level, 1 << 22):
+                    out[g:g + len(ch["radii"])] = ch["radii"]
+                    g += len(ch["radii"])
+            out.flush()
+            del out
+        return ChunkedResult(normals=None, radii=np.load(path, mmap_mode="r"), n_points=octree.n_points,
+                             margin=0.0, n_unverified=0, n_buckets=0, max_bucket_points=0,
+                             seconds=time.perf_counter() - t0)
+
+    def meta(self) -> dict:
+        """What ``bundle.json`` records under ``normals_radii``."""
+        return {"method": "scan", "radii": "scan", "normals": "scan" if self.normals else "input",
+                "structure": self.source, "stations": self.stations, **self.counts,
+                "scan_s": round(self.seconds, 3)}
+
+
+class ScanAttrs:
+    """A chunk source (``(positions, attrs)`` chunks, as the octree reads) with the scan results of
+    ``folder`` added to each chunk's attributes; picklable, and split as its source splits (parts
+    of a :class:`~dmrt.io.pointcloud.PointRange`, which know their first record)."""
+
+    def __init__(self, source, folder: str, names: tuple, start: int = 0):
+        self.source, self.folder, self.names, self.start = source, folder, names, start
+
+    def __call__(self):
+        arrays = {n: np.load(Path(self.folder) / f"{n}.npy", mmap_mode="r") for n in self.names}
+        g = self.start
+        for pos, attrs in self.source():
+            m = len(pos)
+            yield pos, {**attrs, **{n: np.array(a[g:g + m]) for n, a in arrays.items()}}
+            g += m
+
+    def split(self, parts: int) -> list["ScanAttrs"]:
+        return [ScanAttrs(p, self.folder, self.names, p.source.start) for p in self.source.split(parts)]
+
+
+def scan_phase(scene, work, config, progress: bool = False) -> ScanResult | None:
+    """The pipeline's choice (``config.radii``): the scan-grid results of ``scene`` in
+    ``work/scan``, or None for the kNN path (``knn``, or ``auto`` on a scene without structure).
+
+    Raises
+    ------
+    ConfigError
+        ``--radii scan`` for a scene without scan structure.
+    """
+    if config.radii == "knn" or (config.radii == "auto" and scene.scan_structure is None):
+        return None
+    if scene.scan_structure is None:
+        raise ConfigError("radii", f"scan: the scene {scene.root} has no scan structure (no scans.json beside "
+                                   f"points.ply, no structured E57 scans with rowIndex/columnIndex)")
+    return scan_attributes(scene.point_range(config.chunk_points), scene.scan_structure, scene.n_points,
+                           Path(work) / "scan", scale=config.radius_scale, k_normals=config.normals_k,
+                           progress=progress)
+
+
+# ---------------------------------------------------------------------------------------------
+# the pass over the input
+# ---------------------------------------------------------------------------------------------
+def scan_attributes(source, structure: ScanStructure, n_points: int, out_dir, *, scale: float = 1.0,
+                    k_normals: int = 16, normals: bool | None = None, threads: int | None = None,
+                    progress: bool = False) -> ScanResult:
+    """Radii and normals of every point from its scan grid (module docstring), in input order.
+
+    Parameters
+    ----------
+    source : callable returning an iterator of :class:`~dmrt.io.pointcloud.PointCloud` chunks
+        The cloud in file order (``Scene.point_range``): world positions, and for an E57 structure
+        ``scan_index`` and ``grid``.
+    structure : ScanStructure
+    n_points : int
+        Points the source yields.
+    out_dir : path
+        Receives ``radii.npy`` and ``normals.npy``.
+    scale : float
+        The radius scale (``--radius-scale``).
+    k_normals : int
+        Neighbours of the fallback plane fit.
+    normals : bool, optional
+        Compute normals; default: where the input has none.
+    threads : int, optional
+        Chunks processed at once; default one per core.
+
+    Returns
+    -------
+    ScanResult
+    """
+    t0 = time.perf_counter()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    st = _Stations(structure, getattr(source, "path", None))
+    line = structure.line() or _LINE
+    halo = REACH * line + REACH + 1
+    threads = threads or default_workers()
+    out_r = np.lib.format.open_memmap(out_dir / "radii.npy", "w+", np.float32, (n_points,))
+    out_n = None
+    counts = dict.fromkeys(("fallback_normals", "isolated_points", "off_grid_points"), 0)
+    pending: list = []
+
+    def drain(limit):
+        while len(pending) > limit:
+            g, fut = pending.pop(0)
+            nrm, rad, c = fut.result()
+            out_r[g:g + len(rad)] = rad
+            if out_n is not None:
+                out_n[g:g + len(rad)] = nrm
+            for k, v in c.items():
+                counts[k] += v
+
+    n_seen = 0
+    with ThreadPoolExecutor(threads) as pool, _progress(n_points, "scan grid", progress) as bar:
+        for win, a, b, g in _windows(source, st, halo):
+            if normals is None:
+                normals = win["normals"] is None
+            if not normals and win["normals"] is None:
+                raise ValueError("normals=False needs normals in the input")
+            if normals and out_n is None:
+                out_n = np.lib.format.open_memmap(out_dir / "normals.npy", "w+", np.float32, (n_points, 3))
+            if g + (b - a) > n_points:
+                raise RuntimeError(f"the source yields more than its {n_points} points")
+            pending.append((g, pool.submit(_block, win, a, b, st, scale, k_normals, normals)))
+            drain(threads)  # bounded: at most threads + 1 windows in memory
+            bar.update(b - a)
+            n_seen = g + b - a
+        drain(0)
+    if n_seen != n_points:
+        raise RuntimeError(f"the source yielded {n_seen} points, expected {n_points}")
+    for a in (out_r, out_n):
+        if a is not None:
+            a.flush()
+    return ScanResult(out_dir, n_points, bool(normals), counts, len(structure.stations), structure.source,
+                      time.perf_counter() - t0)
+
+
+class _Stations:
+    """Per-station arrays of a structure, indexed by station: positions (s, 3), rotations (s, 3,
+    3), first records (s,) and whether grids are known / wrap."""
+
+    def __init__(self, structure: ScanStructure, path=None):
+        self.structure, self.path = structure, path
+        s = structure.stations
+        self.positions = structure.positions
+        self.up = np.array([np.asarray(x.rotation)[:, 2] for x in s]).reshape(-1, 3)  # the scanner's z, world
+        self.grids = [x.grid for x in s]
+        self.known = structure.source == "scans.json"
+        self.firsts = np.array([x.points[0] if x.points else 0 for x in s], np.int64)
+        self.wrap = np.array([x.grid.columns if x.grid is not None and x.grid.wraps else 0 for x in s], np.int64)
+
+    def prepare(self, pc, g: int) -> dict:
+        """Per-point arrays of chunk ``pc`` (its first point is the ``g``-th of the cloud):
+        ``pos`` (m, 3) float64, ``u`` (m, 3) unit beams, ``rng`` (m,), ``key`` (m,) int64 packed
+        (station, row, column), ``off`` (m,) bool, ``normals`` (m, 3) or None."""
+        m = len(pc.positions)
+        if self.known:
+            s = np.searchsorted(self.firsts, np.arange(g, g + m), side="right") - 1
+        else:
+            s = np.asarray(pc.scan_index, np.int64)
+        pos = np.asarray(pc.positions, np.float64)
+        d = pos - self.positions[s]
+        rng = np.sqrt(np.einsum("ij,ij->i", d, d))
+        u = d / np.where(rng > 0, rng, 1.0)[:, None]
+        off = rng == 0
+        if self.known:
+            row, col = np.zeros(m, np.int64), np.zeros(m, np.int64)
+            for k in np.unique(s):
+                sel = s == k
+                st = self.structure.stations[k]
+                row[sel], col[sel], o = st.grid.cells(u[sel] @ np.asarray(st.rotation))
+                off[sel] |= o
+        else:
+            row, col = (np.asarray(pc.grid[:, i], np.int64) for i in (0, 1))
+            bad = (row < 0) | (row >= MAX_INDEX) | (col < 0) | (col >= MAX_INDEX)
+            if bad.any():
+                raise InputError(self.path, f"rowIndex/columnIndex of point {g + int(np.argmax(bad))} outside "
+                                            f"0..{MAX_INDEX - 1}")
+        key = (s << (2 * _BITS)) | (row << _BITS) | col
+        nrm = None if pc.normals is None else np.asarray(pc.normals, np.float64)
+        return {"pos": pos, "u": u, "rng": rng, "key": key, "off": off, "normals": nrm}
+
+
+def _windows(source, st: _Stations, halo: int):
+    """``(window, a, b, g)`` per input chunk: the arrays of :meth:`_Stations.prepare` over the
+    chunk and ``halo`` points on either side, the chunk being ``window[a:b]`` and its first point
+    the ``g``-th of the cloud."""
+    buf, buf0, read, cores, done = None, 0, 0, [], False  # buf holds points buf0 .. read - 1
+    chunks = iter(source())
+    while not done:
+        pc = next(chunks, None)
+        done = pc is None
+        if not done and len(pc.positions):
+            arr = st.prepare(pc, read)
+            buf = arr if buf is None else {k: None if v is None else np.concatenate([v, arr[k]])
+                                           for k, v in buf.items()}
+            cores.append((read, read + len(pc.positions)))
+            read += len(pc.positions)
+        while cores and (done or read >= cores[0][1] + halo):  # its halo after it is read
+            c0, c1 = cores.pop(0)
+            w0, w1 = max(buf0, c0 - halo), min(read, c1 + halo)
+            yield {k: None if v is None else v[w0 - buf0:w1 - buf0] for k, v in buf.items()}, c0 - w0, c1 - w0, c0
+            keep = max(buf0, cores[0][0] - halo if cores else read)
+            buf = {k: None if v is None else v[keep - buf0:] for k, v in buf.items()}
+            buf0 = keep
+
+
+# ---------------------------------------------------------------------------------------------
+# one block: the points window[a:b], their neighbours in the window
+# ---------------------------------------------------------------------------------------------
+def _angle(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(m,) angles between unit vectors, radians (atan2 of sine and cosine: exact for small ones)."""
+    return np.arctan2(np.linalg.norm(_cross(u, v), axis=1), np.einsum("ij,ij->i", u, v))
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of (m, 3) arrays (np.cross is several times slower on them)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), np.result_type(a, b))
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v, axis=1, keepdims=True)
+    return v / np.where(n > 0, n, 1.0)
+
+
+class _Lookup:
+    """Grid cells of a window -> window indices (-1 where no point is).
+
+    A window holds a few scan lines of one or two stations, so each station's cells in it span a
+    small box of rows x columns: a dense table of that box answers a lookup with one gather. A
+    window whose cells do not fit such boxes (a file not written line by line) is looked up by
+    binary search in its sorted keys instead.
+    """
+
+    def __init__(self, key: np.ndarray, wrap_of_station: np.ndarray):
+        self.key, self.wrap, self.built = key, wrap_of_station, False
+
+    def _build(self):
+        key, self.built = self.key, True
+        s, row, col = key >> (2 * _BITS), (key >> _BITS) & _MASK, key & _MASK
+        ids = np.unique(s)
+        n_st = int(ids[-1]) + 1
+        self.r0, self.c0 = np.zeros(n_st, np.int64), np.zeros(n_st, np.int64)
+        self.h, self.w, self.base = (np.zeros(n_st, np.int64) for _ in range(3))
+        size = 0
+        for k in ids.tolist():
+            sel = s == k
+            r0, r1 = int(row[sel].min()), int(row[sel].max())
+            c0, c1 = int(col[sel].min()), int(col[sel].max())
+            self.r0[k], self.c0[k], self.h[k], self.w[k], self.base[k] = r0, c0, r1 - r0 + 1, c1 - c0 + 1, size
+            size += (r1 - r0 + 1) * (c1 - c0 + 1)
+        self.table = None
+        if size <= 8 * len(key) + (1 << 16):
+            self.table = np.full(size, -1, np.int64)
+            self.table[self.base[s] + (row - self.r0[s]) * self.w[s] + col - self.c0[s]] = np.arange(len(key))
+        else:
+            self.order = np.argsort(key, kind="stable")
+            self.sorted = key[self.order]
+
+    def find(self, key: np.ndarray, dr: int, dc: int) -> np.ndarray:
+        """Indices of the points in the cells ``dr`` rows and ``dc`` columns from the cells ``key``."""
+        if not self.built:
+            self._build()
+        s, row, col = key >> (2 * _BITS), ((key >> _BITS) & _MASK) + dr, (key & _MASK) + dc
+        if self.wrap.any():
+            w = self.wrap[s]
+            col = np.where(w > 0, np.mod(col, np.maximum(w, 1)), col)
+        if self.table is not None:
+            r, c = row - self.r0[s], col - self.c0[s]
+            ok = (r >= 0) & (r < self.h[s]) & (c >= 0) & (c < self.w[s])
+            return np.where(ok, self.table[np.where(ok, self.base[s] + r * self.w[s] + c, 0)], -1)
+        ok = (row >= 0) & (row < MAX_INDEX) & (col >= 0) & (col < MAX_INDEX)
+        q = (s << (2 * _BITS)) | (np.clip(row, 0, _MASK) << _BITS) | np.clip(col, 0, _MASK)
+        i = np.minimum(np.searchsorted(self.sorted, q), len(self.sorted) - 1)
+        return np.where(ok & (self.sorted[i] == q), self.order[i], -1)
+
+
+def _block(win: dict, a: int, b: int, st: _Stations, scale: float, k_normals: int, normals: bool):
+    """Normals ((m, 3) float32 or None), radii ((m,) float32) and counts of ``win[a:b]``."""
+    look = _Lookup(win["key"], st.wrap)  # its table is built on first use
+    key, pos, u, rng = win["key"][a:b], win["pos"][a:b], win["u"][a:b], win["rng"][a:b]
+    s = key >> (2 * _BITS)
+    counts = {"off_grid_points": int(np.count_nonzero(win["off"][a:b]))}
+    if st.known:
+        spacing, axis = _grid_spacing(u, s, st)
+    else:
+        spacing, axis = zip(*(_measured_spacing(look, key, u, win["u"], step) for step in ((1, 0), (0, 1))))
+        spacing, axis, counts["isolated_points"] = _fill_spacing(list(spacing), list(axis), u, s)
+
+    n_out = None
+    if normals:
+        n, good = _grid_normals(win, look, a, b, spacing, st)
+        bad = np.flatnonzero(~good)
+        counts["fallback_normals"] = len(bad)
+        if len(bad):
+            n[bad] = _window_planes(win, look, a + bad, k_normals)
+        n[np.einsum("ij,ij->i", n, u) > 0] *= -1  # toward the station
+        n_out = n.astype(np.float32)
+    else:
+        n = _unit(win["normals"][a:b])
+    cos = np.abs(np.einsum("ij,ij->i", n, u))
+    cell2 = np.zeros(len(u))
+    for a_k, e_k in zip(spacing, axis):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            stretch = np.sqrt(1.0 + (np.einsum("ij,ij->i", n, e_k) / cos) ** 2)
+        stretch = np.where(np.isfinite(stretch), np.minimum(stretch, STRETCH_MAX), STRETCH_MAX)
+        cell2 += (a_k * stretch) ** 2
+    radii = (scale * 0.5 * rng * np.sqrt(cell2)).astype(np.float32)
+    return n_out, radii, counts
+
+
+def _grid_normals(win: dict, look: _Lookup, a: int, b: int, spacing, st: _Stations):
+    """Unit normals (sign arbitrary) of ``win[a:b]`` from their grid window, and where they are
+    defined.
+
+    The points of the ``(2 HALF + 1)^2`` cells around a point that lie on its surface (range within
+    ``TAU`` grid spacings per cell of distance) are fitted by least squares as ``p(i, j) = c + i T_r
+    + j T_c`` over their row and column offsets ``i``, ``j``; the normal is ``T_c x T_r``. With all
+    cells present, ``T_r`` and ``T_c`` are averaged central differences along the rows and columns
+    (a Savitzky-Golay derivative), which cuts the range noise; at an edge the fit takes the side
+    that is there. Undefined (``good`` False) where the cells on the surface do not span both axes.
+
+    The sums run over each station's cells as a dense image (the block's box of rows x columns
+    plus a margin of ``HALF``), shifted once per offset: no per-point lookups. A box much larger
+    than its points (a file not in scan-line order) is summed by lookups instead.
+    """
+    key = win["key"][a:b]
+    s, row, col = key >> (2 * _BITS), (key >> _BITS) & _MASK, key & _MASK
+    n, good = np.zeros((b - a, 3)), np.zeros(b - a, bool)
+    a_r2, a_c2 = spacing[0] ** 2, spacing[1] ** 2
+    ws = win["key"] >> (2 * _BITS)
+    for k in np.unique(s).tolist():
+        sel = np.flatnonzero(s == k)
+        r0, r1 = int(row[sel].min()), int(row[sel].max())
+        c0, c1, wrap = int(col[sel].min()), int(col[sel].max()), int(st.wrap[k])
+        if wrap:
+            c0, c1 = 0, wrap - 1  # the whole circle, its ends padded from each other
+        h, w = r1 - r0 + 1 + 2 * HALF, c1 - c0 + 1 + 2 * HALF
+        if h * w > 4 * len(sel) + (1 << 16):
+            m = _moments_by_lookup(win, look, a + sel, st.positions[k], a_r2[sel], a_c2[sel])
+            n[sel], good[sel] = _solve(m)
+            continue
+        # station k's points in the box, relative to the station (float32 keeps micrometres within 100 m)
+        wi = np.flatnonzero(ws == k)
+        wr, wc = (win["key"][wi] >> _BITS) & _MASK, win["key"][wi] & _MASK
+        margin = 0 if wrap else HALF
+        inside = (wr >= r0 - HALF) & (wr <= r1 + HALF) & (wc >= c0 - margin) & (wc <= c1 + margin)
+        wi, wr, wc = wi[inside], wr[inside] - r0 + HALF, wc[inside] - c0 + HALF
+        pos = np.zeros((h, w, 3), np.float32)  # 0 where no point: its range (NaN) keeps it out
+        rng = np.full((h, w), np.nan, np.float32)
+        pos[wr, wc] = win["pos"][wi] - st.positions[k]
+        rng[wr, wc] = win["rng"][wi]
+        if wrap:
+            for img in (pos, rng):
+                img[:, :HALF], img[:, w - HALF:] = img[:, w - 2 * HALF:w - HALF], img[:, HALF:2 * HALF]
+        ar2 = np.zeros((h - 2 * HALF, w - 2 * HALF), np.float32)  # the centres' squared spacings
+        ac2 = np.zeros_like(ar2)
+        pr, pc = row[sel] - r0, col[sel] - c0
+        ar2[pr, pc], ac2[pr, pc] = a_r2[sel], a_c2[sel]
+
+        def shifted(i, j, img):
+            return img[HALF + i:h - HALF + i, HALF + j:w - HALF + j]
+
+        def neighbours():
+            for i in range(-HALF, HALF + 1):
+                for j in range(-HALF, HALF + 1):
+                    if i or j:
+                        yield i, j, shifted(i, j, pos), shifted(i, j, rng)
+
+        m = _moments(shifted(0, 0, pos), shifted(0, 0, rng), ar2, ac2, neighbours())
+        n[sel], good[sel] = _solve(tuple(x[pr, pc] for x in m))
+    return n, good
+
+
+def _moments_by_lookup(win, look: _Lookup, idx, station, a_r2, a_c2):
+    """:func:`_moments` of points ``win[idx]`` of the station at ``station``, their neighbours
+    found by :meth:`_Lookup.find`: the same numbers as the images give (float32, relative to the
+    station, summed in the same order)."""
+    key = win["key"][idx]
+
+    def rel(i):
+        return (win["pos"][i] - station).astype(np.float32), win["rng"][i].astype(np.float32)
+
+    def neighbours():
+        for i in range(-HALF, HALF + 1):
+            for j in range(-HALF, HALF + 1):
+                if i or j:
+                    k = look.find(key, i, j)
+                    p, r = rel(np.maximum(k, 0))
+                    yield i, j, p, np.where(k >= 0, r, np.float32(np.nan))
+
+    return _moments(*rel(idx), a_r2.astype(np.float32), a_c2.astype(np.float32), neighbours())
+
+
+def _moments(pos, rng, a_r2, a_c2, neighbours):
+    """The least-squares sums of :func:`_grid_normals` (any array shape ``S``: per point or per
+    cell of an image): ``s0, si, sj, sii, sjj, sij`` (S), ``q0, qi, qj`` (S + (3,)), over the
+    centre (offset 0, difference 0) and the ``(i, j, positions (S, 3), ranges (S))`` of
+    ``neighbours`` (range NaN where no point, position finite) that lie on the centre's surface."""
+    s0 = np.ones(rng.shape, pos.dtype)
+    si, sj, sii, sjj, sij = (np.zeros(rng.shape, pos.dtype) for _ in range(5))
+    q0, qi, qj = (np.zeros(pos.shape, pos.dtype) for _ in range(3))
+    limit = {}  # per (|i|, |j|): the largest range difference on the surface
+    for i, j, p, r in neighbours:
+        if (abs(i), abs(j)) not in limit:
+            limit[abs(i), abs(j)] = TAU * rng * np.sqrt(i * i * a_r2 + j * j * a_c2)
+        with np.errstate(invalid="ignore"):
+            wgt = (np.abs(r - rng) <= limit[abs(i), abs(j)]).astype(pos.dtype)  # 0 where NaN
+        q = p - pos
+        q *= wgt[..., None]
+        s0 += wgt
+        si += i * wgt
+        sj += j * wgt
+        sii += i * i * wgt
+        sjj += j * j * wgt
+        sij += i * j * wgt
+        q0 += q
+        qi += i * q
+        qj += j * q
+    return s0, si, sj, sii, sjj, sij, q0, qi, qj
+
+
+def _solve(m) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals ``T_c x T_r`` (float64) of the fits with sums ``m`` (:func:`_moments`), and
+    where they are defined."""
+    s0, si, sj, sii, sjj, sij, q0, qi, qj = m
+    cii, cjj, cij = sii - si * si / s0, sjj - sj * sj / s0, sij - si * sj / s0
+    ci = qi - (si / s0)[:, None] * q0
+    cj = qj - (sj / s0)[:, None] * q0
+    det = cii * cjj - cij * cij
+    good = det > 1e-6 * np.maximum(cii * cjj, 1e-300)
+    det = np.where(good, det, 1.0)[:, None]
+    t_r = (cjj[:, None] * ci - cij[:, None] * cj) / det
+    t_c = (cii[:, None] * cj - cij[:, None] * ci) / det
+    n = _cross(t_c, t_r)
+    length = np.linalg.norm(n, axis=1)
+    good &= length > 0
+    return n / np.where(good, length, 1.0)[:, None], good
+
+
+def _measured_spacing(look: _Lookup, key, u, u_win, step):
+    """The angle to the nearest beam along one axis (``step``: one row or one column) within
+    REACH cells, per cell, and the axis's unit direction on the sphere of beams (toward growing
+    index); NaN where no beam is."""
+    beam, delta = np.full(len(key), -1), np.zeros(len(key))
+    for dist in range(1, REACH + 1):
+        for sign in (1, -1):
+            j = look.find(key, sign * dist * step[0], sign * dist * step[1])
+            new = (beam < 0) & (j >= 0)
+            beam[new], delta[new] = j[new], sign * dist
+    has = beam >= 0
+    ub = u_win[np.maximum(beam, 0)]
+    a_k = np.where(has, _angle(u, ub) / np.maximum(np.abs(delta), 1.0), np.nan)
+    e_k = _unit(ub - u * np.einsum("ij,ij->i", u, ub)[:, None]) * np.sign(delta)[:, None]
+    return a_k, np.where(has[:, None], e_k, np.nan)
+
+
+def _grid_spacing(u, s, st: _Stations):
+    """Exact beam spacings and axes of spherical grids: rows along elevation (the step), columns
+    along azimuth (the step's chord at the point's elevation)."""
+    up = st.up[s]
+    e_c = _unit(_cross(up, u))  # along azimuth (undefined at the zenith: any direction is)
+    e_r = _cross(u, e_c)        # along elevation
+    sin_el = np.einsum("ij,ij->i", u, up)
+    cos_el = np.sqrt(np.clip(1.0 - sin_el ** 2, 0.0, 1.0))
+    de = np.array([g.elevation_step for g in st.grids])[s]
+    da = np.array([g.azimuth_step for g in st.grids])[s]
+    return [de, 2.0 * np.arcsin(np.clip(cos_el * np.sin(da / 2), 0.0, 1.0))], [e_r, e_c]
+
+
+def _fill_spacing(spacing, axis, u, s):
+    """Measured spacings with the gaps filled: an axis without a beam takes the other's angle and
+    the axis across it; a point without either takes its station's median over the block and
+    either axis. Returns (spacings, axes, points without either)."""
+    a_r, a_c = spacing
+    e_r, e_c = axis
+    only_c, only_r = np.isnan(a_r) & ~np.isnan(a_c), np.isnan(a_c) & ~np.isnan(a_r)
+    a_r, a_c = np.where(only_c, a_c, a_r), np.where(only_r, a_r, a_c)
+    e_r = np.where(only_c[:, None], _cross(u, np.nan_to_num(e_c)), e_r)
+    e_c = np.where(only_r[:, None], _cross(e_r, u), e_c)
+    lone = np.isnan(a_r)
+    if lone.any():
+        for k in np.unique(s[lone]):
+            vals = np.concatenate([a_r[(s == k) & ~lone], a_c[(s == k) & ~lone]])
+            med = float(np.median(vals)) if len(vals) else 0.0
+            a_r[lone & (s == k)] = a_c[lone & (s == k)] = med
+        # no axis known: a tilt toward either axis stretches both (the safe side)
+        any_dir = _unit(_cross(u, np.where(np.abs(u[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])))
+        e_r = np.where(lone[:, None], any_dir, e_r)
+        e_c = np.where(lone[:, None], _cross(u, any_dir), e_c)
+    return [a_r, a_c], [e_r, e_c], int(np.count_nonzero(lone))
+
+
+def _window_planes(win: dict, look: _Lookup, idx: np.ndarray, k: int) -> np.ndarray:
+    """Least-squares plane normals (sign arbitrary) of points ``win[idx]`` from their ``k``
+    nearest (3D) among their station's points within ``REACH`` rows and columns; facing the
+    station (``-u``) where fewer than 3 are there."""
+    key, pos = win["key"][idx], win["pos"][idx]
+    offs = [(dr, dc) for dr in range(-REACH, REACH + 1) for dc in range(-REACH, REACH + 1)]
+    cand = np.stack([look.find(key, dr, dc) for dr, dc in offs], axis=1)  # (f, c), the point itself included
+    rel = win["pos"][np.maximum(cand, 0)] - pos[:, None, :]
+    d2 = np.where(cand >= 0, np.einsum("fci,fci->fc", rel, rel), np.inf)
+    k = min(int(k), cand.shape[1])
+    near = np.argpartition(d2, k - 1, axis=1)[:, :k]
+    w = np.isfinite(np.take_along_axis(d2, near, 1)).astype(np.float64)  # (f, k) present
+    q = np.take_along_axis(rel, near[:, :, None], 1)
+    cnt = w.sum(axis=1)
+    mean = (q * w[:, :, None]).sum(axis=1) / np.maximum(cnt, 1)[:, None]
+    q = (q - mean[:, None, :]) * w[:, :, None]
+    _, vec = np.linalg.eigh(np.einsum("fki,fkj->fij", q, q))
+    n = vec[:, :, 0]
+    few = cnt < 3
+    n[few] = -win["u"][idx[few]]
+    return n
