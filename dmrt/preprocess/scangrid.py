@@ -72,6 +72,7 @@ REACH = 3  # grid cells searched along an axis for a beam, and the fallback wind
 TAU = 8.0
 HALF = 2  # the normals' grid window: (2 HALF + 1)^2 cells
 STRETCH_MAX = 4.0  # cap of the incidence stretch (module docstring)
+_DENSE_SLACK = 1 << 16  # cells a station's image may hold beyond 4 per point of the block
 _LINE = 1 << 14  # beams of a scan line where the input does not say (E57 without indexBounds)
 _BITS = 24  # bits of a row or column in a packed key (station << 48 | row << 24 | column)
 _MASK = (1 << _BITS) - 1
@@ -235,22 +236,39 @@ def scan_attributes(source, structure: ScanStructure, n_points: int, out_dir, *,
             for k, v in c.items():
                 counts[k] += v
 
-    n_seen = 0
+    read, chunks, cores = 0, [], []  # chunks: (first, stop, prepared future); cores: chunks not yet processed
     with ThreadPoolExecutor(threads) as pool, _progress(n_points, "scan grid", progress) as bar:
-        for win, a, b, g in _windows(source, st, halo):
-            if normals is None:
-                normals = win["normals"] is None
-            if not normals and win["normals"] is None:
-                raise ValueError("normals=False needs normals in the input")
-            if normals and out_n is None:
-                out_n = np.lib.format.open_memmap(out_dir / "normals.npy", "w+", np.float32, (n_points, 3))
-            if g + (b - a) > n_points:
-                raise RuntimeError(f"the source yields more than its {n_points} points")
-            pending.append((g, pool.submit(_block, win, a, b, st, scale, k_normals, normals)))
-            drain(threads)  # bounded: at most threads + 1 windows in memory
-            bar.update(b - a)
-            n_seen = g + b - a
+        it = iter(source())
+        while True:
+            pc = next(it, None)
+            if pc is not None and len(pc.positions):
+                if normals is None:
+                    normals = pc.normals is None
+                if not normals and pc.normals is None:
+                    raise ValueError("normals=False needs normals in the input")
+                if normals and out_n is None:
+                    out_n = np.lib.format.open_memmap(out_dir / "normals.npy", "w+", np.float32, (n_points, 3))
+                m = len(pc.positions)
+                if read + m > n_points:
+                    raise RuntimeError(f"the source yields more than its {n_points} points")
+                chunks.append((read, read + m, pool.submit(st.prepare, pc, read)))
+                cores.append((read, read + m))
+                read += m
+            # a chunk is processed once the halo after it is read; its window takes the prepared
+            # chunks it overlaps (a task waits only on tasks queued before it: no deadlock)
+            while cores and (pc is None or read >= cores[0][1] + halo):
+                c0, c1 = cores.pop(0)
+                parts = [(a0, a1, f) for a0, a1, f in chunks if a1 > c0 - halo and a0 < c1 + halo]
+                pending.append((c0, pool.submit(_window_block, parts, c0, c1, halo, st, scale, k_normals,
+                                                normals)))
+                if cores:
+                    chunks = [c for c in chunks if c[1] > cores[0][0] - halo]
+                drain(threads)  # bounded: at most threads + 1 windows in memory
+                bar.update(c1 - c0)
+            if pc is None:
+                break
         drain(0)
+    n_seen = read
     if n_seen != n_points:
         raise RuntimeError(f"the source yielded {n_seen} points, expected {n_points}")
     for a in (out_r, out_n):
@@ -279,8 +297,10 @@ class _Stations:
         ``pos`` (m, 3) float64, ``u`` (m, 3) unit beams, ``rng`` (m,), ``key`` (m,) int64 packed
         (station, row, column), ``off`` (m,) bool, ``normals`` (m, 3) or None."""
         m = len(pc.positions)
-        if self.known:
-            s = np.searchsorted(self.firsts, np.arange(g, g + m), side="right") - 1
+        if self.known:  # the stations whose runs the chunk overlaps, each for its share
+            k0, k1 = (int(np.searchsorted(self.firsts, x, side="right")) - 1 for x in (g, g + m - 1))
+            cuts = np.concatenate([[0], np.clip(self.firsts[k0 + 1:k1 + 1] - g, 0, m), [m]])
+            s = np.repeat(np.arange(k0, k1 + 1), np.diff(cuts))
         else:
             s = np.asarray(pc.scan_index, np.int64)
         pos = np.asarray(pc.positions, np.float64)
@@ -290,11 +310,10 @@ class _Stations:
         off = rng == 0
         if self.known:
             row, col = np.zeros(m, np.int64), np.zeros(m, np.int64)
-            for k in np.unique(s):
-                sel = s == k
+            for k, a, b in zip(range(k0, k1 + 1), cuts[:-1], cuts[1:]):
                 st = self.structure.stations[k]
-                row[sel], col[sel], o = st.grid.cells(u[sel] @ np.asarray(st.rotation))
-                off[sel] |= o
+                row[a:b], col[a:b], o = st.grid.cells(u[a:b] @ np.asarray(st.rotation))
+                off[a:b] |= o
         else:
             row, col = (np.asarray(pc.grid[:, i], np.int64) for i in (0, 1))
             bad = (row < 0) | (row >= MAX_INDEX) | (col < 0) | (col >= MAX_INDEX)
@@ -306,28 +325,17 @@ class _Stations:
         return {"pos": pos, "u": u, "rng": rng, "key": key, "off": off, "normals": nrm}
 
 
-def _windows(source, st: _Stations, halo: int):
-    """``(window, a, b, g)`` per input chunk: the arrays of :meth:`_Stations.prepare` over the
-    chunk and ``halo`` points on either side, the chunk being ``window[a:b]`` and its first point
-    the ``g``-th of the cloud."""
-    buf, buf0, read, cores, done = None, 0, 0, [], False  # buf holds points buf0 .. read - 1
-    chunks = iter(source())
-    while not done:
-        pc = next(chunks, None)
-        done = pc is None
-        if not done and len(pc.positions):
-            arr = st.prepare(pc, read)
-            buf = arr if buf is None else {k: None if v is None else np.concatenate([v, arr[k]])
-                                           for k, v in buf.items()}
-            cores.append((read, read + len(pc.positions)))
-            read += len(pc.positions)
-        while cores and (done or read >= cores[0][1] + halo):  # its halo after it is read
-            c0, c1 = cores.pop(0)
-            w0, w1 = max(buf0, c0 - halo), min(read, c1 + halo)
-            yield {k: None if v is None else v[w0 - buf0:w1 - buf0] for k, v in buf.items()}, c0 - w0, c1 - w0, c0
-            keep = max(buf0, cores[0][0] - halo if cores else read)
-            buf = {k: None if v is None else v[keep - buf0:] for k, v in buf.items()}
-            buf0 = keep
+def _window_block(parts, c0: int, c1: int, halo: int, st: _Stations, scale, k_normals, normals):
+    """:func:`_block` of the cloud's points ``c0 .. c1 - 1``, its window being those ``halo``
+    before and after them in the prepared chunks ``parts`` (``(first, stop, future)``)."""
+    w0, w1 = max(c0 - halo, parts[0][0]), min(c1 + halo, parts[-1][1])
+    arrays = []
+    for a0, a1, fut in parts:
+        arr, lo, hi = fut.result(), max(a0, w0) - a0, min(a1, w1) - a0
+        arrays.append({k: None if v is None else v[lo:hi] for k, v in arr.items()})
+    win = arrays[0] if len(arrays) == 1 else {
+        k: None if arrays[0][k] is None else np.concatenate([a[k] for a in arrays]) for k in arrays[0]}
+    return _block(win, c0 - w0, c1 - w0, st, scale, k_normals, normals)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -418,11 +426,7 @@ def _block(win: dict, a: int, b: int, st: _Stations, scale: float, k_normals: in
 
     n_out = None
     if normals:
-        n, good = _grid_normals(win, look, a, b, spacing, st)
-        bad = np.flatnonzero(~good)
-        counts["fallback_normals"] = len(bad)
-        if len(bad):
-            n[bad] = _window_planes(win, look, a + bad, k_normals)
+        n, counts["fallback_normals"] = _grid_normals(win, look, a, b, spacing, st, k_normals)
         n[np.einsum("ij,ij->i", n, u) > 0] *= -1  # toward the station
         n_out = n.astype(np.float32)
     else:
@@ -438,115 +442,155 @@ def _block(win: dict, a: int, b: int, st: _Stations, scale: float, k_normals: in
     return n_out, radii, counts
 
 
-def _grid_normals(win: dict, look: _Lookup, a: int, b: int, spacing, st: _Stations):
-    """Unit normals (sign arbitrary) of ``win[a:b]`` from their grid window, and where they are
-    defined.
+def _grid_normals(win: dict, look: _Lookup, a: int, b: int, spacing, st: _Stations, k_normals: int):
+    """Unit normals (sign arbitrary) of ``win[a:b]`` from their grid window, and how many fell back.
 
     The points of the ``(2 HALF + 1)^2`` cells around a point that lie on its surface (range within
     ``TAU`` grid spacings per cell of distance) are fitted by least squares as ``p(i, j) = c + i T_r
     + j T_c`` over their row and column offsets ``i``, ``j``; the normal is ``T_c x T_r``. With all
     cells present, ``T_r`` and ``T_c`` are averaged central differences along the rows and columns
     (a Savitzky-Golay derivative), which cuts the range noise; at an edge the fit takes the side
-    that is there. Undefined (``good`` False) where the cells on the surface do not span both axes.
+    that is there. Where the cells on the surface do not span both axes, the normal is the plane
+    of the ``k_normals`` nearest points among the window's cells (:func:`_knn_planes`).
 
     The sums run over each station's cells as a dense image (the block's box of rows x columns
     plus a margin of ``HALF``), shifted once per offset: no per-point lookups. A box much larger
-    than its points (a file not in scan-line order) is summed by lookups instead.
+    than its points (a file not in scan-line order) is summed by lookups instead. Both give the
+    same numbers: float32 positions relative to the station, summed in the same order.
     """
     key = win["key"][a:b]
     s, row, col = key >> (2 * _BITS), (key >> _BITS) & _MASK, key & _MASK
-    n, good = np.zeros((b - a, 3)), np.zeros(b - a, bool)
-    a_r2, a_c2 = spacing[0] ** 2, spacing[1] ** 2
+    n = np.zeros((b - a, 3))
+    a_r2, a_c2 = (x.astype(np.float32) ** 2 for x in spacing)
     ws = win["key"] >> (2 * _BITS)
+    fallback = 0
     for k in np.unique(s).tolist():
         sel = np.flatnonzero(s == k)
+
+        def rel(i, k=k):  # window points i relative to the station, as the images hold them
+            return (win["pos"][i] - st.positions[k]).astype(np.float32), win["rng"][i].astype(np.float32)
+
         r0, r1 = int(row[sel].min()), int(row[sel].max())
         c0, c1, wrap = int(col[sel].min()), int(col[sel].max()), int(st.wrap[k])
         if wrap:
             c0, c1 = 0, wrap - 1  # the whole circle, its ends padded from each other
         h, w = r1 - r0 + 1 + 2 * HALF, c1 - c0 + 1 + 2 * HALF
-        if h * w > 4 * len(sel) + (1 << 16):
-            m = _moments_by_lookup(win, look, a + sel, st.positions[k], a_r2[sel], a_c2[sel])
-            n[sel], good[sel] = _solve(m)
-            continue
-        # station k's points in the box, relative to the station (float32 keeps micrometres within 100 m)
-        wi = np.flatnonzero(ws == k)
-        wr, wc = (win["key"][wi] >> _BITS) & _MASK, win["key"][wi] & _MASK
-        margin = 0 if wrap else HALF
-        inside = (wr >= r0 - HALF) & (wr <= r1 + HALF) & (wc >= c0 - margin) & (wc <= c1 + margin)
-        wi, wr, wc = wi[inside], wr[inside] - r0 + HALF, wc[inside] - c0 + HALF
-        pos = np.zeros((h, w, 3), np.float32)  # 0 where no point: its range (NaN) keeps it out
-        rng = np.full((h, w), np.nan, np.float32)
-        pos[wr, wc] = win["pos"][wi] - st.positions[k]
-        rng[wr, wc] = win["rng"][wi]
-        if wrap:
-            for img in (pos, rng):
-                img[:, :HALF], img[:, w - HALF:] = img[:, w - 2 * HALF:w - HALF], img[:, HALF:2 * HALF]
-        ar2 = np.zeros((h - 2 * HALF, w - 2 * HALF), np.float32)  # the centres' squared spacings
-        ac2 = np.zeros_like(ar2)
-        pr, pc = row[sel] - r0, col[sel] - c0
-        ar2[pr, pc], ac2[pr, pc] = a_r2[sel], a_c2[sel]
+        if h * w > 4 * len(sel) + _DENSE_SLACK:
+            def at(i, j, which, keys=key[sel], rel=rel):  # the cells (i, j) from points sel[which]
+                f = look.find(keys[which], i, j)
+                p, r = rel(np.maximum(f, 0))
+                return p, np.where(f >= 0, r, np.float32(np.nan))
 
-        def shifted(i, j, img):
-            return img[HALF + i:h - HALF + i, HALF + j:w - HALF + j]
+            nk, good = _solve(_moments(*rel(a + sel), a_r2[sel], a_c2[sel], at))
+        else:
+            # station k's points in the box (float32 keeps micrometres within 100 m of the station)
+            wi = np.flatnonzero(ws == k)
+            wr, wc = (win["key"][wi] >> _BITS) & _MASK, win["key"][wi] & _MASK
+            margin = 0 if wrap else HALF
+            inside = (wr >= r0 - HALF) & (wr <= r1 + HALF) & (wc >= c0 - margin) & (wc <= c1 + margin)
+            wi, wr, wc = wi[inside], wr[inside] - r0 + HALF, wc[inside] - c0 + HALF
+            pos = np.zeros((h, w, 3), np.float32)  # 0 where no point: its range (NaN) keeps it out
+            rng = np.full((h, w), np.nan, np.float32)
+            pos[wr, wc], rng[wr, wc] = rel(wi)
+            if wrap:
+                for img in (pos, rng):
+                    img[:, :HALF], img[:, w - HALF:] = img[:, w - 2 * HALF:w - HALF], img[:, HALF:2 * HALF]
+            pr, pc = row[sel] - r0, col[sel] - c0
+            ar2 = np.zeros((h - 2 * HALF, w - 2 * HALF), np.float32)  # the centres' squared spacings
+            ac2 = np.zeros_like(ar2)
+            ar2[pr, pc], ac2[pr, pc] = a_r2[sel], a_c2[sel]
 
-        def neighbours():
-            for i in range(-HALF, HALF + 1):
-                for j in range(-HALF, HALF + 1):
-                    if i or j:
-                        yield i, j, shifted(i, j, pos), shifted(i, j, rng)
+            def shifted(i, j, img, rows=slice(None), h=h, w=w):
+                return img[HALF + i:h - HALF + i, HALF + j:w - HALF + j][rows]
 
-        m = _moments(shifted(0, 0, pos), shifted(0, 0, rng), ar2, ac2, neighbours())
-        n[sel], good[sel] = _solve(tuple(x[pr, pc] for x in m))
-    return n, good
+            def at(i, j, which, pr=pr, pc=pc, pos=pos, rng=rng):
+                return pos[pr[which] + HALF + i, pc[which] + HALF + j], rng[pr[which] + HALF + i, pc[which] + HALF + j]
 
-
-def _moments_by_lookup(win, look: _Lookup, idx, station, a_r2, a_c2):
-    """:func:`_moments` of points ``win[idx]`` of the station at ``station``, their neighbours
-    found by :meth:`_Lookup.find`: the same numbers as the images give (float32, relative to the
-    station, summed in the same order)."""
-    key = win["key"][idx]
-
-    def rel(i):
-        return (win["pos"][i] - station).astype(np.float32), win["rng"][i].astype(np.float32)
-
-    def neighbours():
-        for i in range(-HALF, HALF + 1):
-            for j in range(-HALF, HALF + 1):
-                if i or j:
-                    k = look.find(key, i, j)
-                    p, r = rel(np.maximum(k, 0))
-                    yield i, j, p, np.where(k >= 0, r, np.float32(np.nan))
-
-    return _moments(*rel(idx), a_r2.astype(np.float32), a_c2.astype(np.float32), neighbours())
+            m = _moments(shifted(0, 0, pos), shifted(0, 0, rng), ar2, ac2,
+                         lambda i, j, rows: (shifted(i, j, pos, rows), shifted(i, j, rng, rows)))
+            cells = m[0].size  # solved on the whole box (as many cells as points, about), then picked
+            nk, good = _solve(tuple(x.reshape(cells, *x.shape[2:]) for x in m))
+            flat = pr * (w - 2 * HALF) + pc
+            nk, good = nk[flat], good[flat]
+        bad = np.flatnonzero(~good)
+        if len(bad):
+            nk[bad] = _knn_planes(at, bad, k_normals, -win["u"][a + sel[bad]])
+        n[sel] = nk
+        fallback += len(bad)
+    return n, fallback
 
 
-def _moments(pos, rng, a_r2, a_c2, neighbours):
-    """The least-squares sums of :func:`_grid_normals` (any array shape ``S``: per point or per
-    cell of an image): ``s0, si, sj, sii, sjj, sij`` (S), ``q0, qi, qj`` (S + (3,)), over the
-    centre (offset 0, difference 0) and the ``(i, j, positions (S, 3), ranges (S))`` of
-    ``neighbours`` (range NaN where no point, position finite) that lie on the centre's surface."""
-    s0 = np.ones(rng.shape, pos.dtype)
-    si, sj, sii, sjj, sij = (np.zeros(rng.shape, pos.dtype) for _ in range(5))
-    q0, qi, qj = (np.zeros(pos.shape, pos.dtype) for _ in range(3))
-    limit = {}  # per (|i|, |j|): the largest range difference on the surface
-    for i, j, p, r in neighbours:
-        if (abs(i), abs(j)) not in limit:
-            limit[abs(i), abs(j)] = TAU * rng * np.sqrt(i * i * a_r2 + j * j * a_c2)
-        with np.errstate(invalid="ignore"):
-            wgt = (np.abs(r - rng) <= limit[abs(i), abs(j)]).astype(pos.dtype)  # 0 where NaN
-        q = p - pos
-        q *= wgt[..., None]
-        s0 += wgt
-        si += i * wgt
-        sj += j * wgt
-        sii += i * i * wgt
-        sjj += j * j * wgt
-        sij += i * j * wgt
-        q0 += q
-        qi += i * q
-        qj += j * q
-    return s0, si, sj, sii, sjj, sij, q0, qi, qj
+def _knn_planes(at, which: np.ndarray, k: int, facing: np.ndarray) -> np.ndarray:
+    """Least-squares plane normals (sign arbitrary) of points ``which`` from their ``k`` nearest
+    (3D) among the ``(2 HALF + 1)^2`` cells around each (``at(i, j, which)``: their positions and
+    ranges, NaN where no point), the point included; ``facing`` ((f, 3): toward the station)
+    where fewer than 3 are there."""
+    cells = [at(i, j, which) for i in range(-HALF, HALF + 1) for j in range(-HALF, HALF + 1)]
+    p = np.stack([c[0] for c in cells], axis=1).astype(np.float64)  # (f, c, 3)
+    p -= at(0, 0, which)[0][:, None, :]
+    d2 = np.where(np.isfinite(np.stack([c[1] for c in cells], axis=1)), np.einsum("fci,fci->fc", p, p), np.inf)
+    k = min(int(k), d2.shape[1])
+    near = np.argpartition(d2, k - 1, axis=1)[:, :k]
+    w = np.isfinite(np.take_along_axis(d2, near, 1)).astype(np.float64)  # (f, k) present
+    q = np.take_along_axis(p, near[:, :, None], 1)
+    cnt = w.sum(axis=1)
+    mean = (q * w[:, :, None]).sum(axis=1) / np.maximum(cnt, 1)[:, None]
+    q = (q - mean[:, None, :]) * w[:, :, None]
+    _, vec = np.linalg.eigh(np.einsum("fki,fkj->fij", q, q))
+    n = vec[:, :, 0]
+    few = cnt < 3
+    n[few] = facing[few]
+    return n
+
+
+_OFFSETS = [(i, j) for i in range(-HALF, HALF + 1) for j in range(-HALF, HALF + 1) if i or j]
+# per offset (columns) its weight in each sum of _moments: 1, i, j, i^2, j^2, i j
+_COEF = np.array([[1, i, j, i * i, j * j, i * j] for i, j in _OFFSETS], np.float32).T
+_TILE = 1 << 15  # cells per tile of _moments: its per-offset arrays stay in the cache
+
+
+def _moments(pos, rng, a_r2, a_c2, neighbour):
+    """The least-squares sums of :func:`_grid_normals` over the centre (offset 0, difference 0)
+    and its neighbours at every offset that lie on its surface, for arrays of any shape ``S``
+    (per point, or per cell of an image).
+
+    Parameters
+    ----------
+    pos : S + (3,) float32 centres.  rng : S float32 their ranges.  a_r2, a_c2 : S float32 squared
+    grid spacings (radians^2).
+    neighbour : callable ``(i, j, rows) -> (positions S' + (3,), ranges S')``
+        The neighbours at offset ``(i, j)`` of the centres ``[rows]`` (a slice of the first axis);
+        range NaN where no point is, position finite.
+
+    Returns
+    -------
+    s0, si, sj, sii, sjj, sij : S float32.  q0, qi, qj : S + (3,) float32.
+    """
+    s_out = np.empty((6,) + rng.shape, np.float32)
+    q_out = np.empty((3,) + pos.shape, np.float32)
+    per_row = max(1, int(np.prod(rng.shape[1:])))
+    step = max(1, _TILE // per_row)
+    for t0 in range(0, rng.shape[0], step):
+        rows = slice(t0, min(rng.shape[0], t0 + step))
+        c_pos, c_rng = pos[rows], rng[rows]
+        wgt = np.empty((len(_OFFSETS),) + c_rng.shape, np.float32)  # 1 where on the centre's surface
+        q = np.empty((len(_OFFSETS),) + c_pos.shape, np.float32)    # differences to those
+        limit = {}  # per (|i|, |j|): the largest range difference on the surface
+        for o, (i, j) in enumerate(_OFFSETS):
+            p, r = neighbour(i, j, rows)
+            if (abs(i), abs(j)) not in limit:
+                limit[abs(i), abs(j)] = TAU * c_rng * np.sqrt(i * i * a_r2[rows] + j * j * a_c2[rows])
+            with np.errstate(invalid="ignore"):
+                wgt[o] = np.abs(r - c_rng) <= limit[abs(i), abs(j)]  # False where NaN
+            np.subtract(p, c_pos, out=q[o])
+            q[o] *= wgt[o][..., None]
+        # weighted sums over the offsets (einsum's own loop: BLAS would start threads of its own
+        # inside each of the pass's threads, and sum in an order that depends on the tile)
+        k = len(_OFFSETS)
+        s_out[:, rows] = np.einsum("ok,kn->on", _COEF, wgt.reshape(k, -1)).reshape((6,) + c_rng.shape)
+        q_out[:, rows] = np.einsum("ok,kn->on", _COEF[:3], q.reshape(k, -1)).reshape((3,) + c_pos.shape)
+    s_out[0] += 1.0  # the centre itself
+    return (*s_out, *q_out)
 
 
 def _solve(m) -> tuple[np.ndarray, np.ndarray]:
@@ -618,26 +662,3 @@ def _fill_spacing(spacing, axis, u, s):
         e_r = np.where(lone[:, None], any_dir, e_r)
         e_c = np.where(lone[:, None], _cross(u, any_dir), e_c)
     return [a_r, a_c], [e_r, e_c], int(np.count_nonzero(lone))
-
-
-def _window_planes(win: dict, look: _Lookup, idx: np.ndarray, k: int) -> np.ndarray:
-    """Least-squares plane normals (sign arbitrary) of points ``win[idx]`` from their ``k``
-    nearest (3D) among their station's points within ``REACH`` rows and columns; facing the
-    station (``-u``) where fewer than 3 are there."""
-    key, pos = win["key"][idx], win["pos"][idx]
-    offs = [(dr, dc) for dr in range(-REACH, REACH + 1) for dc in range(-REACH, REACH + 1)]
-    cand = np.stack([look.find(key, dr, dc) for dr, dc in offs], axis=1)  # (f, c), the point itself included
-    rel = win["pos"][np.maximum(cand, 0)] - pos[:, None, :]
-    d2 = np.where(cand >= 0, np.einsum("fci,fci->fc", rel, rel), np.inf)
-    k = min(int(k), cand.shape[1])
-    near = np.argpartition(d2, k - 1, axis=1)[:, :k]
-    w = np.isfinite(np.take_along_axis(d2, near, 1)).astype(np.float64)  # (f, k) present
-    q = np.take_along_axis(rel, near[:, :, None], 1)
-    cnt = w.sum(axis=1)
-    mean = (q * w[:, :, None]).sum(axis=1) / np.maximum(cnt, 1)[:, None]
-    q = (q - mean[:, None, :]) * w[:, :, None]
-    _, vec = np.linalg.eigh(np.einsum("fki,fkj->fij", q, q))
-    n = vec[:, :, 0]
-    few = cnt < 3
-    n[few] = -win["u"][idx[few]]
-    return n
