@@ -62,22 +62,27 @@ def test_synthetic_scene_records_its_grid(tiny_scene):
 
 
 def test_radii_are_range_times_step(tiny):
-    """Radius = scale x range x the grid cell's half diagonal, stretched by the incidence: with the
+    """Radius = scale x range x half the grid cell's longer diagonal on the surface: with the
     grid's step ``h`` both ways at the horizon and a surface facing the beam, scale x range x h / sqrt(2)."""
     g = tiny["scene"].scan_structure.stations[0].grid
     h = g.elevation_step
     beam, nrm, rad = tiny["beam"], tiny["normals"].astype(np.float64), tiny["radii"]
     rng = np.linalg.norm(beam, axis=1)
     u = beam / rng[:, None]
-    # the definition, written out independently: spacings along elevation (h) and azimuth (the
-    # chord of h at the point's elevation), each stretched by the tilt of the surface toward it
+    # the definition, written out independently: the steps to the next beam along elevation (h)
+    # and azimuth (the chord of h at the point's elevation), moved along the beam onto the surface
+    # (at most 4 times longer), span the cell; its longer diagonal, halved, times the range
     e_c = np.cross([0.0, 0.0, 1.0], u)
     e_c /= np.linalg.norm(e_c, axis=1, keepdims=True)
     e_r = np.cross(u, e_c)
-    cos_n = np.abs(np.sum(nrm * u, axis=1))
     a_c = 2 * np.arcsin(np.sqrt(1 - u[:, 2] ** 2) * np.sin(h / 2))
-    s_r, s_c = (np.minimum(np.sqrt(1 + (np.sum(nrm * e, axis=1) / cos_n) ** 2), STRETCH_MAX) for e in (e_r, e_c))
-    want = SCALE * rng * np.sqrt((h * s_r) ** 2 + (a_c * s_c) ** 2) / 2
+    sides = []
+    for a_k, e in ((h, e_r), (a_c, e_c)):
+        limit = math.sqrt(STRETCH_MAX ** 2 - 1)
+        t = np.clip(np.sum(nrm * e, axis=1) / np.sum(nrm * u, axis=1), -limit, limit)
+        sides.append(np.reshape(a_k, (-1, 1)) * (e - u * t[:, None]))
+    diagonal = np.maximum(*(np.linalg.norm(sides[0] + sign * sides[1], axis=1) for sign in (1, -1)))
+    want = SCALE * rng * diagonal / 2
     # float32 results (7 digits) of float64 arithmetic in another order
     np.testing.assert_allclose(rad, want, rtol=2e-5)
     # the plain case: near the horizon, on surfaces facing the beam (the true normal and the

@@ -4,47 +4,61 @@ are known (:mod:`dmrt.io.stations`): no nearest-neighbour search.
 A terrestrial scanner samples each station's surroundings on an angular grid, so the gap between a
 point and its neighbours on the surface is its range times the angular step, stretched where the
 surface tilts away from the beam, and the surface's tangents are the differences to the neighbours
-of its grid row and column.
+of its grid row and column (:func:`scan_phase` chooses this path: ``--radii auto|scan|knn``).
 
 * **Radii** follow the kNN radii's convention (:func:`dmrt.preprocess.normals.radius_factor`): the
   disc that covers a cell of the sampling grid, half the cell's diagonal, times ``scale``
   (``--radius-scale``)::
 
-      radius = scale * range * sqrt((a_r s_r)^2 + (a_c s_c)^2) / 2
+      radius = scale * range * max(|v_r + v_c|, |v_r - v_c|) / 2,   v = a (e - d (n . e) / (n . d))
 
   with ``a_r``, ``a_c`` the angles between neighbouring beams along the grid's rows and columns
-  (radians) and ``s = min(4, sqrt(1 + (n . e)^2 / (n . d)^2))`` the stretch of that spacing on a
-  surface of normal ``n`` seen along the beam ``d`` (``e``: the direction of the axis on the
-  sphere of beams). On a square grid of step ``h`` facing the beam this is ``scale * range * h /
-  sqrt(2)``: what the kNN radius gives on a square grid of spacing ``range * h`` (its 8th neighbour
-  is the diagonal one, ``sqrt(2) range h``, times ``radius_factor(8) = 1/2``). The stretch is capped
-  at 4, where the kNN radius saturates too (a row of the grid alone then holds the 8 neighbours).
+  (radians), ``e`` the unit direction of that axis on the sphere of beams, and ``v`` that step
+  moved along the beam ``d`` onto the surface of normal ``n``: the cell's sides on the surface,
+  stretched where the surface tilts away from the beam, sheared where it tilts diagonally to the
+  grid. On a square grid of step ``h`` facing the beam this is ``scale * range * h / sqrt(2)``:
+  what the kNN radius gives on a square grid of spacing ``range * h`` (its 8th neighbour is the
+  diagonal one, ``sqrt(2) range h``, times ``radius_factor(8) = 1/2``). Each side's stretch is
+  capped at 4, where the kNN radius saturates too (a row of the grid alone then holds the 8
+  neighbours).
   A spherical grid (``scans.json``) gives the angles and axes exactly: ``a_r`` = the elevation
   step, ``a_c`` = the azimuth step at the point's elevation (``2 asin(cos(el) sin(step / 2))``;
   beams crowd toward the zenith). An E57 grid states no angles: they are measured between the
   point's beam and the nearest beam within ``REACH`` cells along each axis (its direction, whatever
   range it hit), the other axis's where one axis has none, the median of the block's points of its
   station where neither has (``isolated_points``).
-* **Normals**: ``t_c x t_r`` of the tangents along the columns and rows (central differences, or
-  one-sided at an edge), oriented toward the station. A neighbour counts when its range differs by
-  at most ``TAU`` grid spacings (``range * a``) from the point's, so a silhouette's point takes the
-  side of its own surface. Where an axis has no such neighbour (a beam that returned nothing, a
-  one-point-wide pole), the normal is the least-squares plane of the point's ``k`` nearest points
-  (3D) among its station's points within ``REACH`` rows and columns (a kNN restricted to the grid
-  window), counted as ``fallback_normals``; with fewer than 3 such points it faces the station.
-  Where the input has normals, they are kept and only give the stretch.
+* **Normals**: ``T_c x T_r``, oriented toward the station, of the tangents along the grid's columns
+  and rows fitted by least squares over the point's 5 x 5 grid window (:func:`_grid_normals`:
+  averaged central differences where the window is full, one-sided at an edge). A neighbour counts
+  when its range differs by at most ``TAU`` grid spacings per cell from the point's, so a
+  silhouette's point takes the side of its own surface. Where the neighbours on the surface do not
+  span both axes (a one-point-wide pole, a point among beams that returned nothing), the normal is
+  the least-squares plane of the point's ``k`` nearest points (3D) among the window's cells (a kNN
+  restricted to the grid window), counted as ``fallback_normals``; with fewer than 3 it faces the
+  station. Where the input has normals, they are kept and only give the stretch.
 
 Out of core: the input is streamed once in its chunks; each chunk is processed with a halo of the
 points up to ``REACH`` scan lines before and after it in file order (``Station.line``: scanners
 write line after line), and the results go to ``(n,)`` / ``(n, 3)`` float32 arrays in input order
-on disk. Chunks are processed on threads (sorting, lookups and the arithmetic release the GIL).
-Neighbours farther in file order than the halo (a file not written line by line) are not seen:
-their points fall back as above. :meth:`ScanResult.attach` hands the results to the octree build
-as attributes of the points, so they arrive in octree order with the points.
+on disk. Chunks are prepared and processed on threads (numpy releases the GIL); the results do not
+depend on the chunks or the threads. Neighbours farther in file order than the halo (a file not
+written line by line) are not seen: their points fall back as above. :meth:`ScanResult.attach`
+hands the results to the octree build as attributes of the points, so they arrive in octree order
+with the points.
 
-Measured on the ``small`` synthetic scene (2.0M points, 6 stations, 2 mm range noise), against the
-kNN path on the same points (``python -m bench.bench_scangrid --preset small``): see
-``README.md`` ("Radii and normals from the scan's grid") for the figures.
+Measured against the kNN path (:func:`dmrt.preprocess.normals.process_chunked`, k = 16 and 8) on
+the same points, both at ``--radius-scale`` 1.5 (``python -m bench.bench_scangrid --preset P``;
+true normals: the mesh faces the beams hit; synthetic scans with 2 mm range noise)::
+
+    scene  points  stations  radius / kNN radius     normal vs truth, degrees (median, p90)
+                             median (5 - 95 %)       scan grid        kNN
+    tiny   0.20M   2         1.00 (0.84 - 1.83)      0.8, 9.2         1.2, 9.6
+    small  2.00M   6         0.99 (0.84 - 1.81)      1.3, 7.4         1.9, 8.5
+
+The radii agree at the median; the scan's are larger where stations overlap (the kNN sees their
+union, denser than the one station's grid that covers the surface alone) and smaller by up to a
+sixth where the kNN's 8th neighbour lies across a sparse stretch. Speed: ``README.md`` ("Radii and
+normals from the scan's grid").
 """
 
 from __future__ import annotations
@@ -64,7 +78,7 @@ from dmrt.preprocess.parallel import default_workers
 
 __all__ = ["ScanResult", "scan_attributes", "scan_phase", "REACH", "TAU", "STRETCH_MAX"]
 
-REACH = 3  # grid cells searched along an axis for a beam, and the fallback window's half width
+REACH = 3  # grid cells searched along an axis for a beam (E57), and scan lines in a chunk's halo
 # A grid neighbour is on the point's surface when their ranges differ by at most TAU spacings: a
 # plane tilted by theta from the beam changes range by tan(theta) spacings a step, so 8 keeps
 # surfaces up to 83 degrees from the beam and 2 mm noise at 2.4 mm spacings (paper-full at 3 m),
@@ -127,10 +141,12 @@ class ScanResult:
         with atomic_file(path) as tmp:
             out = np.lib.format.open_memmap(tmp, "w+", np.float32, (octree.n_points,))
             g = 0
-            for level in range(octree.levels):  # level files are raw float32: copied chunk by chunk
-                for ch in octree.iter_level_chunks(level, 1 << 22):
-                    out[g:g + len(ch["radii"])] = ch["radii"]
-                    g += len(ch["radii"])
+            for level, n in enumerate(octree.level_counts):  # level_XX/radii.bin: raw float32, in order
+                src = np.memmap(Path(octree.path) / f"level_{level:02d}" / "radii.bin", "<f4", "r", shape=(n,)) \
+                    if n else np.zeros(0, np.float32)
+                for s in range(0, n, 1 << 22):
+                    out[g + s:g + min(n, s + (1 << 22))] = src[s:s + (1 << 22)]
+                g += n
             out.flush()
             del out
         return ChunkedResult(normals=None, radii=np.load(path, mmap_mode="r"), n_points=octree.n_points,
@@ -431,15 +447,23 @@ def _block(win: dict, a: int, b: int, st: _Stations, scale: float, k_normals: in
         n_out = n.astype(np.float32)
     else:
         n = _unit(win["normals"][a:b])
-    cos = np.abs(np.einsum("ij,ij->i", n, u))
-    cell2 = np.zeros(len(u))
+    radii = (scale * 0.5 * rng * _cell_diagonal(n, u, spacing, axis)).astype(np.float32)
+    return n_out, radii, counts
+
+
+def _cell_diagonal(n, u, spacing, axis) -> np.ndarray:
+    """(m,) the longer diagonal of the grid's cell on the surface, per unit of range: the steps
+    ``a_k e_k`` between neighbouring beams moved along the beam ``u`` onto the plane of normal
+    ``n`` (``a_k (e_k - u (n . e_k) / (n . u))``), each stretched at most ``STRETCH_MAX`` times."""
+    nu = np.einsum("ij,ij->i", n, u)
+    steps = []
     for a_k, e_k in zip(spacing, axis):
         with np.errstate(divide="ignore", invalid="ignore"):
-            stretch = np.sqrt(1.0 + (np.einsum("ij,ij->i", n, e_k) / cos) ** 2)
-        stretch = np.where(np.isfinite(stretch), np.minimum(stretch, STRETCH_MAX), STRETCH_MAX)
-        cell2 += (a_k * stretch) ** 2
-    radii = (scale * 0.5 * rng * np.sqrt(cell2)).astype(np.float32)
-    return n_out, radii, counts
+            t = np.einsum("ij,ij->i", n, e_k) / nu
+        limit = math.sqrt(STRETCH_MAX ** 2 - 1)  # |e_k - u t| = sqrt(1 + t^2) <= STRETCH_MAX
+        t = np.where(np.isfinite(t), np.clip(t, -limit, limit), limit)
+        steps.append(a_k[:, None] * (e_k - u * t[:, None]))
+    return np.maximum(np.linalg.norm(steps[0] + steps[1], axis=1), np.linalg.norm(steps[0] - steps[1], axis=1))
 
 
 def _grid_normals(win: dict, look: _Lookup, a: int, b: int, spacing, st: _Stations, k_normals: int):
