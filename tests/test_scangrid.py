@@ -110,11 +110,21 @@ def test_normals_from_the_grid_match_the_mesh(tiny):
     assert counts["off_grid_points"] == 0 and counts["fallback_normals"] < 0.01 * len(nrm)
 
 
-def test_results_do_not_depend_on_chunks_or_threads(tiny, tmp_path):
-    """Chunks of 20,000 points (lines of 475 beams: halos of 3 lines cross chunks and stations) and
-    one thread give the same numbers as one chunk on all cores, bit for bit."""
-    _, nrm, rad = _run(tiny["scene"], tmp_path, chunk=20_000, threads=1)
+def test_results_do_not_depend_on_chunks_threads_or_processes(tiny, tmp_path):
+    """Chunks of 20,000 points (lines of 475 beams: halos of 3 lines cross chunks and stations) on
+    one thread, and 3 record ranges in 2 worker processes, give the same numbers as one chunk on
+    all cores, bit for bit."""
+    from dmrt.preprocess.parallel import open_executor
+
+    _, nrm, rad = _run(tiny["scene"], tmp_path / "a", chunk=20_000, threads=1)
     assert np.array_equal(nrm, tiny["normals"]) and np.array_equal(rad, tiny["radii"])
+    scene = tiny["scene"]
+    with open_executor(None, workers=3) as ex:
+        r = scan_attributes(scene.point_range(30_000), scene.scan_structure, scene.n_points, tmp_path / "b",
+                            scale=SCALE, executor=ex)
+    assert np.array_equal(np.load(tmp_path / "b" / "normals.npy"), tiny["normals"])
+    assert np.array_equal(np.load(tmp_path / "b" / "radii.npy"), tiny["radii"])
+    assert r.counts == tiny["result"].counts
 
 
 def test_lookups_give_what_the_images_give(tiny, tmp_path, monkeypatch):

@@ -402,7 +402,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         # 0. radii and normals from the scan's grid where it is known (None: kNN in phase 2),
         # in input order, carried through the octree with the points
         t0 = time.perf_counter()
-        scan = scan_phase(scene, work, config, progress)
+        scan = scan_phase(scene, work, config, progress, executor)
         if scan is not None:
             tic("scan_grid_s", t0)
 

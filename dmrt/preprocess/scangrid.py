@@ -180,7 +180,7 @@ class ScanAttrs:
         return [ScanAttrs(p, self.folder, self.names, p.source.start) for p in self.source.split(parts)]
 
 
-def scan_phase(scene, work, config, progress: bool = False) -> ScanResult | None:
+def scan_phase(scene, work, config, progress: bool = False, executor=None) -> ScanResult | None:
     """The pipeline's choice (``config.radii``): the scan-grid results of ``scene`` in
     ``work/scan``, or None for the kNN path (``knn``, or ``auto`` on a scene without structure).
 
@@ -196,7 +196,7 @@ def scan_phase(scene, work, config, progress: bool = False) -> ScanResult | None
                                    f"points.ply, no structured E57 scans with rowIndex/columnIndex)")
     return scan_attributes(scene.point_range(config.chunk_points), scene.scan_structure, scene.n_points,
                            Path(work) / "scan", scale=config.radius_scale, k_normals=config.normals_k,
-                           progress=progress)
+                           progress=progress, executor=executor)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -204,14 +204,14 @@ def scan_phase(scene, work, config, progress: bool = False) -> ScanResult | None
 # ---------------------------------------------------------------------------------------------
 def scan_attributes(source, structure: ScanStructure, n_points: int, out_dir, *, scale: float = 1.0,
                     k_normals: int = 16, normals: bool | None = None, threads: int | None = None,
-                    progress: bool = False) -> ScanResult:
+                    progress: bool = False, executor=None) -> ScanResult:
     """Radii and normals of every point from its scan grid (module docstring), in input order.
 
     Parameters
     ----------
     source : callable returning an iterator of :class:`~dmrt.io.pointcloud.PointCloud` chunks
-        The cloud in file order (``Scene.point_range``): world positions, and for an E57 structure
-        ``scan_index`` and ``grid``.
+        The whole cloud in file order (``Scene.point_range``): world positions, and for an E57
+        structure ``scan_index`` and ``grid``.
     structure : ScanStructure
     n_points : int
         Points the source yields.
@@ -224,7 +224,12 @@ def scan_attributes(source, structure: ScanStructure, n_points: int, out_dir, *,
     normals : bool, optional
         Compute normals; default: where the input has none.
     threads : int, optional
-        Chunks processed at once; default one per core.
+        Chunks processed at once in this process; default one per core.
+    executor : optional, :mod:`dmrt.preprocess.parallel`
+        When distributed and the source splits into record ranges (a binary PLY's
+        :class:`~dmrt.io.pointcloud.PointRange`): one task per range, each reading its range with
+        the halos around it and writing its rows of the results, one thread each. The results are
+        those of one process, bit for bit (they do not depend on the chunks).
 
     Returns
     -------
@@ -233,16 +238,79 @@ def scan_attributes(source, structure: ScanStructure, n_points: int, out_dir, *,
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    first = _first_chunk(source)
+    if normals is None:
+        normals = first is None or first.normals is None
+    if not normals and (first is None or first.normals is None):
+        raise ValueError("normals=False needs normals in the input")
+    for name, shape in (("radii", (n_points,)), ("normals", (n_points, 3)))[:1 + bool(normals)]:
+        np.lib.format.open_memmap(out_dir / f"{name}.npy", "w+", np.float32, shape)  # the tasks write their rows
+    task = dict(structure=structure, out_dir=str(out_dir), halo=REACH * (structure.line() or _LINE) + REACH + 1,
+                scale=scale, k_normals=k_normals, normals=normals)
+    parts = None
+    if executor is not None and executor.distributed and getattr(source, "seekable", False):
+        parts = source.split(executor.workers)
+    if parts is None or len(parts) < 2:
+        done = [_scan_range((source, 0, n_points, True), threads=threads or default_workers(), progress=progress,
+                            **task)]
+    else:
+        items = [(source, p.start, p.stop, False) for p in parts]
+        done = executor.map(_scan_range, items, desc="scan grid", progress=progress, threads=1, **task)
+    n_seen = sum(n for n, _ in done)
+    if n_seen != n_points:
+        raise RuntimeError(f"the source yielded {n_seen} points, expected {n_points}")
+    counts = {k: sum(c.get(k, 0) for _, c in done) for k in ("fallback_normals", "isolated_points",
+                                                               "off_grid_points")}
+    return ScanResult(out_dir, n_points, bool(normals), counts, len(structure.stations), structure.source,
+                      time.perf_counter() - t0)
+
+
+def _first_chunk(source):
+    """The source's first non-empty chunk (None if it has none)."""
+    it = iter(source())
+    try:
+        return next((pc for pc in it if len(pc.positions)), None)
+    finally:
+        if hasattr(it, "close"):
+            it.close()
+
+
+def _part_chunks(source, a: int, b: int, whole: bool, halo: int):
+    """The chunks of records ``a - halo .. b + halo - 1`` of ``source``, each marked whether it
+    lies in ``a .. b - 1`` (the part's own), and the index of the first: ``(first, iterator)``.
+    A ``whole`` source is read as it is; a part of a seekable
+    :class:`~dmrt.io.pointcloud.PointRange` (records counted from the file's first) as three
+    ranges: the halo before, its own records, the halo after."""
+    if whole:
+        return 0, ((pc, True) for pc in source())
+    from dataclasses import replace
+
+    lo, hi = max(source.start, a - halo), min(source.stop, b + halo)
+
+    def chunks():
+        for x, y, own in ((lo, a, False), (a, b, True), (b, hi, False)):
+            if y > x:
+                yield from ((pc, own) for pc in replace(source, start=x, stop=y)())
+
+    return lo, chunks()
+
+
+def _scan_range(item, structure, out_dir: str, halo: int, scale, k_normals, normals: bool, threads: int,
+                progress: bool = False):
+    """The results of points ``a .. b - 1`` of ``item = (source, a, b, whole)`` (see
+    :func:`_part_chunks`), written to their rows of ``out_dir/radii.npy`` (and ``normals.npy``):
+    each own chunk with its window of ``halo`` points around it, on ``threads`` threads. Returns
+    (points done, counts)."""
+    source, a, b, whole = item
     st = _Stations(structure, getattr(source, "path", None))
-    line = structure.line() or _LINE
-    halo = REACH * line + REACH + 1
-    threads = threads or default_workers()
-    out_r = np.lib.format.open_memmap(out_dir / "radii.npy", "w+", np.float32, (n_points,))
-    out_n = None
+    out_r = np.load(Path(out_dir) / "radii.npy", mmap_mode="r+")
+    out_n = np.load(Path(out_dir) / "normals.npy", mmap_mode="r+") if normals else None
     counts = dict.fromkeys(("fallback_normals", "isolated_points", "off_grid_points"), 0)
     pending: list = []
+    done = 0
 
     def drain(limit):
+        nonlocal done
         while len(pending) > limit:
             g, fut = pending.pop(0)
             nrm, rad, c = fut.result()
@@ -251,30 +319,28 @@ def scan_attributes(source, structure: ScanStructure, n_points: int, out_dir, *,
                 out_n[g:g + len(rad)] = nrm
             for k, v in c.items():
                 counts[k] += v
+            done += len(rad)
 
-    read, chunks, cores = 0, [], []  # chunks: (first, stop, prepared future); cores: chunks not yet processed
-    with ThreadPoolExecutor(threads) as pool, _progress(n_points, "scan grid", progress) as bar:
-        it = iter(source())
+    read, it = _part_chunks(source, a, b, whole, halo)
+    chunks, cores = [], []  # chunks: (first, stop, prepared future); cores: own chunks not yet processed
+    with ThreadPoolExecutor(threads) as pool, _progress(b - a, "scan grid", progress) as bar:
         while True:
-            pc = next(it, None)
+            pc, own = next(it, (None, False))
             if pc is not None and len(pc.positions):
-                if normals is None:
-                    normals = pc.normals is None
+                m = len(pc.positions)
+                if read + m > len(out_r):
+                    raise RuntimeError(f"the source yields more than its {len(out_r)} points")
                 if not normals and pc.normals is None:
                     raise ValueError("normals=False needs normals in the input")
-                if normals and out_n is None:
-                    out_n = np.lib.format.open_memmap(out_dir / "normals.npy", "w+", np.float32, (n_points, 3))
-                m = len(pc.positions)
-                if read + m > n_points:
-                    raise RuntimeError(f"the source yields more than its {n_points} points")
                 chunks.append((read, read + m, pool.submit(st.prepare, pc, read)))
-                cores.append((read, read + m))
+                if own:
+                    cores.append((read, read + m))
                 read += m
             # a chunk is processed once the halo after it is read; its window takes the prepared
             # chunks it overlaps (a task waits only on tasks queued before it: no deadlock)
             while cores and (pc is None or read >= cores[0][1] + halo):
                 c0, c1 = cores.pop(0)
-                parts = [(a0, a1, f) for a0, a1, f in chunks if a1 > c0 - halo and a0 < c1 + halo]
+                parts = [(x0, x1, f) for x0, x1, f in chunks if x1 > c0 - halo and x0 < c1 + halo]
                 pending.append((c0, pool.submit(_window_block, parts, c0, c1, halo, st, scale, k_normals,
                                                 normals)))
                 if cores:
@@ -284,14 +350,10 @@ def scan_attributes(source, structure: ScanStructure, n_points: int, out_dir, *,
             if pc is None:
                 break
         drain(0)
-    n_seen = read
-    if n_seen != n_points:
-        raise RuntimeError(f"the source yielded {n_seen} points, expected {n_points}")
-    for a in (out_r, out_n):
-        if a is not None:
-            a.flush()
-    return ScanResult(out_dir, n_points, bool(normals), counts, len(structure.stations), structure.source,
-                      time.perf_counter() - t0)
+    for arr in (out_r, out_n):
+        if arr is not None:
+            arr.flush()
+    return done, counts
 
 
 class _Stations:
@@ -303,6 +365,7 @@ class _Stations:
         s = structure.stations
         self.positions = structure.positions
         self.up = np.array([np.asarray(x.rotation)[:, 2] for x in s]).reshape(-1, 3)  # the scanner's z, world
+        self.upright = bool(np.all(self.up == [0.0, 0.0, 1.0]))
         self.grids = [x.grid for x in s]
         self.known = structure.source == "scans.json"
         self.firsts = np.array([x.points[0] if x.points else 0 for x in s], np.int64)
@@ -435,10 +498,10 @@ def _block(win: dict, a: int, b: int, st: _Stations, scale: float, k_normals: in
     s = key >> (2 * _BITS)
     counts = {"off_grid_points": int(np.count_nonzero(win["off"][a:b]))}
     if st.known:
-        spacing, axis = _grid_spacing(u, s, st)
+        spacing, tilts = _grid_spacing(u, s, st)
     else:
         spacing, axis = zip(*(_measured_spacing(look, key, u, win["u"], step) for step in ((1, 0), (0, 1))))
-        spacing, axis, counts["isolated_points"] = _fill_spacing(list(spacing), list(axis), u, s)
+        spacing, tilts, counts["isolated_points"] = _fill_spacing(list(spacing), axis, u, s)
 
     n_out = None
     if normals:
@@ -447,23 +510,31 @@ def _block(win: dict, a: int, b: int, st: _Stations, scale: float, k_normals: in
         n_out = n.astype(np.float32)
     else:
         n = _unit(win["normals"][a:b])
-    radii = (scale * 0.5 * rng * _cell_diagonal(n, u, spacing, axis)).astype(np.float32)
-    return n_out, radii, counts
+    radii = (scale * 0.5 * rng * _cell_diagonal(spacing, np.einsum("ij,ij->i", n, u), *tilts(n)))
+    return n_out, radii.astype(np.float32), counts
 
 
-def _cell_diagonal(n, u, spacing, axis) -> np.ndarray:
-    """(m,) the longer diagonal of the grid's cell on the surface, per unit of range: the steps
-    ``a_k e_k`` between neighbouring beams moved along the beam ``u`` onto the plane of normal
-    ``n`` (``a_k (e_k - u (n . e_k) / (n . u))``), each stretched at most ``STRETCH_MAX`` times."""
-    nu = np.einsum("ij,ij->i", n, u)
-    steps = []
-    for a_k, e_k in zip(spacing, axis):
+def _cell_diagonal(spacing, nu, ne_r, ne_c) -> np.ndarray:
+    """(m,) the longer diagonal of the grid's cell on the surface, per unit of range.
+
+    The steps ``a_k e_k`` between neighbouring beams (``e_r``, ``e_c``, ``u``: an orthonormal
+    frame) moved along the beam ``u`` onto the plane of normal ``n`` are ``v_k = a_k (e_k - u
+    t_k)``, ``t_k = (n . e_k) / (n . u)``, each stretched at most ``STRETCH_MAX`` times; the
+    longer diagonal of the cell they span is ``|v_r +- v_c|`` with ``|v_k|^2 = a_k^2 (1 + t_k^2)``
+    and ``v_r . v_c = a_r a_c t_r t_c``.
+
+    Parameters
+    ----------
+    spacing : (a_r, a_c), each (m,) radians.  nu, ne_r, ne_c : (m,) ``n . u``, ``n . e_r``, ``n . e_c``.
+    """
+    limit = math.sqrt(STRETCH_MAX ** 2 - 1)  # |e_k - u t| = sqrt(1 + t^2) <= STRETCH_MAX
+    t = []
+    for ne in (ne_r, ne_c):
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.einsum("ij,ij->i", n, e_k) / nu
-        limit = math.sqrt(STRETCH_MAX ** 2 - 1)  # |e_k - u t| = sqrt(1 + t^2) <= STRETCH_MAX
-        t = np.where(np.isfinite(t), np.clip(t, -limit, limit), limit)
-        steps.append(a_k[:, None] * (e_k - u * t[:, None]))
-    return np.maximum(np.linalg.norm(steps[0] + steps[1], axis=1), np.linalg.norm(steps[0] - steps[1], axis=1))
+            tk = ne / nu
+        t.append(np.where(np.isfinite(tk), np.clip(tk, -limit, limit), limit))
+    (a_r, a_c), (t_r, t_c) = spacing, t
+    return np.sqrt(a_r * a_r * (1 + t_r * t_r) + a_c * a_c * (1 + t_c * t_c) + 2 * a_r * a_c * np.abs(t_r * t_c))
 
 
 def _grid_normals(win: dict, look: _Lookup, a: int, b: int, spacing, st: _Stations, k_normals: int):
@@ -653,36 +724,49 @@ def _measured_spacing(look: _Lookup, key, u, u_win, step):
 
 
 def _grid_spacing(u, s, st: _Stations):
-    """Exact beam spacings and axes of spherical grids: rows along elevation (the step), columns
-    along azimuth (the step's chord at the point's elevation)."""
+    """Exact beam spacings of spherical grids: rows along elevation (the step), columns along
+    azimuth (the step's chord at the point's elevation); and ``tilts(n) -> (n . e_r, n . e_c)``
+    for the unit directions of elevation and azimuth at each beam.
+
+    With ``w`` the scanner's up axis and ``sin(el) = u . w``: ``e_c = (w x u) / cos(el)``, ``e_r =
+    u x e_c = (w - u sin(el)) / cos(el)`` (undefined at the zenith, where any direction is)."""
     up = st.up[s]
-    e_c = _unit(_cross(up, u))  # along azimuth (undefined at the zenith: any direction is)
-    e_r = _cross(u, e_c)        # along elevation
     sin_el = np.einsum("ij,ij->i", u, up)
-    cos_el = np.sqrt(np.clip(1.0 - sin_el ** 2, 0.0, 1.0))
+    cos_el = np.maximum(np.sqrt(np.clip(1.0 - sin_el ** 2, 0.0, 1.0)), 1e-12)
     de = np.array([g.elevation_step for g in st.grids])[s]
     da = np.array([g.azimuth_step for g in st.grids])[s]
-    return [de, 2.0 * np.arcsin(np.clip(cos_el * np.sin(da / 2), 0.0, 1.0))], [e_r, e_c]
+
+    def tilts(n):
+        nw = np.einsum("ij,ij->i", n, up)
+        if st.upright:  # w = z: w . (u x n) is the cross product's z
+            wun = u[:, 0] * n[:, 1] - u[:, 1] * n[:, 0]
+        else:
+            wun = np.einsum("ij,ij->i", up, _cross(u, n))
+        return (nw - np.einsum("ij,ij->i", n, u) * sin_el) / cos_el, wun / cos_el
+
+    return [de, 2.0 * np.arcsin(np.clip(cos_el * np.sin(da / 2), 0.0, 1.0))], tilts
 
 
 def _fill_spacing(spacing, axis, u, s):
-    """Measured spacings with the gaps filled: an axis without a beam takes the other's angle and
-    the axis across it; a point without either takes its station's median over the block and
-    either axis. Returns (spacings, axes, points without either)."""
+    """Measured spacings with the gaps filled: an axis without a beam takes the other's angle,
+    a point without either its station's median over the block; and ``tilts(n) -> (n . e_r, n .
+    e_c)`` for the frame ``e_c`` (measured along the columns; ``e_r x u`` where only the rows
+    have a beam, any direction across the beam where neither has) and ``e_r = u x e_c``. Returns
+    (spacings, tilts, points without either)."""
     a_r, a_c = spacing
-    e_r, e_c = axis
     only_c, only_r = np.isnan(a_r) & ~np.isnan(a_c), np.isnan(a_c) & ~np.isnan(a_r)
     a_r, a_c = np.where(only_c, a_c, a_r), np.where(only_r, a_r, a_c)
-    e_r = np.where(only_c[:, None], _cross(u, np.nan_to_num(e_c)), e_r)
-    e_c = np.where(only_r[:, None], _cross(e_r, u), e_c)
     lone = np.isnan(a_r)
-    if lone.any():
-        for k in np.unique(s[lone]):
-            vals = np.concatenate([a_r[(s == k) & ~lone], a_c[(s == k) & ~lone]])
-            med = float(np.median(vals)) if len(vals) else 0.0
-            a_r[lone & (s == k)] = a_c[lone & (s == k)] = med
-        # no axis known: a tilt toward either axis stretches both (the safe side)
-        any_dir = _unit(_cross(u, np.where(np.abs(u[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])))
-        e_r = np.where(lone[:, None], any_dir, e_r)
-        e_c = np.where(lone[:, None], _cross(u, any_dir), e_c)
-    return [a_r, a_c], [e_r, e_c], int(np.count_nonzero(lone))
+    for k in np.unique(s[lone]):
+        vals = np.concatenate([a_r[(s == k) & ~lone], a_c[(s == k) & ~lone]])
+        a_r[lone & (s == k)] = a_c[lone & (s == k)] = float(np.median(vals)) if len(vals) else 0.0
+    e_r, e_c = axis
+    e_c = np.where(only_r[:, None], _cross(np.nan_to_num(e_r), u), np.nan_to_num(e_c))
+    across = _unit(_cross(u, np.where(np.abs(u[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])))
+    e_c = np.where((np.abs(e_c).sum(axis=1) == 0)[:, None], across, e_c)
+    e_c = _unit(e_c - u * np.einsum("ij,ij->i", u, e_c)[:, None])  # across the beam
+
+    def tilts(n):
+        return np.einsum("ij,ij->i", n, _cross(u, e_c)), np.einsum("ij,ij->i", n, e_c)
+
+    return [a_r, a_c], tilts, int(np.count_nonzero(lone))
