@@ -455,9 +455,9 @@ def scan_grid(config: SynthConfig, n_stations: int) -> SphericalGrid:
 
 def scan_directions(config: SynthConfig, n_stations: int) -> np.ndarray:
     """(r, 3) unit beam directions of one station, its grid (:func:`scan_grid`) row by row."""
-    g = scan_grid(config, n_stations)
-    step, el0 = g.azimuth_step, g.elevation_start - g.elevation_step / 2
-    A, E = np.meshgrid(np.arange(0, 2 * np.pi, step), np.arange(el0 + step / 2, np.radians(config.scan_elevation[1]), step))
+    el0, el1 = np.radians(config.scan_elevation)
+    step = scan_grid(config, n_stations).azimuth_step
+    A, E = np.meshgrid(np.arange(0, 2 * np.pi, step), np.arange(el0 + step / 2, el1, step))
     return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
 
 
