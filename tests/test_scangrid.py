@@ -111,14 +111,16 @@ def test_normals_from_the_grid_match_the_mesh(tiny):
 
 
 def test_results_do_not_depend_on_chunks_threads_or_processes(tiny, tmp_path):
-    """Chunks of 20,000 points (lines of 475 beams: halos of 3 lines cross chunks and stations) on
-    one thread, and 3 record ranges in 2 worker processes, give the same numbers as one chunk on
-    all cores, bit for bit."""
+    """Chunks of 6,553 points (a 6 MiB budget on one thread; lines of 475 beams: halos of 3 lines
+    cross chunks and stations), and 3 record ranges in 3 worker processes, give the same numbers
+    as one chunk on all cores, bit for bit."""
     from dmrt.preprocess.parallel import open_executor
 
-    _, nrm, rad = _run(tiny["scene"], tmp_path / "a", chunk=20_000, threads=1)
-    assert np.array_equal(nrm, tiny["normals"]) and np.array_equal(rad, tiny["radii"])
     scene = tiny["scene"]
+    scan_attributes(scene.point_range(), scene.scan_structure, scene.n_points, tmp_path / "a", scale=SCALE,
+                    threads=1, memory_limit_mb=6)
+    assert np.array_equal(np.load(tmp_path / "a" / "normals.npy"), tiny["normals"])
+    assert np.array_equal(np.load(tmp_path / "a" / "radii.npy"), tiny["radii"])
     with open_executor(None, workers=3) as ex:
         r = scan_attributes(scene.point_range(30_000), scene.scan_structure, scene.n_points, tmp_path / "b",
                             scale=SCALE, executor=ex)
@@ -252,11 +254,23 @@ def plain_tiny(tiny_scene, tmp_path_factory):
     return root
 
 
-def test_method_choice(tiny_scene, plain_tiny, tmp_path):
+def test_method_choice(tiny_scene, plain_tiny, tmp_path, capfd):
     assert scan_phase(load_scene(plain_tiny), tmp_path, PreprocessConfig()) is None  # auto: kNN
     assert scan_phase(load_scene(tiny_scene), tmp_path, PreprocessConfig(radii="knn")) is None
     with pytest.raises(ConfigError, match="--radii: scan: the scene .* has no scan structure"):
         scan_phase(load_scene(plain_tiny), tmp_path, PreprocessConfig(radii="scan"))
+    # a scans.json that does not match the cloud (stations 30 cm off): said on one line
+    doc = json.loads((tiny_scene / "scans.json").read_text())
+    for st in doc["stations"]:
+        st["position"][0] += 0.3
+    (plain_tiny / "scans.json").write_text(json.dumps(doc))
+    try:
+        r = scan_phase(load_scene(plain_tiny), tmp_path / "off", PreprocessConfig())
+    finally:
+        (plain_tiny / "scans.json").unlink()
+    assert r.counts["off_grid_points"] > 0.5 * r.n_points
+    err = capfd.readouterr().err.splitlines()
+    assert len(err) == 1 and "scans.json: " in err[0] and "lie off their station's grid" in err[0], err
 
 
 @pytest.mark.e2e

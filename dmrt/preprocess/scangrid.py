@@ -64,6 +64,7 @@ normals from the scan's grid").
 from __future__ import annotations
 
 import math
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -86,6 +87,9 @@ REACH = 3  # grid cells searched along an axis for a beam (E57), and scan lines 
 TAU = 8.0
 HALF = 2  # the normals' grid window: (2 HALF + 1)^2 cells
 STRETCH_MAX = 4.0  # cap of the incidence stretch (module docstring)
+# bytes a point of a chunk in flight: its prepared arrays (89), the window's copy of them, the
+# station image, sums and solution of its block (about 60 a cell), normals and radii
+_BYTES_IN_FLIGHT = 320
 _DENSE_SLACK = 1 << 16  # cells a station's image may hold beyond 4 per point of the block
 _LINE = 1 << 14  # beams of a scan line where the input does not say (E57 without indexBounds)
 _BITS = 24  # bits of a row or column in a packed key (station << 48 | row << 24 | column)
@@ -195,9 +199,14 @@ def scan_phase(scene, work, config, progress: bool = False, executor=None) -> Sc
     if scene.scan_structure is None:
         raise ConfigError("radii", f"scan: the scene {scene.root} has no scan structure (no scans.json beside "
                                    f"points.ply, no structured E57 scans with rowIndex/columnIndex)")
-    return scan_attributes(scene.point_range(config.chunk_points), scene.scan_structure, scene.n_points,
+    result = scan_attributes(scene.point_range(config.chunk_points), scene.scan_structure, scene.n_points,
                            Path(work) / "scan", scale=config.radius_scale, k_normals=config.normals_k,
-                           progress=progress, executor=executor)
+                           progress=progress, executor=executor, memory_limit_mb=config.memory_limit_mb)
+    off = result.counts["off_grid_points"] / max(result.n_points, 1)
+    if off > 0.01:  # a cloud that does not match its scans.json: its cells are guesses
+        print(f"dmrt: warning: {scene.root / 'scans.json'}: {off:.1%} of the points lie off their station's grid "
+              f"of beams (another cloud, or other stations?); --radii knn does not use it", file=sys.stderr)
+    return result
 
 
 # ---------------------------------------------------------------------------------------------
@@ -205,7 +214,7 @@ def scan_phase(scene, work, config, progress: bool = False, executor=None) -> Sc
 # ---------------------------------------------------------------------------------------------
 def scan_attributes(source, structure: ScanStructure, n_points: int, out_dir, *, scale: float = 1.0,
                     k_normals: int = 16, normals: bool | None = None, threads: int | None = None,
-                    progress: bool = False, executor=None) -> ScanResult:
+                    progress: bool = False, executor=None, memory_limit_mb: float | None = None) -> ScanResult:
     """Radii and normals of every point from its scan grid (module docstring), in input order.
 
     Parameters
@@ -231,6 +240,10 @@ def scan_attributes(source, structure: ScanStructure, n_points: int, out_dir, *,
         :class:`~dmrt.io.pointcloud.PointRange`): one task per range, each reading its range with
         the halos around it and writing its rows of the results, one thread each. The results are
         those of one process, bit for bit (they do not depend on the chunks).
+    memory_limit_mb : float, optional
+        Bounds the chunks of a :class:`~dmrt.io.pointcloud.PointRange` source (``chunk_size``) so
+        that the chunks and windows in flight (``_BYTES_IN_FLIGHT`` a point each) fit: this much
+        in this process, or this much shared by the executor's workers.
 
     Returns
     -------
@@ -251,12 +264,20 @@ def scan_attributes(source, structure: ScanStructure, n_points: int, out_dir, *,
     parts = None
     if executor is not None and executor.distributed and getattr(source, "seekable", False):
         parts = source.split(executor.workers)
+    threads = 1 if parts is not None and len(parts) > 1 else threads or default_workers()
+    if memory_limit_mb is not None and hasattr(source, "chunk_size"):
+        tasks = len(parts) if parts is not None and len(parts) > 1 else 1
+        # windows in flight a task: threads + 1 pending, one being prepared
+        fit = int(memory_limit_mb * 2 ** 20 / tasks / (threads + 2) / _BYTES_IN_FLIGHT)
+        if fit < source.chunk_size:
+            from dataclasses import replace
+
+            source = replace(source, chunk_size=max(fit, 1))
     if parts is None or len(parts) < 2:
-        done = [_scan_range((source, 0, n_points, True), threads=threads or default_workers(), progress=progress,
-                            **task)]
+        done = [_scan_range((source, 0, n_points, True), threads=threads, progress=progress, **task)]
     else:
         items = [(source, p.start, p.stop, False) for p in parts]
-        done = executor.map(_scan_range, items, desc="scan grid", progress=progress, threads=1, **task)
+        done = executor.map(_scan_range, items, desc="scan grid", progress=progress, threads=threads, **task)
     n_seen = sum(n for n, _ in done)
     if n_seen != n_points:
         raise RuntimeError(f"the source yielded {n_seen} points, expected {n_points}")
