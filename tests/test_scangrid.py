@@ -5,7 +5,6 @@ the real pumpA file), and the pipeline's choice of method with the bundles it ma
 import json
 import math
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
