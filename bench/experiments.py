@@ -402,8 +402,9 @@ def bundle_summary(bundle) -> dict:
 # ----------------------------------------------------------------------------------------------
 # Table 1: scene characteristics
 # ----------------------------------------------------------------------------------------------
-PHASES = ("octree_s", "normals_radii_s", "depthmaps_s", "proxies_s", "candidates_s", "labeling_s", "photometric_s",
-          "photos_s")
+PHASES = ("scan_grid_s", "octree_s", "normals_radii_s", "depthmaps_s", "proxies_s", "candidates_s", "labeling_s",
+          "photometric_s", "photos_s")
+OPTIONAL_PHASES = ("scan_grid_s",)  # only where the bundle ran it (radii from the scan's grid)
 
 
 @dataclass
@@ -420,7 +421,7 @@ def run_table1(ws: Workspace, p: Table1Params, out: Path) -> dict:
     sizes = meta.get("depthmap_sizes") or [[0, 0]]
     return {"bundle": bundle_summary(b), "counts": c,
             "photo_size": [b.cameras[0].width, b.cameras[0].height], "depthmap_size": sizes[0],
-            "phases_s": {ph: t.get(ph) for ph in p.phases},
+            "phases_s": {ph: t.get(ph) for ph in p.phases if ph in t or ph not in OPTIONAL_PHASES},
             "preprocess_total_s": float(sum(t.get(ph) or 0.0 for ph in p.phases)),
             "bundle_total_s": t.get("total_s"),  # the whole `dmrt preprocess`: loading and writing too
             "depthmaps_gpu_ms": t.get("depthmaps_gpu_ms"), "peak_rss_mb": meta.get("peak_rss_mb_after"),

@@ -35,6 +35,7 @@ from tqdm import tqdm
 from dmrt.camera import Camera
 from dmrt.errors import ConfigError, InputError, require
 from dmrt.io.atomic import atomic_dir
+from dmrt.io.stations import SphericalGrid, Station, write_scans_json
 from dmrt.options import option, validate
 from dmrt.preprocess.parallel import default_workers
 from reference.raycast import MeshRaycaster, write_mesh_ply
@@ -452,12 +453,21 @@ def place_cameras(config: SynthConfig, geom: Geometry, raycaster, rng) -> list[C
     return cams
 
 
-def scan_directions(config: SynthConfig, n_stations: int) -> np.ndarray:
-    """(r, 3) unit beam directions of one station: an azimuth x elevation grid at one angular step,
-    chosen so that all stations together fire about ``config.points`` beams."""
+def scan_grid(config: SynthConfig, n_stations: int) -> SphericalGrid:
+    """Each station's grid of beams: azimuth x elevation at one angular step, chosen so that all
+    stations together fire about ``config.points`` beams; rows (elevations) bottom up, each row's
+    columns (azimuths) from +x toward +y."""
     el0, el1 = np.radians(config.scan_elevation)
     # grid rays per station = (2 pi / step) * ((el1 - el0) / step)
-    step = np.sqrt(2 * np.pi * (el1 - el0) * n_stations / config.points)
+    step = float(np.sqrt(2 * np.pi * (el1 - el0) * n_stations / config.points))
+    return SphericalGrid(0.0, step, len(np.arange(0, 2 * np.pi, step)), float(el0 + step / 2), step,
+                         len(np.arange(el0 + step / 2, el1, step)))
+
+
+def scan_directions(config: SynthConfig, n_stations: int) -> np.ndarray:
+    """(r, 3) unit beam directions of one station, its grid (:func:`scan_grid`) row by row."""
+    el0, el1 = np.radians(config.scan_elevation)
+    step = scan_grid(config, n_stations).azimuth_step
     A, E = np.meshgrid(np.arange(0, 2 * np.pi, step), np.arange(el0 + step / 2, el1, step))
     return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
 
@@ -688,16 +698,23 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
         gains = [rng.uniform(*config.exposure_range) * rng.uniform(*config.white_balance_range, 3)
                  if config.lighting_variation else np.ones(3) for _ in cameras]
         dirs = scan_directions(config, len(stations))
-        beams = [(s, d) for s in stations for d in np.array_split(dirs, -(-len(dirs) // config.chunk_rays))]
+        beams = [(i, s, d) for i, s in enumerate(stations)
+                 for d in np.array_split(dirs, -(-len(dirs) // config.chunk_rays))]
+        hits = np.zeros(len(stations) + 1, np.int64)  # each station's points, after the ones before
         with _pool(studio, workers) as pool:
             bar = tqdm(total=config.points, desc="scanning", unit="pt", unit_scale=True, disable=not progress)
             with PointWriter(tmp / "points.ply", normals=config.write_normals, colors=True,
                              float_positions=config.float_positions) as writer:
-                tasks = [(k, s, d) for k, (s, d) in enumerate(beams)]
-                for pos, n, rgb in pool.imap(_scan_task, tasks):  # in order: deterministic files
+                tasks = [(k, s, d) for k, (_, s, d) in enumerate(beams)]
+                for (i, _, _), (pos, n, rgb) in zip(beams, pool.imap(_scan_task, tasks)):  # in order: deterministic
                     writer.write(PointCloud(pos + offset, n if config.write_normals else None, rgb))
+                    hits[i + 1] += len(pos)
                     bar.update(len(pos))
             bar.close()
+            # the scan structure (dmrt.io.stations): station runs of the file, each's grid
+            grid, first = scan_grid(config, len(stations)), np.cumsum(hits)
+            write_scans_json(tmp / "scans.json", [Station(s + offset, np.eye(3), (int(first[i]), int(first[i + 1])),
+                                                          grid) for i, s in enumerate(stations)])
             tasks = [(cam, g, tmp / "images" / cam.name) for cam, g in zip(cameras, gains)]
             for _ in tqdm(pool.imap_unordered(_photo_task, tasks), total=len(tasks), desc="photographing",
                           unit="photo", disable=not progress):

@@ -31,6 +31,7 @@ _HEADER_BYTES = 48
 _CARTESIAN = ("cartesianX", "cartesianY", "cartesianZ")
 _SPHERICAL = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
 _COLORS = ("colorRed", "colorGreen", "colorBlue")
+_GRID = ("rowIndex", "columnIndex")
 
 
 @dataclass
@@ -55,6 +56,8 @@ class E57Scan:
         Every field of the scan's point prototype.
     color_limits : (3, 2) float64 or None
         Per channel (red, green, blue) the value range that maps to 0..255.
+    grid_size : (rows, columns) or None
+        The scan's ``indexBounds`` maxima (``rowMaximum``, ``columnMaximum``), when given.
     """
 
     index: int
@@ -65,10 +68,16 @@ class E57Scan:
     translation: np.ndarray
     fields: tuple[str, ...]
     color_limits: np.ndarray | None
+    grid_size: tuple[int, int] | None = None
 
     @property
     def has_colors(self) -> bool:
         return self.color_limits is not None
+
+    @property
+    def structured(self) -> bool:
+        """Its points give their cell in the scan's grid of beams (``rowIndex``, ``columnIndex``)."""
+        return all(f in self.fields for f in _GRID)
 
     @property
     def has_intensity(self) -> bool:
@@ -236,12 +245,22 @@ def _scans(path: Path, imf) -> list[E57Scan]:
             name = scan["name"].value() if scan.isDefined("name") else ""
             limits = _color_limits(scan, proto) if all(c in fields for c in _COLORS) else None
             scans.append(E57Scan(i, name, int(points.childCount()), coordinates, rotation,
-                                 translation, fields, limits))
+                                 translation, fields, limits, _grid_size(scan)))
         return scans
     except InputError:
         raise
     except Exception as e:
         raise InputError(path, f"malformed E57 XML section: {_first_line(e)}") from None
+
+
+def _grid_size(scan) -> tuple[int, int] | None:
+    """``(rowMaximum, columnMaximum)`` of the scan's ``indexBounds``, None without them."""
+    if not scan.isDefined("indexBounds"):
+        return None
+    b = scan["indexBounds"]
+    if not (b.isDefined("rowMaximum") and b.isDefined("columnMaximum")):
+        return None
+    return int(_number(b["rowMaximum"])), int(_number(b["columnMaximum"]))
 
 
 def count_points(path) -> int:
@@ -271,7 +290,8 @@ def iter_chunks(path, chunk_size: int = 1_000_000) -> Iterator[PointCloud]:
         ``colors`` (n, 3) uint8, scaled from the scan's colour limits, if every scan has colour
         (``isColorInvalid`` points get 0); ``intensity`` (n,) float32 as stored, if every scan has
         it (``isIntensityInvalid`` points get NaN); ``scan_index`` (n,) int32, the scan each point
-        comes from (index into ``scanner_positions``); ``normals`` None.
+        comes from (index into ``scanner_positions``); ``grid`` (n, 2) int32 (``rowIndex``,
+        ``columnIndex``), if every scan is structured; ``normals`` None.
 
     Raises
     ------
@@ -289,9 +309,10 @@ def iter_chunks(path, chunk_size: int = 1_000_000) -> Iterator[PointCloud]:
         # inventing black colours / zero intensity for scans without them would be wrong data.
         colors = all(s.has_colors for s in scans)
         intensity = all(s.has_intensity for s in scans)
+        grid = all(s.structured for s in scans)
         start = n_valid = 0
         for s in scans:
-            for chunk in _scan_chunks(path, imf, s, chunk_size, colors, intensity):
+            for chunk in _scan_chunks(path, imf, s, chunk_size, colors, intensity, grid):
                 n_valid += len(chunk)
                 yield _validated(path, chunk, start)
                 start += len(chunk)
@@ -303,7 +324,7 @@ def iter_chunks(path, chunk_size: int = 1_000_000) -> Iterator[PointCloud]:
 
 
 def _scan_chunks(path: Path, imf, scan: E57Scan, chunk_size: int, colors: bool,
-                 intensity: bool) -> Iterator[PointCloud]:
+                 intensity: bool, grid: bool = False) -> Iterator[PointCloud]:
     if scan.n_records == 0:
         return
     libe57 = _libe57()
@@ -314,6 +335,8 @@ def _scan_chunks(path: Path, imf, scan: E57Scan, chunk_size: int, colors: bool,
         wanted += list(_COLORS) + [f for f in ("isColorInvalid",) if f in scan.fields]
     if intensity:
         wanted += ["intensity"] + [f for f in ("isIntensityInvalid",) if f in scan.fields]
+    if grid:
+        wanted += list(_GRID)
 
     capacity = min(chunk_size, scan.n_records)
     # float64 for every field: the wrapper only takes some integer typecodes (int32 'i' is
@@ -339,7 +362,7 @@ def _scan_chunks(path: Path, imf, scan: E57Scan, chunk_size: int, colors: bool,
             if n == 0:
                 break
             done += n
-            chunk = _to_cloud(scan, {f: a[:n] for f, a in arrays.items()}, state, colors, intensity)
+            chunk = _to_cloud(scan, {f: a[:n] for f, a in arrays.items()}, state, colors, intensity, grid)
             if len(chunk):
                 yield chunk
     finally:
@@ -350,7 +373,7 @@ def _scan_chunks(path: Path, imf, scan: E57Scan, chunk_size: int, colors: bool,
 
 
 def _to_cloud(scan: E57Scan, a: dict[str, np.ndarray], state: str, colors: bool,
-              intensity: bool) -> PointCloud:
+              intensity: bool, grid: bool = False) -> PointCloud:
     keep = a[state] == 0 if state in a else slice(None)
     if scan.coordinates == "cartesian":
         local = np.stack([a[f][keep] for f in _CARTESIAN], axis=1)
@@ -377,7 +400,8 @@ def _to_cloud(scan: E57Scan, a: dict[str, np.ndarray], state: str, colors: bool,
         if "isIntensityInvalid" in a:
             inten[a["isIntensityInvalid"][keep] != 0] = np.nan
     scan_index = np.full(len(positions), scan.index, dtype=np.int32)
-    return PointCloud(positions, None, rgb, intensity=inten, scan_index=scan_index)
+    cells = np.stack([a[f][keep] for f in _GRID], axis=1).astype(np.int32) if grid else None
+    return PointCloud(positions, None, rgb, intensity=inten, scan_index=scan_index, grid=cells)
 
 
 # -- images2D: the scanner's photographs and panoramas ---------------------------------------------

@@ -44,6 +44,9 @@ class PointCloud:
         Return intensity as the file stores it (E57 only; NaN where flagged invalid).
     scan_index : (n,) int32 or None
         The scan each point comes from, an index into the scene's scanner positions (E57 only).
+    grid : (n, 2) int32 or None
+        The point's (row, column) in its scan's grid of beams (structured E57 scans'
+        ``rowIndex``, ``columnIndex``; :mod:`dmrt.io.stations`).
     """
 
     positions: np.ndarray
@@ -51,6 +54,7 @@ class PointCloud:
     colors: np.ndarray | None = None
     intensity: np.ndarray | None = None
     scan_index: np.ndarray | None = None
+    grid: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -365,7 +369,7 @@ def read_points(path) -> PointCloud:
     cat = lambda xs: None if xs[0] is None else np.concatenate(xs)  # noqa: E731
     return PointCloud(cat([c.positions for c in chunks]), cat([c.normals for c in chunks]),
                       cat([c.colors for c in chunks]), cat([c.intensity for c in chunks]),
-                      cat([c.scan_index for c in chunks]))
+                      cat([c.scan_index for c in chunks]), cat([c.grid for c in chunks]))
 
 
 def bounds(path, chunk_size: int = 1_000_000) -> tuple[np.ndarray, np.ndarray]:

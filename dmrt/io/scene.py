@@ -7,6 +7,8 @@ Layout::
                                                   distorted model dmrt.io.undistort handles
     SCENE/images/<name>                           one photo per registered image
     SCENE/mesh.ply                                optional reference mesh (Embree ground truth)
+    SCENE/scans.json                              optional scan structure of the cloud: stations and
+                                                  their angular grids (dmrt.io.stations)
 
 Without ``sparse/``, a ``points.e57`` is a whole scene: its posed ``images2D`` entries are the
 photos (pinhole images as they are, spherical and cylindrical panoramas cut into pinhole views by
@@ -32,7 +34,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from dmrt.io import colmap, e57, pointcloud
+from dmrt.io import colmap, e57, pointcloud, stations
 from dmrt.camera import Camera
 from dmrt.errors import InputError
 from dmrt.io.panorama import Panorama, PanoramaView, cube_views, mask_cells, valid_box
@@ -126,11 +128,14 @@ class Scene:
         The points' bounding box, world metres (lowest and highest corner).
     scanner_positions : (n_scans, 3) float64 or None
         World positions of the scanners, metres, indexed by ``PointCloud.scan_index``; what
-        normals should face. Given for E57 (one per scan), None for formats without them.
+        normals should face. Given for E57 (one per scan) and with ``scans.json``, else None.
     photos : list of (PhotoSource or None), or None
         How each photo's pixels are made where they are not its file as it is (None: all are).
     warnings : list of str
         One line per thing in the input that was skipped (an E57 image without a pose, ...).
+    scan_structure : ScanStructure or None
+        Each point's station and grid cell (:mod:`dmrt.io.stations`): from ``scans.json``, or
+        from structured E57 scans; None where the cloud carries none.
     """
 
     root: Path
@@ -144,6 +149,7 @@ class Scene:
     bounds: tuple[np.ndarray, np.ndarray] | None = None
     photos: list[PhotoSource | None] | None = None
     warnings: list[str] = field(default_factory=list)
+    scan_structure: stations.ScanStructure | None = None
 
     def iter_points(self, chunk_size: int = 1_000_000) -> Iterator[PointCloud]:
         """Stream the cloud (world coordinates, float64) in chunks of at most ``chunk_size``."""
@@ -375,9 +381,13 @@ def load_scene(root, check_images: bool = True, chunk_size: int = 1_000_000) -> 
     hi = np.max([r[1] for r in ranges], axis=0)
     n_points = sum(r[2] for r in ranges)
     origin = np.round((lo + hi) / 2.0)
-    scanners = None
+    scanners = structure = None
     if points_path.suffix.lower() == ".e57":
         scanners = e57.scanner_positions(points_path)
+        structure = stations.e57_structure(e57.read_scans(points_path))
+    elif (root / "scans.json").is_file():
+        structure = stations.read_scans_json(root / "scans.json", n_points)
+        scanners = structure.positions
     return Scene(root, points_path, cameras, image_paths, mesh_path, origin, n_points, scanners, (lo, hi),
-                 photos, warnings)
+                 photos, warnings, structure)
 

@@ -42,6 +42,7 @@ from dmrt.preprocess.parallel import InProcess, check_gpu_worker, default_worker
 from dmrt.preprocess.photometric import solve_for_proxies
 from dmrt.preprocess.proxies import choose_proxy_levels, label_proxies
 from dmrt.preprocess.registration import coverage_summary
+from dmrt.preprocess.scangrid import scan_phase
 from dmrt.io.scene import Scene, load_scene
 
 
@@ -267,26 +268,33 @@ def nearest_depth(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.where((b > 0) & ((a == 0) | (b < a)), b, a)
 
 
-def octree_phase(scene: Scene, work, config: PreprocessConfig, executor=None, progress: bool = False):
+def octree_phase(scene: Scene, work, config: PreprocessConfig, executor=None, progress: bool = False, scan=None):
     """Phase 1: P_HD's octree in ``work/octree``, positions relative to the scene origin (where
-    its float32 keeps micrometres); returns the :class:`~dmrt.preprocess.octree.Octree`."""
+    its float32 keeps micrometres), with the radii and normals of ``scan`` (a
+    :class:`~dmrt.preprocess.scangrid.ScanResult`) when given; returns the
+    :class:`~dmrt.preprocess.octree.Octree`."""
     from dmrt.preprocess.octree import Octree, OctreeConfig
 
     origin = scene.origin
+    points = _LocalPoints(scene.point_range(config.chunk_points), origin)
     # the bounds load_scene measured save the octree a pass (min(p) - o = min(p - o) exactly)
-    return Octree.build(_LocalPoints(scene.point_range(config.chunk_points), origin), Path(work) / "octree",
+    return Octree.build(points if scan is None else scan.attach(points), Path(work) / "octree",
                         OctreeConfig(levels=config.octree_levels, memory_limit_mb=config.memory_limit_mb),
                         bbox=[b - origin for b in scene.bounds], progress=progress,
                         executor=executor or InProcess())
 
 
-def normals_radii_phase(octree, cameras, work, config: PreprocessConfig, executor=None, progress: bool = False):
+def normals_radii_phase(octree, cameras, work, config: PreprocessConfig, executor=None, progress: bool = False,
+                        scan=None):
     """Phase 2: normals (where the input has none) and splat radii over P_HD, in octree order, in
     ``work/attrs``. ``cameras``: the photos' cameras relative to the origin (normals face the
     nearest). Returns (the :func:`~dmrt.preprocess.normals.process_chunked` result, whether the
-    input had normals)."""
+    octree carries normals). With ``scan`` (:mod:`dmrt.preprocess.scangrid`) the octree carries
+    them and the radii, which are only written out in octree order."""
     from dmrt.preprocess.normals import process_chunked
 
+    if scan is not None:
+        return scan.finish(octree, Path(work) / "attrs"), True
     executor = executor or InProcess()
     has_normals = octree.read_level(0).get("normals") is not None
     centers = np.array([c.center for c in cameras])
@@ -408,14 +416,21 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
 
     with BundleWriter(out, force=force) as bw, anon:
         work = Path(bw.tmp).resolve() / "work"
+        # 0. radii and normals from the scan's grid where it is known (None: kNN in phase 2),
+        # in input order, carried through the octree with the points
+        t0 = time.perf_counter()
+        scan = scan_phase(scene, work, config, progress, executor)
+        if scan is not None:
+            tic("scan_grid_s", t0)
+
         # 1. octree (positions relative to the origin, where its float32 keeps micrometres)
         t0 = time.perf_counter()
-        octree = octree_phase(scene, work, config, executor, progress)
+        octree = octree_phase(scene, work, config, executor, progress, scan)
         tic("octree_s", t0)
 
         # 2. normals (if missing) and splat radii over P_HD, in octree order (coarsest level first)
         t0 = time.perf_counter()
-        attrs, has_normals = normals_radii_phase(octree, cams_local, work, config, executor, progress)
+        attrs, has_normals = normals_radii_phase(octree, cams_local, work, config, executor, progress, scan)
         tic("normals_radii_s", t0)
 
         # 3. depth maps: in process, or on the GPU workers each with its share of P_HD (read from
@@ -493,13 +508,16 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                 "points": octree.n_points, "photos": len(scene.cameras), **proxies.counts(),
                 "proxy_levels": k, "octree_level_counts": list(octree.level_counts),
                 "lod_counts": lod_counts, "subsampling_factors": octree.subsampling_factors(),
-                "normals_estimated": not has_normals, **coverage.counts(),
+                "normals_estimated": not has_normals or bool(scan and scan.normals), **coverage.counts(),
             },
             # how the out-of-core phases cut the cloud, and the octree's passes in seconds
             "octree": {k: octree.meta.get(k) for k in ("bucket_level", "n_buckets", "max_bucket_points",
                                                        "bucket_capacity", "workers", "timings")},
-            "normals_radii": {"margin_m": attrs.margin, "buckets": attrs.n_buckets,
-                              "max_bucket_points": attrs.max_bucket_points, "unverified_points": attrs.n_unverified},
+            # which method gave the radii and normals (dmrt.preprocess.scangrid: how many points fell back)
+            "normals_radii": scan.meta() if scan is not None else {
+                "method": "knn", "radii": "knn", "normals": "input" if has_normals else "knn", "margin_m": attrs.margin,
+                "buckets": attrs.n_buckets, "max_bucket_points": attrs.max_bucket_points,
+                "unverified_points": attrs.n_unverified},
             "labeling": proxies.labeling_meta(),
             "depthmap_splats": culling_summary(depth_wall),
             "photo_gains": photometric.gains.tolist(),
