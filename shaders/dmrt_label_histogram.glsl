@@ -39,7 +39,7 @@ layout(std430, binding = B_VIEW_CANDIDATES) readonly buffer Candidates {
 // no room (more distinct labels in the block than the table takes) is counted globally at once.
 const uint TABLE = 128u;  // a power of two, twice the workgroup
 const uint PROBES = 8u;
-const uint NO_LABEL = 0xFFFFFFFFu;
+const uint NO_LABEL = uint(EMPTY_LABEL);  // the ABI's empty label: no photo index
 shared uint table_label[TABLE];
 shared uint table_count[TABLE];
 

@@ -254,7 +254,7 @@ def plain_tiny(tiny_scene, tmp_path_factory):
 
 
 def test_method_choice(tiny_scene, plain_tiny, tmp_path, capfd):
-    assert scan_phase(load_scene(plain_tiny), tmp_path, PreprocessConfig()) is None  # auto: kNN
+    assert scan_phase(load_scene(plain_tiny), tmp_path, PreprocessConfig(radii="auto")) is None  # auto: kNN
     assert scan_phase(load_scene(tiny_scene), tmp_path, PreprocessConfig(radii="knn")) is None
     with pytest.raises(ConfigError, match="--radii: scan: the scene .* has no scan structure"):
         scan_phase(load_scene(plain_tiny), tmp_path, PreprocessConfig(radii="scan"))
@@ -264,7 +264,7 @@ def test_method_choice(tiny_scene, plain_tiny, tmp_path, capfd):
         st["position"][0] += 0.3
     (plain_tiny / "scans.json").write_text(json.dumps(doc))
     try:
-        r = scan_phase(load_scene(plain_tiny), tmp_path / "off", PreprocessConfig())
+        r = scan_phase(load_scene(plain_tiny), tmp_path / "off", PreprocessConfig(radii="auto"))
     finally:
         (plain_tiny / "scans.json").unlink()
     assert r.counts["off_grid_points"] > 0.5 * r.n_points
@@ -273,18 +273,19 @@ def test_method_choice(tiny_scene, plain_tiny, tmp_path, capfd):
 
 
 @pytest.mark.e2e
-def test_bundles_record_the_method_and_are_unchanged_without_structure(tiny_bundle, tiny_scene, plain_tiny,
-                                                                      tmp_path):
-    """A scene without structure takes the kNN path as before: its bundle equals the one made with
-    --radii knn of the scene with its scans.json, bit for bit. The default bundle of the tiny scene
-    took the scan path and says so."""
+def test_bundles_record_the_method_and_are_unchanged_without_structure(tiny_scene, plain_tiny, tmp_path):
+    """A scene without structure takes the kNN path with --radii auto: its bundle equals the one made
+    with --radii knn of the scene with its scans.json, bit for bit. With its scans.json, auto takes
+    the scan path and says so."""
     cfg = dict(depthmap_width=256)
-    plain = read_bundle(preprocess(plain_tiny, tmp_path / "plain", PreprocessConfig(**cfg), progress=False))
+    plain = read_bundle(preprocess(plain_tiny, tmp_path / "plain", PreprocessConfig(radii="auto", **cfg),
+                                   progress=False))
     knn = read_bundle(preprocess(tiny_scene, tmp_path / "knn", PreprocessConfig(radii="knn", **cfg), progress=False))
     plain.meta["parameters"]["preprocess"]["radii"] = "knn"  # the one difference: auto asked for it
     assert_bundles_equal(plain, knn)
     assert plain.meta["normals_radii"]["method"] == "knn" and plain.meta["counts"]["normals_estimated"]
-    scan = read_bundle(tiny_bundle).meta
+    scan = read_bundle(preprocess(tiny_scene, tmp_path / "scan", PreprocessConfig(radii="auto", **cfg),
+                                  progress=False)).meta
     assert scan["normals_radii"]["method"] == "scan" and scan["normals_radii"]["normals"] == "scan"
     assert scan["normals_radii"]["fallback_normals"] < 0.01 * scan["counts"]["points"]
     assert scan["counts"]["normals_estimated"] and "scan_grid_s" in scan["timings"]
