@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import sys
 import tempfile
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
@@ -39,29 +40,34 @@ def write_depth_exr(path, depth: np.ndarray) -> None:
         OpenEXR.File(header, {"Z": depth}).write(str(tmp))
 
 
+_STDERR_LOCK = threading.Lock()
+
+
 @contextmanager
 def library_stderr() -> Iterator[list]:
     """Hold back what C libraries (OpenEXR reports a corrupt file on file descriptor 2 before it
     raises) write to stderr inside the block: yields a list that receives the text, so that a
     reader can fold it into its one-line error. Text written by a block that succeeds is passed
-    on to stderr unchanged."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as buf:
-        os.dup2(buf.fileno(), 2)
-        held: list = []
-        ok = False
-        try:
-            yield held
-            ok = True
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            buf.seek(0)
-            text = buf.read().decode(errors="replace")
-            held.append(text)
-            if ok and text:
-                sys.stderr.write(text)
+    on to stderr unchanged. File descriptor 2 belongs to the process: blocks on several threads
+    (the renderer's depth-map loads) take turns."""
+    with _STDERR_LOCK:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        with tempfile.TemporaryFile() as buf:
+            os.dup2(buf.fileno(), 2)
+            held: list = []
+            ok = False
+            try:
+                yield held
+                ok = True
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                buf.seek(0)
+                text = buf.read().decode(errors="replace")
+                held.append(text)
+                if ok and text:
+                    sys.stderr.write(text)
 
 
 def _first_line(text: str, path: Path) -> str:
