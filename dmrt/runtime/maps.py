@@ -148,7 +148,7 @@ class MapCache:
         """Make ``photos`` resident (indices, most needed first; at most ``n_slots``), loading
         those that are not on threads; the least recently used others make room. Returns the
         number loaded."""
-        want = [int(j) for j in dict.fromkeys(int(j) for j in photos)][:self.n_slots]
+        want = list(dict.fromkeys(int(j) for j in photos))[:self.n_slots]
         for j in want:
             if self.slot_of[j] >= 0:
                 self._last_used[self.slot_of[j]] = self._frame

@@ -380,10 +380,12 @@ class Renderer:
         self.maps.bind()
         if self.maps.partial and self.view_choice is not None:
             # the view choice's candidates are scored from resident maps: the photos nearest the
-            # camera come in before the frame
-            # (a quarter of the slots at most: the rest hold the maps the labels need)
-            near = np.argsort(np.linalg.norm(self._centres - cam.center, axis=1))
-            self.maps.ensure(near[:min(4 * self.config.view_candidates, self.maps.n_slots // 4)])
+            # camera come in before the frame (a quarter of the slots at most: the rest hold the
+            # maps the labels need); a partial sort, every frame over every photo
+            k = min(4 * self.config.view_candidates, self.maps.n_slots // 4)
+            dist = np.linalg.norm(self._centres - cam.center, axis=1)
+            near = np.argpartition(dist, k - 1)[:k] if 0 < k < len(dist) else np.arange(len(dist))[:k]
+            self.maps.ensure(near[np.argsort(dist[near])])
 
         self.visibility.run(cam_uniforms, (w, h), cfg.layers, b["layer_depth"], b["layer_label"], timer)
 
