@@ -8,7 +8,7 @@
 # 1. paper: the `paper` preset (192 photos) generated, preprocessed and walked through
 #    (bench.bench_render, 5 layers, the default view choice, 1280x720 and 3840x2160), with every
 #    depth map resident (--map-cache-mb 0) and with 185 of its 192 in a cache (520 MiB: the cache's
-#    shader path on the same scene);
+#    shader path on the same scene; PAPER_CACHE_MB="0" skips the second, measured once already);
 # 2. many: the `many` preset (10,240 photos) generated and preprocessed by bench/many_run.sh
 #    (phases, memory, disk), then walked through the same way (2048 of its maps resident).
 # The environment (EGL vendor file, PYTHONPATH with the wheels, DMRT_COMMIT) is the caller's: see
@@ -22,7 +22,7 @@ pack() { tar czf "$out/results.tgz.tmp" -C "$out" results log.txt && mv "$out/re
 render=(--layers 5 --methods tiles --sizes 1280x720 3840x2160 --frames 30 --no-leveling --photo-choice view)
 t0=$(date +%s)
 python3 -m bench.bench_render --preset paper --write-normals --work "$out/paper" --out "$out/results" \
-    "${render[@]}" --map-cache-mb 0 520 2>&1 | tr '\r' '\n' | grep -v 'frame/s' >>"$out/log.txt"
+    "${render[@]}" --map-cache-mb ${PAPER_CACHE_MB:-0 520} 2>&1 | tr '\r' '\n' | grep -v 'frame/s' >>"$out/log.txt"
 echo "paper rc=${PIPESTATUS[0]} $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
 pack
 rm -rf "$out/paper"  # the disk holds one scene at a time (many: ~40 GB)
