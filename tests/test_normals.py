@@ -283,10 +283,10 @@ def octree_50k(tmp_path_factory):
 
 @pytest.mark.parametrize("given_bbox", [False, True])
 def test_input_passes_as_tasks_equal_serial(octree_50k, pool, tmp_path, given_bbox):
-    from dmrt.preprocess.normals import _split_source
+    from dmrt.preprocess.buckets import split_input
 
     src = octree_50k.point_range(chunk_size=3000)
-    assert len(_split_source(src, pool)) == 2  # the input passes run as 2 tasks each
+    assert len(split_input(src, pool)) == 2  # the input passes run as 2 tasks each
     # a bbox larger than the cloud's shifts the grids: buckets, halos and part boundaries differ
     p = octree_50k.read_lod(octree_50k.levels)["positions"]
     bbox = (p.min(0) - 0.3, p.max(0) + 0.1) if given_bbox else None
@@ -315,38 +315,13 @@ def test_source_that_stays_whole_and_plain_callables_with_a_pool(octree_50k, poo
 
 
 def test_float32_positions_spill_in_float32_with_the_same_results(octree_50k, tmp_path):
-    from dmrt.preprocess.normals import _positions_dtype
+    from dmrt.preprocess.buckets import positions_dtype
 
     src = octree_50k.point_range(chunk_size=3000)  # the octree's positions are float32
     as64 = lambda: ({**c, "positions": c["positions"].astype(np.float64)} for c in src())  # noqa: E731
-    assert (_positions_dtype(src), _positions_dtype(as64)) == ("float32", "float64")
+    assert (positions_dtype(src), positions_dtype(as64)) == ("float32", "float64")
     kw = dict(viewpoints=[[3, 3, 2.5]], memory_limit_mb=1, progress=False)
     a = process_chunked(src, tmp_path / "f32", **kw)
     b = process_chunked(as64, tmp_path / "f64", **kw)
     assert a.n_buckets > 10
     assert_same_result(a, b)  # the float32 spill held the same values: bit for bit
-
-
-def test_cell_counts_of_parts_add_up_to_the_serial_table():
-    """The count pass's merge rule (per-part tables at their own shifts, aligned and coarsened while
-    over the cap) gives the serial table, also for uneven parts that stop at different shifts."""
-    from dmrt.preprocess.normals import _count_cells
-    from dmrt.preprocess.octree import _add_counts
-
-    p = scene(20_000, 10_000)
-    lo, cell0 = p.min(0), float(np.ptp(p, axis=0).max()) / ((1 << 20) - 1)
-    grid = dict(lo=lo, cell0=cell0, cap=300, slice_points=1024)
-    keys, cnts, shift, n = _count_cells(lambda: iter([(p, {})]), **grid)
-    assert n == len(p) and shift > 0 and len(keys) <= 300
-    part_shifts = set()
-    for cuts in ([0, 300, 9_000, len(p)], [0, 15_000, len(p)], [0, 1, 2, 29_000, len(p)]):
-        k, c, s = np.zeros(0, np.int64), np.zeros(0, np.int64), 0
-        for a, b in zip(cuts, cuts[1:]):
-            kp, cp, sp, m = _count_cells(lambda: iter([(p[a:b], {})]), **grid)
-            assert m == b - a
-            part_shifts.add(sp)
-            k, c, s = _add_counts(k, c, s, kp, cp, sp, grid["cap"])
-        assert s == shift
-        np.testing.assert_array_equal(k, keys)
-        np.testing.assert_array_equal(c, cnts)
-    assert len(part_shifts) > 2  # the parts stopped at different shifts

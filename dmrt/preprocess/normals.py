@@ -7,7 +7,8 @@
   scanner station or the nearest camera): ``n . (v - p) > 0``.
 * Radii: "the splat radii are determined from the density of the rendered points" — from the
   distance to the k-th nearest neighbour (see :func:`splat_radii` for the factor).
-* :func:`process_chunked`: both for a cloud too large for memory, by spatial buckets with a halo;
+* :func:`process_chunked`: both for a cloud too large for memory, by spatial buckets with a halo
+  (:mod:`dmrt.preprocess.buckets`);
   equal to the in-memory results wherever the neighbourhood fits inside the halo (counted and
   reported otherwise). With a distributed executor the buckets' kNN work runs as tasks, and so do
   the input passes (bounding box, cell counts, distribution into per-bucket spill files) over the
@@ -29,11 +30,12 @@ from typing import Iterator
 import numpy as np
 from scipy.spatial import cKDTree
 
-from dmrt.preprocess.octree import (_Appender, _add_counts, _chunk_source, _iter_normalized, _merge_counts,
-                         _progress, _in_sorted, _read_records, _unique_counts, compute_bbox)
 from dmrt.io.atomic import atomic_file
+from dmrt.preprocess.buckets import (Buckets, FineGrid, chunk_source, coarsen, count_input, distribute, halo_schema,
+                                     input_bbox, input_pass, iter_chunks, positions_dtype, progress_bar,
+                                     split_input)
 from dmrt.preprocess.parallel import default_workers
-from dmrt.morton import morton_encode
+from dmrt.preprocess.spill import Spill
 
 __all__ = ["estimate_normals", "splat_radii", "orient_normals", "process_chunked", "ChunkedResult",
            "iter_with_results"]
@@ -281,7 +283,7 @@ def _margin_from_counts(keys, cnts, cell, k, extent):
         c05 = float(cs[np.searchsorted(cum, 0.05 * cum[-1])])
         if c05 >= 4 * k or cell >= extent or len(keys) == 1:
             break
-        keys, cnts = _merge_counts(keys >> 3, cnts)
+        keys, cnts = coarsen(keys, cnts)
         cell *= 2
     return 2.5 * math.sqrt(k / (math.pi * c05)) * cell
 
@@ -338,7 +340,7 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
     ChunkedResult
     """
     t0 = time.perf_counter()
-    src = _chunk_source(chunks_fn)
+    src = chunk_source(chunks_fn)
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
     if not (normals or radii):
@@ -351,18 +353,12 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
     slice_points = max(1024, budget // 8 // 256)
     knn_rows = max(1024, int(budget * 0.25 / (kmax * 3 * 8 * 3 + kmax * 16)))
     # the input passes run as tasks over consecutive parts of a splittable source, else here
-    parts = _split_source(src, executor)
+    parts = split_input(src, executor)
     timings = {}
 
     tic = time.perf_counter()
     if bbox is None:
-        if parts is None:
-            lo, hi, n = compute_bbox(src, progress)
-        else:
-            boxes = executor.map(compute_bbox, parts, desc="normals: bbox", progress=progress)
-            lo = np.min([b[0] for b in boxes], axis=0)
-            hi = np.max([b[1] for b in boxes], axis=0)
-            n = sum(b[2] for b in boxes)
+        lo, hi, n = input_bbox(parts, executor, desc="normals: bbox", progress=progress)
     else:
         lo, hi = (np.asarray(b, np.float64).reshape(3) for b in bbox)
         n = None
@@ -373,39 +369,20 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
     extent = float(np.max(hi - lo)) or 1.0
     timings["bbox_s"], tic = time.perf_counter() - tic, time.perf_counter()
 
-    # count points per cell of a fine grid, coarsened (cells doubled) while the table is large.
-    # Coarser cells are always the fine grid's integer coordinates shifted right (never a second
-    # floor() with a doubled cell), so every pass assigns a point to exactly the same cell.
-    count_cap = max(4096, budget // 256)
-    cell0 = extent / ((1 << 20) - 1)
-    grid = dict(lo=lo, cell0=cell0, slice_points=slice_points)
-    if parts is None:
-        with _progress(n, "normals: count", progress) as bar:
-            keys, cnts, shift, n_seen = _count_cells(src, cap=count_cap, bar=bar, **grid)
-        part_n = [n_seen]
-    else:
-        # Each part's table is coarsened by the serial rule against the same cap, and the parent
-        # adds them up by that rule (_add_counts): this gives the serial table. The serial pass
-        # ends at S, the smallest shift whose table of *all* points fits the cap (a pure function
-        # of the point set): it coarsens past a shift s only when the table of the points read so
-        # far, hence that of all points, exceeds the cap at s, so it ends at a shift <= S; and it
-        # ends with all points' table fitting, so at S. The same holds for a part and for a sum of
-        # parts: each coarsens past s only when a subset's table, hence all points', is over the
-        # cap at s, so every shift reached is <= S, and the final sum, all points' table coarsened
-        # while over the cap, ends at S with the same cells and counts. (A part capped at a share
-        # cap / W could stop past S, which no later step undoes; so each part gets the whole cap,
-        # and its table never has more cells than the part has points.)
-        keys, cnts, shift, part_n = np.zeros(0, np.int64), np.zeros(0, np.int64), 0, []
-        for k, c, s, m in executor.imap(_count_cells, parts, desc="normals: count", progress=progress,
-                                        cap=count_cap, **grid):
-            keys, cnts, shift = _add_counts(keys, cnts, shift, k, c, s, count_cap)
-            part_n.append(m)
-        n_seen = sum(part_n)
-    cell = cell0 * 2.0 ** shift  # exactly the serial pass's repeated doubling
+    # points per cell of a fine grid, coarsened (cells doubled) while the table is large. Each part
+    # is counted against the whole cap, so the parts' tables add up to the serial table
+    # (dmrt.preprocess.buckets); a part capped at a share cap / W could stop past the serial
+    # shift, which no later step undoes.
+    grid = FineGrid(lo, extent / ((1 << 20) - 1))
+    counts, part_n, _ = count_input(parts, executor, grid, max(4096, budget // 256), slice_points,
+                                    desc="normals: count", progress=progress, total=n)
+    keys, cnts, shift = counts.keys, counts.counts, counts.shift
+    del counts
+    cell = grid.cell * 2.0 ** shift  # exactly the serial pass's repeated doubling
     timings["count_s"], tic = time.perf_counter() - tic, time.perf_counter()
-    if n is not None and n_seen != n:
+    if n is not None and sum(part_n) != n:
         raise RuntimeError("chunks_fn must yield the same points on every call")
-    n = n_seen
+    n = sum(part_n)
     if n == 0:
         raise ValueError("the point source yielded no points")
     if margin is None:
@@ -416,41 +393,25 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
     # bucket grid: cells wider than 2 margins, so a point's margin box overlaps <= 2 cells per axis
     while cell <= 2.0 * margin and shift < 20:
         cell, shift = cell * 2, shift + 1
-        keys, cnts = _merge_counts(keys >> 3, cnts)
+        keys, cnts = coarsen(keys, cnts)
     # halos add points: leave room for them in a bucket
-    core_cap = max(1, capacity // 2)
-    starts, bcounts, acc = [], [], 0
-    for key, cnt in zip(keys.tolist(), cnts.tolist()):
-        if not starts or acc + cnt > core_cap:
-            starts.append(key)
-            bcounts.append(0)
-            acc = 0
-        acc += cnt
-        bcounts[-1] += cnt
-    cell_keys = keys  # occupied cells of the bucket grid, sorted
-    del cnts
-    starts = np.asarray(starts, np.int64)
-    nb = len(starts)
+    buckets = Buckets.cut(grid, shift, keys, cnts, max(1, capacity // 2), halos=True)
+    del keys, cnts
+    nb = len(buckets)
 
-    spill = work / f".spill-{os.getpid()}"
-    if spill.exists():
-        shutil.rmtree(spill)
+    spill = Spill(str((work / f".spill-{os.getpid()}").resolve()), halo_schema(positions_dtype(src)), len(parts))
+    shutil.rmtree(spill.root, ignore_errors=True)
     names = {"normals": work / "normals.npy", "radii": work / "radii.npy"}
     tmp_names = {k: work / f".{k}.npy.tmp-{os.getpid()}" for k in names}
     try:
         # distribute: core copy to the own bucket, halo copies to the other buckets in the margin
         # box; each part into its own spill folder per bucket, a share of the buffer budget each
-        n_parts = 1 if parts is None else len(parts)
-        positions_dtype = _positions_dtype(src)
-        plan = dict(spill=str(spill), shift=shift, margin=margin, starts=starts, cell_keys=cell_keys,
-                    buffer_bytes=budget // 4 // n_parts, positions_dtype=positions_dtype, **grid)
-        if parts is None:
-            with _progress(n, "normals: distribute", progress) as bar:
-                written = [_distribute((0, src, 0), bar=bar, **plan)]
-        else:
-            firsts = np.cumsum([0] + part_n[:-1]).tolist()  # each part's first global point index
-            written = executor.map(_distribute, list(zip(range(n_parts), parts, firsts)),
-                                   desc="normals: distribute", progress=progress, **plan)
+        spill.create(nb)
+        firsts = np.cumsum([0] + part_n[:-1]).tolist()  # each part's first global point index
+        written = [m for m, _ in input_pass(distribute, parts, executor, "normals: distribute", progress, n,
+                                            buckets=buckets, spill=spill, slice_points=slice_points,
+                                            buffer_bytes=budget // 4 // len(parts), margin=margin,
+                                            firsts=firsts)]
         if written != part_n:
             raise RuntimeError("chunks_fn must yield the same points on every call")
         timings["distribute_s"], tic = time.perf_counter() - tic, time.perf_counter()
@@ -459,14 +420,13 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
         out_r = np.lib.format.open_memmap(tmp_names["radii"], "w+", np.float32, (n,)) if radii else None
         n_unverified = 0
         max_bucket = 0
-        task = dict(spill=str(spill), n_parts=n_parts, normals=normals, radii=radii, k_normals=k_normals,
-                    k_radii=k_radii, scale=scale, viewpoints=viewpoints, margin=margin, knn_rows=knn_rows,
-                    positions_dtype=positions_dtype)
+        task = dict(spill=spill, normals=normals, radii=radii, k_normals=k_normals, k_radii=k_radii, scale=scale,
+                    viewpoints=viewpoints, margin=margin, knn_rows=knn_rows)
         if executor is None or not executor.distributed:
             results = (_bucket_attrs(b, **task) for b in range(nb))
         else:
             results = executor.imap(_bucket_attrs, range(nb), desc="normals: buckets", progress=progress, **task)
-        with _progress(n, "normals: buckets", progress and not getattr(executor, "distributed", False)) as bar:
+        with progress_bar(n, "normals: buckets", progress and not getattr(executor, "distributed", False)) as bar:
             for gidx, nrm, rad, unverified, size in results:
                 max_bucket = max(max_bucket, size)
                 n_unverified += unverified
@@ -480,12 +440,12 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
                 arr.flush()
         del out_n, out_r
         timings["buckets_s"] = time.perf_counter() - tic
-        shutil.rmtree(spill, ignore_errors=True)
+        shutil.rmtree(spill.root, ignore_errors=True)
         for k, path in names.items():
             if tmp_names[k].exists():
                 os.replace(tmp_names[k], path)
     except BaseException:
-        shutil.rmtree(spill, ignore_errors=True)
+        shutil.rmtree(spill.root, ignore_errors=True)
         for p in tmp_names.values():
             p.unlink(missing_ok=True)
         raise
@@ -497,141 +457,8 @@ def process_chunked(chunks_fn, work_dir, *, normals: bool = True, radii: bool = 
         timings={k: round(v, 3) for k, v in timings.items()})
 
 
-# the input passes: each runs over the whole source here, or as one task per part of a split one
-def _split_source(src, executor) -> list | None:
-    """The parts of ``src`` to run the input passes on as tasks of ``executor``, or None to run
-    them here: no distributed executor, a source without ``split``, or one that stays whole."""
-    if executor is None or not executor.distributed or not hasattr(src, "split"):
-        return None
-    parts = src.split(max(1, int(executor.workers)))
-    return parts if len(parts) > 1 else None
-
-
-def _qcoords(p: np.ndarray, lo: np.ndarray, cell0: float) -> np.ndarray:
-    """(m, 3) int64 coordinates of points ``p`` (m, 3) on the fine grid (cell ``cell0`` from ``lo``)."""
-    q = np.floor((p - lo) / cell0)
-    np.clip(q, 0, (1 << 21) - 1, out=q)
-    return q.astype(np.int64)
-
-
-def _count_cells(src, lo, cell0, cap, slice_points, bar=None):
-    """Points per occupied cell of the fine grid, coarsened while over ``cap`` cells.
-
-    Returns
-    -------
-    keys : (m,) int64 sorted Morton keys at the final shift.  cnts : (m,) int64.
-    shift : int, doublings of ``cell0``.  n : int, points read.
-    """
-    keys, cnts, shift, n = np.zeros(0, np.int64), np.zeros(0, np.int64), 0, 0
-    for pos, _ in _iter_normalized(src, None, slice_points):
-        uk, uc = _unique_counts(morton_encode(_qcoords(pos, lo, cell0) >> shift))
-        keys, cnts, shift = _add_counts(keys, cnts, shift, uk, uc, shift, cap)
-        n += len(pos)
-        if bar is not None:
-            bar.update(len(pos))
-    return keys, cnts, shift, n
-
-
-def _spill_schema(positions: str) -> dict:
-    """Spill records: a point's position (``positions`` dtype), its index in the input, and
-    whether it is the bucket's own."""
-    return {"positions": (positions, (3,)), "gidx": ("int64", ()), "core": ("uint8", ())}
-
-
-def _positions_dtype(src) -> str:
-    """``"float32"`` when the source's first chunk holds float32 positions (an octree's), which the
-    spill then keeps exactly in 12 bytes a point instead of 24 (683M points: 8 GB less disk);
-    else ``"float64"``."""
-    it = iter(src())
-    first = next(it, None)
-    if hasattr(it, "close"):
-        it.close()
-    if isinstance(first, (tuple, list)):
-        pos = first[0]
-    else:
-        pos = first["positions"] if isinstance(first, dict) else getattr(first, "positions", None)
-    return "float32" if np.asarray(pos).dtype == np.float32 else "float64"
-# the 8 corners of a margin box, as (low 0 / high 1) per axis
-_CORNERS = np.array([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], np.int64)
-
-
-def _part_folder(spill, b: int, part: int) -> Path:
-    return Path(spill) / f"b{b:06d}" / f"p{part:04d}"
-
-
-def _distribute(item, spill, lo, cell0, shift, margin, starts, cell_keys, slice_points, buffer_bytes,
-                positions_dtype="float64", bar=None) -> int:
-    """Append one part's core and halo copies to the spill folders ``<spill>/b<bucket>/p<part>``.
-
-    Parameters
-    ----------
-    item : (part, src, first)
-        The part's number, its chunk source and the global index of its first point.
-    starts : (nb,) int64 sorted first Morton key of each bucket (bucket grid, ``shift``).
-    cell_keys : (m,) int64 sorted occupied cells of the bucket grid.
-    buffer_bytes : int
-        Records buffered before they are written.
-    positions_dtype : str
-        The spill's position type (:func:`_positions_dtype`).
-
-    Returns
-    -------
-    int, the points read.
-    """
-    part, src, first = item
-    nb = len(starts)
-    schema = _spill_schema(positions_dtype)
-    record = np.dtype(positions_dtype).itemsize * 3 + 9
-    apps = [_Appender(_part_folder(spill, b, part), schema) for b in range(nb)]
-    buf = [[] for _ in range(nb)]
-    buffered = 0
-
-    def flush():
-        for b in range(nb):
-            if buf[b]:
-                apps[b].write({k: np.concatenate([p[k] for p in buf[b]]) for k in schema})
-                apps[b].close()
-                buf[b] = []
-
-    g = first
-    for pos, _ in _iter_normalized(src, None, slice_points):
-        m = len(pos)
-        gidx = np.arange(g, g + m, dtype=np.int64)
-        g += m
-        own = np.searchsorted(starts, morton_encode(_qcoords(pos, lo, cell0) >> shift), side="right") - 1
-        # the margin box [p - margin, p + margin] spans at most 2 cells per axis (cell >= 2
-        # margin): its cells are the 8 combinations of its low and high corner cells
-        qlo = _qcoords(pos - margin, lo, cell0) >> shift
-        qhi = _qcoords(pos + margin, lo, cell0) >> shift
-        # (only occupied cells: a bucket's key range also spans empty cells, which must not
-        # draw halos)
-        bb, pi = [own], [np.arange(m)]  # the core copy, always
-        for corner in _CORNERS:
-            kk = morton_encode(np.where(corner, qhi, qlo))
-            occ = np.flatnonzero(_in_sorted(kk, cell_keys))
-            bb.append(np.searchsorted(starts, kk[occ], side="right") - 1)
-            pi.append(occ)
-        bb, pi = np.concatenate(bb), np.concatenate(pi)
-        pair, _ = _unique_counts(bb * m + pi)  # one copy per (bucket, point), sorted by bucket, then point
-        bb, ii = pair // m, pair % m
-        core = (bb == own[ii]).astype(np.uint8)
-        cuts = np.flatnonzero(np.r_[True, bb[1:] != bb[:-1], True])
-        for j in range(len(cuts) - 1):
-            a, e = cuts[j], cuts[j + 1]
-            sel = ii[a:e]
-            buf[bb[a]].append({"positions": pos[sel], "gidx": gidx[sel], "core": core[a:e]})
-        buffered += len(bb) * record
-        if buffered > buffer_bytes:
-            flush()
-            buffered = 0
-        if bar is not None:
-            bar.update(m)
-    flush()
-    return g - first
-
-
-def _bucket_attrs(b: int, spill: str, n_parts: int, normals: bool, radii: bool, k_normals: int, k_radii: int,
-                  scale: float, viewpoints, margin: float, knn_rows: int, positions_dtype: str = "float64"):
+def _bucket_attrs(b: int, spill: Spill, normals: bool, radii: bool, k_normals: int, k_radii: int, scale: float,
+                  viewpoints, margin: float, knn_rows: int):
     """The normals and radii of bucket ``b``'s core points (its spill folder is removed).
 
     The bucket's parts are read in part order, i.e. its points in input order, as one serial
@@ -642,11 +469,8 @@ def _bucket_attrs(b: int, spill: str, n_parts: int, normals: bool, radii: bool, 
     gidx : (m,) int64 the core points' indices in the input.  normals : (m, 3) float32 or None.
     radii : (m,) float32 or None.  n_unverified : int.  size : int, core + halo points.
     """
-    schema = _spill_schema(positions_dtype)
-    pieces = [_read_records(_part_folder(spill, b, p), schema) for p in range(n_parts)]
-    shutil.rmtree(Path(spill) / f"b{b:06d}", ignore_errors=True)
-    rec = pieces[0] if n_parts == 1 else {k: np.concatenate([r[k] for r in pieces]) for k in schema}
-    del pieces
+    rec = spill.read(b)
+    spill.remove(b)
     # float64 as every other path computes (float32 spills hold float32 inputs exactly)
     pos, gidx, core = rec["positions"].astype(np.float64), rec["gidx"], rec["core"].astype(bool)
     qi = np.flatnonzero(core)
@@ -686,8 +510,8 @@ def _process_in_memory(src, n, work, normals, radii, k_normals, k_radii, scale, 
     results written as ``process_chunked`` writes them (renamed into place when complete)."""
     pos = np.empty((n, 3), np.float64)
     g = 0
-    with _progress(n, "normals: read", progress) as bar:
-        for p, _ in _iter_normalized(src):
+    with progress_bar(n, "normals: read", progress) as bar:
+        for p, _ in iter_chunks(src):
             if g + len(p) > n:
                 raise RuntimeError("chunks_fn must yield the same points on every call")
             pos[g:g + len(p)] = p
@@ -714,7 +538,7 @@ def iter_with_results(chunks_fn, result: ChunkedResult) -> Iterator[tuple[np.nda
     """The input chunks again, with ``normals`` and/or ``radii`` attributes from ``result`` added
     (ready for :meth:`dmrt.preprocess.octree.Octree.build`)."""
     g = 0
-    for pos, attrs in _iter_normalized(_chunk_source(chunks_fn)):
+    for pos, attrs in iter_chunks(chunk_source(chunks_fn)):
         m = len(pos)
         attrs = dict(attrs)
         if result.normals is not None:

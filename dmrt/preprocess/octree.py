@@ -44,6 +44,10 @@ buckets and the number of workers.
 
 Out-of-core build (memory ``M = memory_limit_mb``, ``W`` workers)
 ---------------------------------------------------------------
+The input parts, cell counts, buckets and spill files are :mod:`dmrt.preprocess.buckets` and
+:mod:`dmrt.preprocess.spill` (shared with the normals); this module chooses the levels, the
+bucket level and the budget, and selects the levels.
+
 1. (only without ``bbox``) one pass for the bounding box;
 2. *count*: points per cell of a counting grid (sparse: sorted int64 Morton keys + counts; coarsened
    one level at a time while the table would exceed ``M/256`` entries, ~3/8 M with merge temporaries);
@@ -123,18 +127,17 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable, Iterator
+from typing import Iterable, Iterator
 
 import numpy as np
 
 from dmrt.errors import InputError
 from dmrt.io.atomic import atomic_dir
 from dmrt.morton import MAX_BITS_PER_AXIS, morton_encode
-
-try:  # progress bars are optional
-    from tqdm.auto import tqdm as _tqdm
-except ImportError:  # pragma: no cover
-    _tqdm = None
+from dmrt.preprocess.buckets import (Buckets, chunk_source, coarsen, count_input, distribute, first_chunk, in_sorted,
+                                     input_bbox, input_pass, iter_chunks, merge_counts, normalize_chunk,
+                                     progress_bar, split_input, unique_counts)
+from dmrt.preprocess.spill import Appender, Spill, field_bytes, read_records, take
 
 FORMAT = "dmrt-octree"
 VERSION = 2  # 2: positions stored as float32 (1: float64)
@@ -167,229 +170,6 @@ class OctreeConfig:
             raise ValueError(f"OctreeConfig.root_cell must be > 0, got {self.root_cell}")
         if not float(self.memory_limit_mb) > 0:
             raise ValueError(f"OctreeConfig.memory_limit_mb must be > 0, got {self.memory_limit_mb}")
-
-
-# ---------------------------------------------------------------------------------------------
-# small helpers
-# ---------------------------------------------------------------------------------------------
-def _progress(total, desc, enabled):
-    if not enabled or _tqdm is None:
-        return _NullBar()
-    return _tqdm(total=total, desc=desc, unit="pt", unit_scale=True, leave=False)
-
-
-class _NullBar:
-    def update(self, n=1):
-        pass
-
-    def close(self):
-        pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-
-def _normalize_chunk(item, where="chunk", dtype=np.float64) -> tuple[np.ndarray, dict]:
-    """Accept ``(positions, attrs)``, a dict with ``'positions'``, or an object with ``.positions``
-    (e.g. ``dmrt.io.pointcloud.PointCloud``; attributes that are ``None`` are skipped).
-
-    Returns ``(positions (n, 3), {name: (n, ...) array})``; positions contiguous of ``dtype``, or
-    as given (only reshaped) for ``dtype=None``."""
-    if isinstance(item, (tuple, list)) and len(item) == 2:
-        pos, attrs = item
-        attrs = dict(attrs or {})
-    elif isinstance(item, dict):
-        attrs = dict(item)
-        pos = attrs.pop("positions")
-    elif hasattr(item, "positions"):
-        pos = item.positions
-        if dataclasses.is_dataclass(item):
-            names = [f.name for f in dataclasses.fields(item) if f.name != "positions"]
-        else:
-            names = [n for n in ("normals", "colors", "radii") if hasattr(item, n)]
-        attrs = {n: getattr(item, n) for n in names}
-    else:
-        raise TypeError(f"{where}: expected (positions, attributes), a dict or a PointCloud, "
-                        f"got {type(item).__name__}")
-    pos = np.asarray(pos).reshape(-1, 3)
-    if dtype is not None:
-        pos = np.ascontiguousarray(pos, dtype=dtype)
-    out = {}
-    for name, a in attrs.items():
-        if a is None or not isinstance(a, np.ndarray) and not isinstance(a, (list, tuple)):
-            continue
-        a = np.ascontiguousarray(np.asarray(a))
-        if a.ndim == 0 or a.shape[0] != len(pos):
-            raise ValueError(f"{where}: attribute {name!r} has {a.shape[0] if a.ndim else 0} rows "
-                             f"for {len(pos)} positions")
-        out[name] = a
-    return pos, out
-
-
-def _chunk_source(chunks_fn) -> Callable[[], Iterator]:
-    if callable(chunks_fn):
-        return chunks_fn
-    if isinstance(chunks_fn, Iterator):
-        raise TypeError("the octree build reads its input several times: pass a callable that "
-                        "returns a fresh iterator of chunks (or a re-iterable such as a list)")
-    if isinstance(chunks_fn, Iterable):
-        return lambda: iter(chunks_fn)
-    raise TypeError(f"chunks_fn must be callable, got {type(chunks_fn).__name__}")
-
-
-def _iter_normalized(chunks_fn, schema=None, max_points=None, where="", dtype=np.float64):
-    """Yield ``(positions (n, 3) dtype, attrs)`` from the source, checking the attribute schema
-    (``{name: (dtype str, per-point shape)}``, as the first chunk's), and split into slices of at
-    most ``max_points`` so working arrays stay bounded. ``where`` prefixes the chunk in error
-    messages (e.g. ``"input part 2 of 4, "``: chunks are counted from the part's start). The
-    positions are converted to ``dtype`` slice by slice (the octree's passes: rounded to float32),
-    so a conversion copy never holds more than one slice."""
-    want = None if schema is None else {k: (str(dt), list(s)) for k, (dt, s) in schema.items() if k != "positions"}
-    for i, item in enumerate(chunks_fn()):
-        pos, attrs = _normalize_chunk(item, where=f"{where}chunk {i}", dtype=None)
-        if want is not None:
-            got = {k: (str(v.dtype), list(v.shape[1:])) for k, v in attrs.items()}
-            if got != want:
-                raise ValueError(f"{where}chunk {i}: attributes {got} differ from the first chunk's {want}")
-        n = len(pos)
-        if n == 0:
-            continue
-        step = n if not max_points else max(1, int(max_points))
-        for s in range(0, n, step):
-            yield np.ascontiguousarray(pos[s:s + step], dtype=dtype), {k: v[s:s + step] for k, v in attrs.items()}
-
-
-def compute_bbox(chunks_fn, progress=False) -> tuple[np.ndarray, np.ndarray, int]:
-    """One streaming pass: ``(min (3,) float64, max (3,) float64, number of points)`` of the
-    positions as given (taken as float64, not rounded as the octree's build rounds them)."""
-    with _progress(None, "octree: bbox", progress) as bar:
-        return _check_bbox(*_bbox_part((0, 1, _chunk_source(chunks_fn)), bar=bar, dtype=np.float64))
-
-
-def _check_bbox(lo, hi, n):
-    if n == 0:
-        raise ValueError("the point source yielded no points")
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-        raise ValueError("the point source contains non-finite coordinates")
-    return lo, hi, n
-
-
-# ---------------------------------------------------------------------------------------------
-# the passes that read the input (bbox, count, distribute). Each reads one part of the input,
-# ``item = (part, parts, chunk source)``: the whole source in this process (the serial path,
-# ``(0, 1, source)``), or one part of a split source as a task in a worker process; module-level,
-# with picklable arguments, for the executor. Each rounds the positions to POSITIONS_DTYPE as they
-# are read (``_iter_normalized(..., dtype=POSITIONS_DTYPE)``), so every pass, and the passes after
-# them reading the spill files, see the same float32 values: arithmetic on them may run in float64
-# (numpy upcasts float32 arrays exactly when combined with float64 arrays), but never on the
-# unrounded input.
-# ---------------------------------------------------------------------------------------------
-def _where(item) -> str:
-    part, parts, _ = item
-    return f"input part {part + 1} of {parts}, " if parts > 1 else ""
-
-
-def _bbox_part(item, bar=None, dtype=POSITIONS_DTYPE) -> tuple[np.ndarray, np.ndarray, int]:
-    """Bounding box of one part's positions rounded to ``dtype``: ``(min (3,) float64, max (3,)
-    float64, points)``; ``inf`` and ``-inf`` without points (the neutral elements of combining
-    parts), NaN where a coordinate is (``inf`` too where rounding overflows float32's range)."""
-    lo, hi, n = np.full(3, np.inf), np.full(3, -np.inf), 0
-    for pos, _ in _iter_normalized(item[2], where=_where(item), dtype=dtype):
-        lo = np.minimum(lo, pos.min(axis=0))
-        hi = np.maximum(hi, pos.max(axis=0))
-        n += len(pos)
-        if bar is not None:
-            bar.update(len(pos))
-    return lo, hi, n
-
-
-def _count_part(item, grid, schema, slice_points, cap, bbox=None, bar=None):
-    """Sparse point counts of one part's cells at the finest level whose table stays within
-    ``cap`` entries: counted at the finest grid level, coarsened one level at a time (keys
-    ``>> 3``) whenever the table exceeds ``cap``.
-
-    Returns
-    -------
-    level : int
-    keys : (m,) int64, sorted Morton keys of the occupied level-``level`` cells
-    counts : (m,) int64
-    points : int
-    outside : int, points whose (rounded) position is outside ``bbox`` (``(lo (3,), hi (3,))``,
-        float32-representable; 0 without)
-    """
-    level = grid.finest
-    keys = np.zeros(0, np.int64)
-    cnts = np.zeros(0, np.int64)
-    n = n_out = 0
-    for pos, _ in _iter_normalized(item[2], schema, slice_points, _where(item), POSITIONS_DTYPE):
-        if not np.isfinite(pos).all():
-            raise ValueError("the point source contains non-finite coordinates (or beyond float32's range)")
-        if bbox is not None:
-            n_out += int(np.count_nonzero(np.any((pos < bbox[0]) | (pos > bbox[1]), axis=1)))
-        k = morton_encode(grid.coords(pos) >> (grid.finest - level))
-        keys, cnts = _merge_counts(keys, cnts, *_unique_counts(k))
-        while len(keys) > cap and level > 0:
-            level -= 1
-            keys, cnts = _merge_counts(keys >> 3, cnts)
-        n += len(pos)
-        if bar is not None:
-            bar.update(len(pos))
-    return level, keys, cnts, n, n_out
-
-
-def _distribute_part(item, work, bucket_starts, slice_points, buffer_bytes, bar=None) -> np.ndarray:
-    """Stream one part's points into its spill files of every bucket (``work.part_folder(bucket,
-    part)``), in input order, holding at most ``buffer_bytes`` of records in buffers.
-
-    Parameters
-    ----------
-    work : _Buckets
-    bucket_starts : (buckets,) int64, the first level-``work.c`` Morton key of every bucket
-
-    Returns
-    -------
-    (buckets,) int64, the points written to each bucket
-    """
-    part, g, c, schema = item[0], work.grid, work.c, work.schema
-    record_bytes = _field_bytes(schema)
-    nb = len(bucket_starts)
-    # the bucket folders exist (made by the parent): a task still running after the build failed
-    # and removed its temporary folder fails here instead of making the folder again
-    apps = [_Appender(work.part_folder(b, part), schema, parents=False) for b in range(nb)]
-    buf = [[] for _ in range(nb)]
-    buffered = 0
-
-    def flush():
-        for b in range(nb):
-            if buf[b]:
-                parts = buf[b]
-                rec = parts[0] if len(parts) == 1 else {k: np.concatenate([p[k] for p in parts]) for k in schema}
-                apps[b].write(rec)
-                apps[b].close()  # never hold thousands of handles
-                buf[b] = []
-
-    for pos, attrs in _iter_normalized(item[2], schema, slice_points, _where(item), POSITIONS_DTYPE):
-        kc = morton_encode(g.coords(pos) >> (g.finest - c))
-        bid = np.searchsorted(bucket_starts, kc, side="right") - 1
-        o = np.argsort(bid, kind="stable")
-        bs = bid[o]
-        cuts = np.flatnonzero(np.r_[True, bs[1:] != bs[:-1], True])
-        rec = {"positions": pos, **attrs}
-        rec = {k: v[o] for k, v in rec.items()}
-        for i in range(len(cuts) - 1):
-            a, e = cuts[i], cuts[i + 1]
-            buf[bs[a]].append({k: v[a:e] for k, v in rec.items()})
-        buffered += len(pos) * record_bytes
-        if buffered > buffer_bytes:
-            flush()
-            buffered = 0
-        if bar is not None:
-            bar.update(len(pos))
-    flush()
-    return np.array([app.count for app in apps], np.int64)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -497,164 +277,6 @@ def _top_m(keys, d2, pos, m: int) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------
-# file helpers
-# ---------------------------------------------------------------------------------------------
-def _field_bytes(schema) -> int:
-    return sum(np.dtype(dt).itemsize * int(np.prod(shape, dtype=np.int64)) for dt, shape in schema.values())
-
-
-class _Appender:
-    """Append raw arrays to ``<dir>/<field>.bin`` files (opened lazily, kept open); ``parents``:
-    whether to make the folder's missing parents too."""
-
-    def __init__(self, directory: Path, schema, parents: bool = True):
-        self.dir = Path(directory)
-        self.schema = schema
-        self.parents = parents
-        self.files = {}
-        self.count = 0
-
-    def _open(self) -> dict:
-        if not self.files:
-            self.dir.mkdir(parents=self.parents, exist_ok=True)
-            self.files = {k: open(self.dir / f"{k}.bin", "ab") for k in self.schema}
-        return self.files
-
-    def write(self, rec: dict):
-        n = len(rec["positions"])
-        if n == 0:
-            return
-        for k, f in self._open().items():
-            np.ascontiguousarray(rec[k], dtype=self.schema[k][0]).tofile(f)
-        self.count += n
-
-    def append_files(self, directory: Path, n: int):
-        """Append the ``n`` records of another folder of ``<field>.bin`` files (copied as bytes)."""
-        if n == 0:
-            return
-        for k, f in self._open().items():
-            with open(Path(directory) / f"{k}.bin", "rb") as src:
-                shutil.copyfileobj(src, f, 1 << 22)
-        self.count += n
-
-    def close(self):
-        for f in self.files.values():
-            f.close()
-        self.files = {}
-
-
-def _read_records(directory: Path, schema, start=0, stop=None) -> dict:
-    out = {}
-    for k, (dt, shape) in schema.items():
-        dt = np.dtype(dt)
-        row = int(np.prod(shape, dtype=np.int64))
-        path = Path(directory) / f"{k}.bin"
-        if not path.exists():
-            out[k] = np.zeros((0, *shape), dt)
-            continue
-        total = path.stat().st_size // (dt.itemsize * row)
-        stop_k = total if stop is None else min(stop, total)
-        with open(path, "rb") as f:
-            f.seek(start * dt.itemsize * row)
-            a = np.fromfile(f, dtype=dt, count=max(0, stop_k - start) * row)
-        out[k] = a.reshape(-1, *shape)
-    return out
-
-
-def _read_parts(folders, schema, start=0, stop=None) -> dict:
-    """Records ``[start, stop)`` of the records of several folders taken one after the other (as
-    :func:`_read_records`; a missing folder holds none)."""
-    rows = np.dtype(schema["positions"][0]).itemsize * int(np.prod(schema["positions"][1], dtype=np.int64))
-    pieces, first = [], 0
-    for folder in folders:
-        path = Path(folder) / "positions.bin"
-        n = path.stat().st_size // rows if path.exists() else 0
-        a, b = max(start, first), first + n if stop is None else min(stop, first + n)
-        if b > a:
-            pieces.append(_read_records(folder, schema, a - first, b - first))
-        first += n
-    if len(pieces) == 1:
-        return pieces[0]
-    if not pieces:
-        return {k: np.zeros((0, *shape), dt) for k, (dt, shape) in schema.items()}
-    return {k: np.concatenate([p[k] for p in pieces]) for k in schema}
-
-
-def _unique_counts(a: np.ndarray):
-    """Sorted unique values and their counts (sort-based: NumPy 2.4's hash-based ``np.unique`` is
-    an order of magnitude slower on large int64 arrays)."""
-    s = np.sort(a)
-    if len(s) == 0:
-        return s, np.zeros(0, np.int64)
-    start = np.flatnonzero(np.r_[True, s[1:] != s[:-1]])
-    return s[start], np.diff(np.r_[start, len(s)])
-
-
-def _in_sorted(a: np.ndarray, sorted_b: np.ndarray) -> np.ndarray:
-    """Boolean mask: which elements of ``a`` occur in the sorted array ``sorted_b``."""
-    if len(sorted_b) == 0:
-        return np.zeros(len(a), bool)
-    i = np.searchsorted(sorted_b, a)
-    return sorted_b[np.minimum(i, len(sorted_b) - 1)] == a
-
-
-def _merge_counts(k1, c1, k2=None, c2=None):
-    """Merge sorted (key, count) tables (keys may repeat): sorted unique keys and summed counts.
-    Two tables: the second's keys are looked up in the first (binary search of sorted keys), their
-    counts added and the new keys inserted, which is linear in the first table (a sort of both
-    took ~10x longer for a large table and a slice's keys)."""
-    k1, c1 = _reduce_runs(k1, c1)
-    if k2 is None:
-        return k1, c1
-    k2, c2 = _reduce_runs(k2, c2)
-    i = np.searchsorted(k1, k2)
-    hit = i < len(k1)
-    hit[hit] = k1[i[hit]] == k2[hit]
-    c = c1.copy()
-    c[i[hit]] += c2[hit]  # the second's keys are unique: no index repeats
-    new = ~hit
-    return np.insert(k1, i[new], k2[new]), np.insert(c, i[new], c2[new])
-
-
-def _shifted(keys: np.ndarray, levels: int) -> np.ndarray:
-    """Morton ``keys`` of cells ``levels`` doublings coarser (still sorted, now with repeats)."""
-    return keys >> (3 * levels) if levels else keys
-
-
-def _add_counts(keys, cnts, shift, keys2, cnts2, shift2, cap, max_shift=None):
-    """Add a (key, count) table at ``shift2`` to one at ``shift``: both coarsened to the coarser
-    shift, merged, then coarsened while over ``cap`` cells (and below ``max_shift``, if given).
-
-    Parameters
-    ----------
-    keys, keys2 : (m,) int64 sorted Morton keys of grid cells at ``fine cell * 2**shift``.
-    cnts, cnts2 : (m,) int64 points per cell.
-
-    Returns
-    -------
-    keys : (m',) int64.  cnts : (m',) int64.  shift : int, the sum's shift.
-    """
-    s = max(shift, shift2)
-    keys, cnts = _merge_counts(_shifted(keys, s - shift), cnts, _shifted(keys2, s - shift2), cnts2)
-    while len(keys) > cap and (max_shift is None or s < max_shift):
-        s += 1
-        keys, cnts = _merge_counts(keys >> 3, cnts)
-    return keys, cnts, s
-
-
-def _reduce_runs(k, c):
-    """A sorted (key, count) table with each run of equal keys summed into one entry."""
-    if len(k) < 2 or not np.any(k[1:] == k[:-1]):
-        return k, c
-    start = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
-    return k[start], np.add.reduceat(c, start)
-
-
-def _take(rec: dict, idx) -> dict:
-    return {k: v[idx] for k, v in rec.items()}
-
-
-# ---------------------------------------------------------------------------------------------
 # the octree
 # ---------------------------------------------------------------------------------------------
 class Octree:
@@ -740,14 +362,14 @@ class Octree:
     def read_level(self, level: int) -> dict:
         """All points of one level: ``{'positions': (n, 3) float32, <attribute>: (n, ...)}``."""
         self._check_level(level)
-        return _read_records(self._level_dir(level), self.fields)
+        return read_records(self._level_dir(level), self.fields)
 
     def iter_level_chunks(self, level: int, chunk_size: int = 1_000_000) -> Iterator[dict]:
         """One level in chunks of at most ``chunk_size`` points (dicts as :meth:`read_level`)."""
         self._check_level(level)
         n = self.level_counts[level]
         for s in range(0, n, int(chunk_size)):
-            yield _read_records(self._level_dir(level), self.fields, s, min(n, s + int(chunk_size)))
+            yield read_records(self._level_dir(level), self.fields, s, min(n, s + int(chunk_size)))
 
     def iter_levels(self, levels: Iterable[int] | None = None, chunk_size: int = 1_000_000) -> Iterator[dict]:
         """Stream several levels (default: all), coarsest first, in chunks of ``<= chunk_size``."""
@@ -830,7 +452,7 @@ class Octree:
             :class:`~dmrt.preprocess.parallel.InProcess`) byte for byte.
         """
         config = config or OctreeConfig()
-        src = _chunk_source(chunks_fn)
+        src = chunk_source(chunks_fn)
         out_dir = Path(out_dir)
         if out_dir.exists() and not (out_dir / "octree.json").exists() and any(out_dir.iterdir()):
             raise InputError(out_dir, "exists and is not an octree; refusing to overwrite it")
@@ -872,7 +494,7 @@ class OctreeRange:
 
     def __call__(self) -> Iterator[dict]:
         for level, first, a, b in self._chunks():
-            yield _read_records(Path(self.path) / f"level_{level:02d}", self.fields, a - first, b - first)
+            yield read_records(Path(self.path) / f"level_{level:02d}", self.fields, a - first, b - first)
 
     def deal(self, parts: int) -> list[list["OctreeRange"]]:
         """This range's chunks, each as a range of its own, dealt round-robin into at most
@@ -911,13 +533,13 @@ class _Builder:
         self.workers = max(1, int(self.executor.workers)) if self.executor is not None else 1
         # the passes that read the input run as tasks, one per part, when the source splits
         # into several (consecutive ranges of the input: PointRange, OctreeRange), else here
-        parts = src.split(self.workers) if self.executor is not None and callable(getattr(src, "split", None)) else []
-        self.parts = list(parts) if len(parts) > 1 else [src]
+        self.parts = split_input(src, self.executor)
+        self.buckets = None
         self.timings = {}
 
     # -- budget split -----------------------------------------------------------------------------
     def _plan_memory(self):
-        rb = _field_bytes(self.schema)  # bytes a record: 12 of float32 positions + the attributes'
+        rb = field_bytes(self.schema)  # bytes a record: 12 of float32 positions + the attributes'
         # the input passes read the K = len(self.parts) parts at once (K <= W), so each part gets
         # 1/K of the budget of the tables, buffers and slices below (serially K = 1: all of it)
         k = len(self.parts)
@@ -948,14 +570,10 @@ class _Builder:
         t0 = time.perf_counter()
         cfg = self.config
         # schema from the first chunk
-        it = iter(self.src())
-        first = next(it, None)
-        if hasattr(it, "close"):
-            it.close()
-        del it
+        first = first_chunk(self.src)
         if first is None:
             raise ValueError("the point source yielded no chunks")
-        pos0, attrs0 = _normalize_chunk(first, "chunk 0", dtype=None)
+        pos0, attrs0 = normalize_chunk(first, "chunk 0", dtype=None)
         self.schema = {"positions": (POSITIONS_DTYPE, (3,))}
         self.schema.update({k: (str(v.dtype), tuple(v.shape[1:])) for k, v in attrs0.items()})
         del first, pos0, attrs0
@@ -963,10 +581,8 @@ class _Builder:
 
         self.n_total = None
         if self.bbox is None:
-            lo, hi, n = np.full(3, np.inf), np.full(3, -np.inf), 0
-            for lo_p, hi_p, n_p in self._input_pass(_bbox_part, "octree: bbox"):
-                lo, hi, n = np.minimum(lo, lo_p), np.maximum(hi, hi_p), n + n_p
-            lo, hi, self.n_total = _check_bbox(lo, hi, n)
+            lo, hi, self.n_total = input_bbox(self.parts, self.executor, POSITIONS_DTYPE, "octree: bbox",
+                                              self.progress)
         else:
             # the given box rounded to float32 as the points are: rounding is monotonic, so every
             # point inside the given box stays inside the rounded one (none is counted outside
@@ -1015,6 +631,7 @@ class _Builder:
             raise RuntimeError(f"the point source yielded {sum(counts)} points, the bbox pass {self.n_total}: "
                                "chunks_fn must yield the same points on every call")
         outside = getattr(self, "n_outside", 0)
+        bucket_counts = [0] if self.buckets is None else self.buckets.counts
         return {
             "format": FORMAT,
             "version": VERSION,
@@ -1025,8 +642,8 @@ class _Builder:
             "n_points": int(sum(counts)),
             "fields": {k: {"dtype": dt, "shape": list(s)} for k, (dt, s) in self.schema.items()},
             "bucket_level": int(getattr(self, "c", 0)),
-            "n_buckets": int(len(getattr(self, "bucket_counts", [0]))),
-            "max_bucket_points": int(max(getattr(self, "bucket_counts", [0]), default=0)),
+            "n_buckets": len(bucket_counts),
+            "max_bucket_points": int(max(bucket_counts, default=0)),
             "bucket_capacity": int(self.capacity),
             "points_outside_bbox": int(outside),
             "workers": self.workers,
@@ -1034,22 +651,11 @@ class _Builder:
             "timings": self.timings,
         }
 
-    def _input_pass(self, fn, desc, **shared):
-        """``fn((part, parts, source), **shared)`` per part of the input, results in part order: as
-        tasks of the executor when the source split into several parts, else here on the whole
-        source (with a bar over the points)."""
-        items = [(i, len(self.parts), src) for i, src in enumerate(self.parts)]
-        if len(items) > 1:
-            yield from self.executor.imap(fn, items, desc=desc, progress=self.progress, **shared)
-            return
-        with _progress(self.n_total, desc, self.progress) as bar:
-            yield fn(items[0], bar=bar, **shared)
-
     # pass: everything into level 0 when there are no grid levels
     def _copy_all(self):
-        app = _Appender(self.tmp / "level_00", self.schema)
-        with _progress(self.n_total, "octree: copy", self.progress) as bar:
-            for pos, attrs in _iter_normalized(self.src, self.schema, self.slice_points, dtype=POSITIONS_DTYPE):
+        app = Appender(self.tmp / "level_00", self.schema)
+        with progress_bar(self.n_total, "octree: copy", self.progress) as bar:
+            for pos, attrs in iter_chunks(self.src, self.schema, self.slice_points, dtype=POSITIONS_DTYPE):
                 app.write({"positions": pos, **attrs})
                 bar.update(len(pos))
         app.close()
@@ -1058,32 +664,25 @@ class _Builder:
     # pass: sparse counts at the finest affordable level
     def _count(self):
         g = self.grid
-        level, keys, cnts = g.finest, np.zeros(0, np.int64), np.zeros(0, np.int64)
-        n = n_out = 0
         bbox = (g.origin, np.asarray(self.bbox[1], np.float64)) if self.bbox is not None else None
-        results = self._input_pass(_count_part, "octree: count", grid=g, schema=self.schema,
-                                   slice_points=self.slice_points, cap=self.part_count_cap, bbox=bbox)
         # The serial pass (one part, cap = count_cap) ends at the finest level whose table of *all*
-        # the points fits count_cap (0 if none does), L* say: a table only grows as points come, so
-        # a level that overflowed on some prefix overflows for the whole input, and at the end the
-        # table fits. That is a pure function of the point set, so the order of merging does not
-        # matter. Here the parts' tables are brought to the coarsest level any part reached
-        # (keys >> 3 per level), merged, and coarsened while over count_cap: each merged table is
-        # the table of a subset of the points, so this never coarsens past L*. The result is the
-        # serial table when every part stopped at L* or finer, i.e. when no part alone has
-        # more than count_cap / K cells at L*. A part that has (not rare: in bench_octree's 4M
-        # points, each half alone has over half of the 722k level-4 cells, so 2 parts stop at
-        # level 3) leaves the table coarser than L*: the serial table coarsened. That changes the
-        # bucket level c only where no level up to the table's has every cell within a bucket's
-        # capacity (c is then the table's level, and more buckets are over-full); the level files
-        # do not depend on the buckets, so they are the same bytes either way.
-        for level_p, keys_p, cnts_p, n_p, out_p in results:
-            # in shifts (doublings coarser than the finest level), no coarser than level 0
-            keys, cnts, shift = _add_counts(keys, cnts, g.finest - level, keys_p, cnts_p, g.finest - level_p,
-                                            self.count_cap, max_shift=g.finest)
-            del keys_p, cnts_p
-            level = g.finest - shift
-            n, n_out = n + n_p, n_out + out_p
+        # the points fits count_cap (0 if none does), L* say (dmrt.preprocess.buckets: a pure
+        # function of the point set). Each part's table is coarsened against count_cap / K here
+        # (its share of the memory), then the tables are added and coarsened while over
+        # count_cap: each merged table is the table of a subset of the points, so this never
+        # coarsens past L*. The result is the serial table when every part stopped at L* or finer,
+        # i.e. when no part alone has more than count_cap / K cells at L*. A part that has (not
+        # rare: in bench_octree's 4M points, each half alone has over half of the 722k level-4
+        # cells, so 2 parts stop at level 3) leaves the table coarser than L*: the serial table
+        # coarsened. That changes the bucket level c only where no level up to the table's has
+        # every cell within a bucket's capacity (c is then the table's level, and more buckets are
+        # over-full); the level files do not depend on the buckets, so they are the same bytes
+        # either way. Shifts are doublings coarser than the finest level, no coarser than level 0.
+        counts, part_n, n_out = count_input(
+            self.parts, self.executor, g, self.count_cap, self.slice_points, part_cap=self.part_count_cap,
+            max_shift=g.finest, desc="octree: count", progress=self.progress, total=self.n_total,
+            schema=self.schema, dtype=POSITIONS_DTYPE, bbox=bbox)
+        n = sum(part_n)
         if self.n_total is not None and n != self.n_total:
             raise RuntimeError(f"chunks_fn yielded {n} points now and {self.n_total} before: "
                                "it must yield the same points on every call")
@@ -1093,53 +692,44 @@ class _Builder:
         # by less than float32's resolution there may round onto the box and not count either
         self.n_outside = n_out
         # bucket level: the coarsest level whose every cell fits one bucket
+        level, keys, cnts = g.finest - counts.shift, counts.keys, counts.counts
         c, ck, cc = level, keys, cnts
         for lvl in range(0, level + 1):
-            k2, c2 = _merge_counts(keys >> (3 * (level - lvl)), cnts)
+            k2, c2 = coarsen(keys, cnts, level - lvl)
             if c2.max() <= self.capacity:
                 c, ck, cc = lvl, k2, c2
                 break
         self.c, self.cell_keys, self.cell_counts = c, ck, cc
 
     def _make_buckets(self):
-        starts, counts = [], []
-        acc = 0
-        for key, cnt in zip(self.cell_keys.tolist(), self.cell_counts.tolist()):
-            if not starts or acc + cnt > self.capacity:
-                starts.append(key)
-                counts.append(0)
-                acc = 0
-            acc += cnt
-            counts[-1] += cnt
-        self.bucket_starts = np.asarray(starts, np.int64)
-        self.bucket_counts = np.asarray(counts, np.int64)
-        self.bucket_offsets = np.r_[0, np.cumsum(self.bucket_counts)]
+        self.buckets = Buckets.cut(self.grid, self.grid.finest - self.c, self.cell_keys, self.cell_counts,
+                                   self.capacity)
         del self.cell_keys, self.cell_counts
-        self.work = _Buckets(str(self.spill.resolve()), self.schema, self.grid, self.c, self.capacity,
-                             len(self.parts))
-        for b in range(len(self.bucket_starts)):
-            self.work.folder(b).mkdir()
+        self.bucket_offsets = np.r_[0, np.cumsum(self.buckets.counts)]
+        spill = Spill(str(self.spill.resolve()), self.schema, len(self.parts))
+        self.work = _BucketWork(spill, self.grid, self.c, self.capacity)
+        self.work.spill.create(len(self.buckets))
 
     # pass: points -> per-bucket spill files, one folder per bucket and part
     def _distribute(self):
-        got = np.zeros(len(self.bucket_starts), np.int64)
-        for counts in self._input_pass(_distribute_part, "octree: distribute", work=self.work,
-                                       bucket_starts=self.bucket_starts, slice_points=self.slice_points,
-                                       buffer_bytes=self.buffer_bytes):
-            got += counts
-        for b in np.flatnonzero(got != self.bucket_counts)[:1]:
-            raise RuntimeError(f"bucket {b} received {got[b]} points, counted {self.bucket_counts[b]}: "
+        got = np.zeros(len(self.buckets), np.int64)
+        for _, written in input_pass(distribute, self.parts, self.executor, "octree: distribute", self.progress,
+                                     self.n_total, buckets=self.buckets, spill=self.work.spill,
+                                     slice_points=self.slice_points, buffer_bytes=self.buffer_bytes,
+                                     schema=self.schema, dtype=POSITIONS_DTYPE):
+            got += written
+        for b in np.flatnonzero(got != self.buckets.counts)[:1]:
+            raise RuntimeError(f"bucket {b} received {got[b]} points, counted {self.buckets.counts[b]}: "
                                "chunks_fn must yield the same points on every call")
-
     # pass: candidates for levels 0..c-1, resolved exactly in memory
     def _coarse_levels(self):
-        c, nb = self.c, len(self.bucket_starts)
+        c, nb = self.c, len(self.buckets)
         self.coarse_picks = [np.zeros(0, np.int64) for _ in range(nb)]  # local indices per bucket
-        self.level_apps = [_Appender(self.tmp / f"level_{lvl:02d}", self.schema) for lvl in range(self.config.levels)]
+        self.level_apps = [Appender(self.tmp / f"level_{lvl:02d}", self.schema) for lvl in range(self.config.levels)]
         if c == 0:
             return
         cand = [[] for _ in range(c)]  # per level: one dict (uid, key, d2, record fields) per bucket
-        items = [(b, int(self.bucket_counts[b]), int(self.bucket_offsets[b])) for b in range(nb)]
+        items = [(b, int(self.buckets.counts[b]), int(self.bucket_offsets[b])) for b in range(nb)]
         for per_level in self._tasks(_bucket_candidates, items, "octree: coarse levels"):
             for lvl in range(c):
                 cand[lvl].append(per_level[lvl])
@@ -1147,26 +737,26 @@ class _Builder:
         for lvl in range(c):
             allc = {k: np.concatenate([p[k] for p in cand[lvl]]) for k in cand[lvl][0]}
             cand[lvl] = None
-            free = ~_in_sorted(allc["uid"], picked)
-            allc = _take(allc, free)
+            free = ~in_sorted(allc["uid"], picked)
+            allc = take(allc, free)
             t = _top_m(allc["key"], allc["d2"], allc["positions"], 1)
-            best = _take(allc, t)
+            best = take(allc, t)
             self.level_apps[lvl].write({k: best[k] for k in self.schema})
             picked = np.sort(np.concatenate([picked, best["uid"]]))  # disjoint: free only
         bid = np.searchsorted(self.bucket_offsets, picked, side="right") - 1
-        for b in _unique_counts(bid)[0]:
+        for b in unique_counts(bid)[0]:
             self.coarse_picks[b] = np.sort(picked[bid == b] - self.bucket_offsets[b])
 
     # pass: levels c..levels-2 and the remainder, bucket by bucket
     def _fine_levels(self):
-        nb = len(self.bucket_starts)
-        items = [(b, int(self.bucket_counts[b]), self.coarse_picks[b]) for b in range(nb)]
+        nb = len(self.buckets)
+        items = [(b, int(self.buckets.counts[b]), self.coarse_picks[b]) for b in range(nb)]
         self.coarse_picks = None
         if self.executor is None:
-            with _progress(self.n_total, "octree: select", self.progress) as bar:
+            with progress_bar(self.n_total, "octree: select", self.progress) as bar:
                 for b, n, coarse_local in items:
                     self.work.select(b, n, coarse_local, self.level_apps)
-                    shutil.rmtree(self.work.folder(b), ignore_errors=True)
+                    self.work.spill.remove(b)
                     bar.update(n)
         else:
             # each task writes its bucket's levels to out/b<bucket>/level_XX and removes the
@@ -1192,7 +782,7 @@ class _Builder:
         if self.executor is not None:
             yield from self.executor.imap(fn, items, desc=desc, progress=self.progress, work=self.work)
             return
-        with _progress(self.n_total, desc, self.progress) as bar:
+        with progress_bar(self.n_total, desc, self.progress) as bar:
             for item in items:
                 yield fn(item, work=self.work)
                 bar.update(item[1])
@@ -1202,36 +792,26 @@ class _Builder:
 # per-bucket work (in this process, or as tasks in worker processes)
 # ---------------------------------------------------------------------------------------------
 @dataclass
-class _Buckets:
+class _BucketWork:
     """The candidates and select work of one bucket at a time. Picklable: tasks in worker
-    processes get a copy and read the bucket's spill files, so ``spill`` is an absolute path
-    that the workers see."""
+    processes get a copy and read the bucket's spill files (whose root is an absolute path that
+    the workers see)."""
 
-    spill: str
-    schema: dict
+    spill: Spill
     grid: _Grid
     c: int  # bucket level
     capacity: int  # points of one bucket in memory
-    parts: int = 1  # parts of the input, each distributed to its own folder of every bucket
 
-    def folder(self, b: int) -> Path:
-        return Path(self.spill) / f"b{b:06d}"
-
-    def part_folder(self, b: int, part: int) -> Path:
-        return self.folder(b) / f"p{part:03d}"
-
-    def read(self, b: int, schema=None, start=0, stop=None) -> dict:
-        """Records ``[start, stop)`` of bucket ``b`` (all fields, or those of ``schema``): its parts'
-        records in part order, which is the input order, as the serial build spilled them."""
-        folders = [self.part_folder(b, p) for p in range(self.parts)]
-        return _read_parts(folders, schema or self.schema, start, stop)
+    @property
+    def schema(self) -> dict:
+        return self.spill.schema
 
     def chunks(self, b: int, n: int, schema=None):
         """Yield ``(local_start, record)`` for bucket ``b`` (``n`` points) in slices within the
         capacity (all fields, or those of ``schema``)."""
         step = n if n <= self.capacity else max(1024, self.capacity // 2)
         for s in range(0, n, step):
-            yield s, self.read(b, schema, s, min(n, s + step))
+            yield s, self.spill.read(b, s, min(n, s + step), schema)
 
     def candidates(self, b: int, n: int, offset: int) -> list[dict]:
         """Per level ``l < c``: the ``l + 1`` best points of every level-``l`` cell in bucket ``b``
@@ -1248,14 +828,14 @@ class _Buckets:
                 if running[lvl] is not None:
                     part = {k: np.concatenate([running[lvl][k], part[k]]) for k in part}
                 t = _top_m(part["key"], part["d2"], part["positions"], lvl + 1)
-                running[lvl] = _take(part, t)
+                running[lvl] = take(part, t)
         return running
 
     def select(self, b: int, n: int, coarse_local, writers):
         """Levels ``c ..`` and the remainder of bucket ``b`` (``n`` points, minus the local indices
         ``coarse_local`` taken by coarse levels), appended to ``writers[level]`` in Morton order."""
         if n <= self.capacity:
-            self._select_in_memory(self.read(b), coarse_local, writers)
+            self._select_in_memory(self.spill.read(b), coarse_local, writers)
         else:
             self._select_streaming(b, n, coarse_local, writers)
 
@@ -1283,14 +863,14 @@ class _Buckets:
             d2 = g.d2(*cols, *(a >> shift for a in qc), lvl)
             best = _best_in_runs(kf >> (3 * shift), d2, cols)
             del d2
-            writers[lvl].write(_take(rec, idx[best]))
+            writers[lvl].write(take(rec, idx[best]))
             mask = np.ones(len(idx), bool)
             mask[best] = False
             idx, kf = idx[mask], kf[mask]
             cols = [a[mask] for a in cols]
             qc = [a[mask] for a in qc]
         if len(idx):
-            writers[-1].write(_take(rec, idx))  # the remainder, in Morton order already
+            writers[-1].write(take(rec, idx))  # the remainder, in Morton order already
 
     def _select_streaming(self, b, n, coarse_local, writers):
         """Levels of an over-full bucket by per-level running reductions over its spill file; the
@@ -1305,12 +885,12 @@ class _Buckets:
                 free = np.flatnonzero(assigned[s:s + len(rec["positions"])] == -1)
                 if len(free) == 0:
                     continue
-                part = _take(rec, free)
+                part = take(rec, free)
                 part["key"], part["d2"] = g.keys_and_d2(part["positions"], g.coords(part["positions"]), lvl)
                 part["idx"] = free + s
                 if running is not None:
                     part = {k: np.concatenate([running[k], part[k]]) for k in part}
-                running = _take(part, _best_per_cell(part["key"], part["d2"], part["positions"]))
+                running = take(part, _best_per_cell(part["key"], part["d2"], part["positions"]))
             if running is None:
                 return  # no point left
             assigned[running["idx"]] = lvl
@@ -1327,7 +907,7 @@ class _Buckets:
         keys, cnts = np.zeros(0, np.int64), np.zeros(0, np.int64)
         for s, rec in self.chunks(b, n, pos_only):
             p = rec["positions"][assigned[s:s + len(rec["positions"])] == -1]
-            keys, cnts = _merge_counts(keys, cnts, *_unique_counts(morton_encode(g.coords(p))))
+            keys, cnts = merge_counts(keys, cnts, *unique_counts(morton_encode(g.coords(p))))
         if len(keys) == 0:
             return
         run_cap = max(1024, self.capacity // 2)
@@ -1340,14 +920,14 @@ class _Buckets:
         one_cell = np.diff(np.r_[first, len(keys)]) == 1
         run_keys = keys[first]
         del keys, cnts
-        folder = self.folder(b) / "remainder"
-        runs = [_Appender(folder / f"r{r:06d}", self.schema) for r in range(len(first))]
+        folder = self.spill.folder(b) / "remainder"
+        runs = [Appender(folder / f"r{r:06d}", self.schema) for r in range(len(first))]
         for s, rec in self.chunks(b, n):
-            sub = _take(rec, np.flatnonzero(assigned[s:s + len(rec["positions"])] == -1))
+            sub = take(rec, np.flatnonzero(assigned[s:s + len(rec["positions"])] == -1))
             run = np.searchsorted(run_keys, morton_encode(g.coords(sub["positions"])), side="right") - 1
             o = np.argsort(run, kind="stable")
             run = run[o]
-            sub = _take(sub, o)
+            sub = take(sub, o)
             cuts = np.flatnonzero(np.r_[True, run[1:] != run[:-1], True])
             for a, e in zip(cuts[:-1], cuts[1:]):
                 runs[run[a]].write({k: v[a:e] for k, v in sub.items()})
@@ -1356,30 +936,30 @@ class _Buckets:
             if one_cell[r]:
                 writer.append_files(app.dir, app.count)
             else:
-                rec = _read_records(app.dir, self.schema)
+                rec = read_records(app.dir, self.schema)
                 kf = morton_encode(g.coords(rec["positions"]))
-                writer.write(_take(rec, np.argsort(kf, kind="stable")))
+                writer.write(take(rec, np.argsort(kf, kind="stable")))
                 del rec, kf
             shutil.rmtree(app.dir, ignore_errors=True)
 
 
-def _bucket_candidates(item, work: _Buckets) -> list[dict]:
-    """Task: :meth:`_Buckets.candidates` of ``item = (bucket, points, uid offset)``."""
+def _bucket_candidates(item, work: _BucketWork) -> list[dict]:
+    """Task: :meth:`_BucketWork.candidates` of ``item = (bucket, points, uid offset)``."""
     b, n, offset = item
     return work.candidates(b, n, offset)
 
 
-def _select_bucket(item, work: _Buckets, out: str) -> list[int]:
-    """Task: :meth:`_Buckets.select` of ``item = (bucket, points, coarse picks)`` into
+def _select_bucket(item, work: _BucketWork, out: str) -> list[int]:
+    """Task: :meth:`_BucketWork.select` of ``item = (bucket, points, coarse picks)`` into
     ``out/b<bucket>/level_XX/``; removes the bucket's spill folder. Returns the points per level."""
     b, n, coarse_local = item
     folder = Path(out) / f"b{b:06d}"
     folder.mkdir(exist_ok=True)  # not its parents: a build that failed meanwhile removed them
-    writers = [_Appender(folder / f"level_{lvl:02d}", work.schema) for lvl in range(work.grid.n_grid + 1)]
+    writers = [Appender(folder / f"level_{lvl:02d}", work.schema) for lvl in range(work.grid.n_grid + 1)]
     try:
         work.select(b, n, coarse_local, writers)
     finally:
         for w in writers:
             w.close()
-    shutil.rmtree(work.folder(b), ignore_errors=True)
+    work.spill.remove(b)
     return [w.count for w in writers]

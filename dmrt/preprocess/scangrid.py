@@ -74,7 +74,7 @@ import numpy as np
 
 from dmrt.errors import ConfigError, InputError
 from dmrt.io.stations import MAX_INDEX, ScanStructure
-from dmrt.preprocess.octree import _progress
+from dmrt.preprocess.buckets import progress_bar
 from dmrt.preprocess.parallel import default_workers
 
 __all__ = ["ScanResult", "scan_attributes", "scan_phase", "REACH", "TAU", "STRETCH_MAX"]
@@ -345,7 +345,7 @@ def _scan_range(item, structure, out_dir: str, halo: int, scale, k_normals, norm
 
     read, it = _part_chunks(source, a, b, whole, halo)
     chunks, cores = [], []  # chunks: (first, stop, prepared future); cores: own chunks not yet processed
-    with ThreadPoolExecutor(threads) as pool, _progress(b - a, "scan grid", progress) as bar:
+    with ThreadPoolExecutor(threads) as pool, progress_bar(b - a, "scan grid", progress) as bar:
         while True:
             pc, own = next(it, (None, False))
             if pc is not None and len(pc.positions):
