@@ -2,16 +2,17 @@
 normals and splat radii from neighbour distances.
 
 * :class:`KnnTree`: exact kNN queries over fixed points (pykdtree: a kd-tree in C whose queries run
-  on OpenMP threads; 1.5-2x faster than scipy's cKDTree for k = 16 on one core, the same neighbours).
+  on OpenMP threads), with ``cKDTree.query``'s signature and neighbours.
 * :func:`pca_normals`: the least-squares plane of each neighbourhood, from its 3x3 covariance's
-  smallest eigenvector in closed form (Smith's trigonometric eigenvalues, the eigenvector as the
-  largest cross product of two rows of ``A - lambda I``), vectorised over cache-sized blocks:
-  15-20x faster than ``np.linalg.eigh`` on stacked matrices, and within 1e-5 degrees of it.
+  smallest eigenvector in closed form (:func:`smallest_eigenvectors`), vectorised over cache-sized
+  blocks, within 1e-5 degrees of ``np.linalg.eigh``.
 * :func:`neighbourhoods`: normals and the radius neighbour's distance from one query of
-  ``max(k_normals, k_radii + 1)`` neighbours, on all cores.
+  ``max(k_normals, k_radius + 1)`` neighbours, on all cores.
 
-Measured per point on one core (``python -m bench.bench_normals --kernels``): see
-``bench/bench_normals.py``.
+Per point on one core, a bucket of 1M points of bench_octree's site with k = 16
+(``python -m bench.bench_normals --kernels``, best of 3): the query 2.9 -> 1.8 us (cKDTree ->
+pykdtree), the normals 3.0 -> 0.5 us (batched eigh -> closed form), the whole kernel
+6.2 -> 2.5 us. The query is now three quarters of it.
 """
 
 from __future__ import annotations
@@ -26,8 +27,8 @@ from dmrt.preprocess.parallel import default_workers
 __all__ = ["KnnTree", "pca_normals", "smallest_eigenvectors", "radius_factor", "neighbourhoods"]
 
 # rows per PCA block: the block's (k, rows, 3) float64 neighbourhood and its products stay in the
-# L2 cache (16 x 2048 x 24 B = 768 KiB); 4x larger blocks measured 20-30 % slower, as numpy's
-# element-wise passes then stream from memory. The eigenvectors are solved per run of blocks, as
+# L2 cache (16 x 2048 x 24 B = 768 KiB); blocks of 16,384 rows measured 10-40 % slower, numpy's
+# element-wise passes then streaming from memory. The eigenvectors are solved per run of blocks, as
 # their ~80 numpy calls cost ~0.1 us per row in Python overhead on a block alone.
 _BLOCK = 2048
 _RUN = 16 * _BLOCK
@@ -44,7 +45,7 @@ class KnnTree:
     points : (m, 3) float64
         Metres, best centred near the origin (the squared distances keep their digits there).
     leafsize : int
-        Points per leaf: 16 measured fastest for k = 16 (8: 10 % slower, 32: 10-20 %).
+        Points per leaf: 16 measured fastest for k = 16 (8 and 24 slower by 5-40 %, in noisy runs).
     """
 
     def __init__(self, points: np.ndarray, leafsize: int = 16):
@@ -161,17 +162,24 @@ def pca_normals(data: np.ndarray, idx: np.ndarray) -> np.ndarray:
     b, k = idx.shape
     out = np.empty((b, 3), np.float64)
     cov = np.empty((6, min(b, _RUN)), np.float64)  # xx, yy, zz, xy, xz, yz of a run of rows
+    # the blocks' arrays, allocated once: fresh ones of this size come from mmap, and their page
+    # faults cost as much as the arithmetic
+    buf, rot = np.empty(k * _BLOCK * 3), np.empty(k * _BLOCK * 3)
     for r in range(0, b, _RUN):
         e = min(b, r + _RUN)
         for s in range(r, e, _BLOCK):
             t = min(e, s + _BLOCK)
-            x = np.take(data, idx[s:t].T, axis=0)  # (k, rows, 3): whole 24-byte rows, the fastest gather
+            shape = (k, t - s, 3)
+            # (k, rows, 3): whole 24-byte rows, the fastest gather ("clip": the tree's indices are
+            # in range, and so unchecked and unbuffered)
+            x = np.take(data, idx[s:t].T, axis=0, out=buf[:math.prod(shape)].reshape(shape), mode="clip")
             # relative to each neighbourhood's first point: small numbers, whose products lose no
             # digits to the bucket's coordinates
             x -= x[:1]
+            y = np.take(x, [1, 2, 0], axis=2, out=rot[:math.prod(shape)].reshape(shape), mode="clip")
             m = x.sum(axis=0) / k
-            sq = (x * x).sum(axis=0) / k - m * m
-            cr = (x * x[..., [1, 2, 0]]).sum(axis=0) / k - m * m[:, [1, 2, 0]]  # xy, yz, zx
+            sq = np.einsum("kbi,kbi->bi", x, x) / k - m * m
+            cr = np.einsum("kbi,kbi->bi", x, y) / k - m * m[:, [1, 2, 0]]  # xy, yz, zx
             cov[:3, s - r:t - r] = sq.T
             cov[3:, s - r:t - r] = cr[:, [0, 2, 1]].T
         out[r:e] = smallest_eigenvectors(*cov[:, :e - r])
