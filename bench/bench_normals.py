@@ -13,6 +13,19 @@ processes are spawned (and import the module) before the clock starts, as the pi
 after the octree build. CPU seconds are this process's and the workers' together (the workers'
 count once they are joined, at the pool's close). The results of every worker count are checked
 equal to the first's, bit for bit.
+
+    OMP_NUM_THREADS=1 taskset -c 0 python -m bench.bench_normals --kernels --points 1000000 [--repeat 3]
+
+``--kernels`` times the per-bucket kernel alone instead, on one bucket of all the octree's points
+(float64, in octree order, as a bucket reads them), stage by stage in CPU microseconds per point
+(this process's CPU seconds: steadier than wall time on a shared machine; run it on one core as
+above, the kNN threads being OpenMP's): kd-tree build, one query of 16 neighbours, the PCA normals,
+their orientation toward a viewpoint and the radii from the 9th column, in runs of 65,536 rows as
+``process_chunked`` queries them. ``before`` is the kernel up to 1c2fa76 (scipy's cKDTree, batched
+``np.linalg.eigh``), ``after`` the one in :mod:`dmrt.preprocess.knn` as ``normals._kdtree`` /
+``normals._pca_normals`` give it to the buckets. Each is run ``--repeat`` times (the minimum
+counts), and the two results are compared: the largest angle between the normals and the largest
+relative difference of the radii.
 """
 
 from __future__ import annotations
@@ -27,8 +40,12 @@ import time
 from pathlib import Path
 
 
+import numpy as np
+from scipy.spatial import cKDTree
+
 from bench.bench_octree import BLOCK, bbox_of_scene, make_chunk
 from dmrt.errors import InputError
+from dmrt.preprocess import normals as nrm
 from dmrt.preprocess.normals import process_chunked
 from dmrt.preprocess.octree import Octree, OctreeConfig
 from dmrt.preprocess.parallel import open_executor
@@ -69,6 +86,76 @@ def build_octree(out: Path, points: int, seed: int, levels: int) -> Octree:
                         progress=False)
 
 
+def _eigh_normals(c, idx):
+    """The PCA normals before dmrt.preprocess.knn: the covariances' smallest eigenvectors by LAPACK."""
+    nb = c[idx]
+    nb -= nb.mean(axis=1, keepdims=True)
+    return np.linalg.eigh(np.einsum("bki,bkj->bij", nb, nb))[1][:, :, 0]
+
+
+KERNELS = {
+    "before": (lambda c: cKDTree(c, balanced_tree=False, compact_nodes=False), _eigh_normals),
+    "after": (nrm._kdtree, nrm._pca_normals),
+}
+
+
+def time_kernel(name: str, pos: np.ndarray, viewpoint, rows: int = 65536) -> tuple[dict, np.ndarray, np.ndarray]:
+    """One bucket's normals (k = 16) and radii (k = 8) by kernel ``name``: CPU seconds per stage,
+    the normals (n, 3) float32 and the radii (n,) float32."""
+    build, pca = KERNELS[name]
+    t = {k: 0.0 for k in ("build", "query", "normals", "orient", "radii")}
+    n = len(pos)
+    normals, radii = np.empty((n, 3), np.float32), np.empty(n, np.float32)
+    c0 = time.process_time()
+    c = pos - pos.mean(axis=0)
+    tree = build(c)
+    t["build"] = time.process_time() - c0
+    for s in range(0, n, rows):
+        c0 = time.process_time()
+        d, idx = tree.query(c[s:s + rows], k=16, workers=1)
+        c1 = time.process_time()
+        v = pca(c, idx)
+        c2 = time.process_time()
+        normals[s:s + rows] = nrm.orient_normals(v, pos[s:s + rows], viewpoint, per_point=False)
+        c3 = time.process_time()
+        radii[s:s + rows] = d[:, 8] * nrm.radius_factor(8)
+        c4 = time.process_time()
+        for k, a, b in (("query", c0, c1), ("normals", c1, c2), ("orient", c2, c3), ("radii", c3, c4)):
+            t[k] += b - a
+    return t, normals, radii
+
+
+def kernels(tree: Octree, repeat: int) -> dict:
+    """``--kernels``: before / after, stage by stage, in CPU microseconds per point (best of ``repeat``)."""
+    pos = tree.read_lod(tree.levels)["positions"].astype(np.float64)
+    n, viewpoint = len(pos), [[60.0, 40.0, 30.0]]
+    runs = {name: [] for name in KERNELS}
+    for _ in range(repeat):  # interleaved: a neighbour's load on a shared machine hits both alike
+        for name in KERNELS:
+            t, normals, radii = time_kernel(name, pos, viewpoint)
+            runs[name].append(({k: round(v / n * 1e6, 3) for k, v in t.items()}, normals, radii))
+    out = {}
+    for name, rs in runs.items():
+        total = [sum(r[0].values()) for r in rs]
+        best = rs[int(np.argmin(total))]
+        out[name] = {"us_per_point": best[0], "total_us_per_point": round(min(total), 3),
+                     "totals": [round(x, 3) for x in total], "normals": best[1], "radii": best[2]}
+        print(f"{name:6s}: {min(total):.3f} us/point (runs {', '.join(f'{x:.3f}' for x in total)}): {best[0]}")
+    b, a = out["before"], out["after"]
+    cross = np.linalg.norm(np.cross(a["normals"].astype(np.float64), b["normals"]), axis=1)
+    angle = float(np.degrees(np.arcsin(np.clip(cross.max(), 0, 1))))
+    opposite = int(np.count_nonzero(np.einsum("ij,ij->i", a["normals"], b["normals"]) < 0))
+    rel = float(np.max(np.abs(a["radii"] / b["radii"] - 1)))
+    speedup = b["total_us_per_point"] / a["total_us_per_point"]
+    print(f"speed-up {speedup:.2f}x; normals: largest angle {angle:.2e} degrees, {opposite} opposite; "
+          f"radii: largest relative difference {rel:.1e}")
+    for r in (a, b):
+        del r["normals"], r["radii"]
+    return {"points": n, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+            "cores": len(os.sched_getaffinity(0)), "speedup": round(speedup, 2), "max_angle_deg": angle,
+            "opposite_normals": opposite, "max_radius_rel_diff": rel, **out}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--points", type=int, default=4_000_000)
@@ -80,12 +167,19 @@ def main(argv=None):
     ap.add_argument("--levels", type=int, default=6)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="write the results here")
+    ap.add_argument("--kernels", action="store_true", help="time the per-bucket kernel, before / after knn.py")
+    ap.add_argument("--repeat", type=int, default=3, help="--kernels: runs of each kernel")
     args = ap.parse_args(argv)
 
     out = Path(args.out_dir)
     t = time.perf_counter()
     tree = build_octree(out / "octree", args.points, args.seed, args.levels)
     build_s = time.perf_counter() - t
+    if args.kernels:
+        result = {"bench": "normals-kernels", "machine": platform.node(), **kernels(tree, args.repeat)}
+        if args.json:
+            Path(args.json).write_text(json.dumps(result, indent=1))
+        return result
     src = tree.point_range(chunk_size=args.chunk_size)
     runs, first = [], None
     for workers in (int(w) for w in args.workers.split(",")):

@@ -31,41 +31,35 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from dmrt.io.atomic import atomic_file
+from dmrt.preprocess.knn import KnnTree, neighbourhoods, pca_normals, radius_factor
 from dmrt.preprocess.buckets import (Buckets, FineGrid, chunk_source, coarsen, count_input, distribute, halo_schema,
                                      input_bbox, input_pass, iter_chunks, positions_dtype, progress_bar,
                                      split_input)
-from dmrt.preprocess.parallel import default_workers
 from dmrt.preprocess.spill import Spill
 
 __all__ = ["estimate_normals", "splat_radii", "orient_normals", "process_chunked", "ChunkedResult",
-           "iter_with_results"]
-
-# rows per batch of covariance matrices: (b, k, 3) float64 neighbourhoods are the largest temporaries
-_BATCH = 65536
+           "iter_with_results", "radius_factor"]
 
 
-def _batches(n: int, work) -> None:
-    """``work(start, stop)`` over ``range(n)`` in batches of ``_BATCH`` rows, on one thread per
-    core: kNN queries, einsum and eigh release the GIL, so threads scale without copying the tree
-    to processes. Each call writes its own rows of the caller's output."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    starts = range(0, n, _BATCH)
-    threads = min(len(starts), default_workers())
-    if threads <= 1:
-        for s in starts:
-            work(s, min(n, s + _BATCH))
-        return
-    with ThreadPoolExecutor(threads) as pool:
-        for f in [pool.submit(work, s, min(n, s + _BATCH)) for s in starts]:
-            f.result()
+def _kdtree(c: np.ndarray) -> KnnTree:
+    """Exact kNN queries over ``c`` (:class:`dmrt.preprocess.knn.KnnTree`, ``cKDTree.query``'s
+    signature and results)."""
+    return KnnTree(c)
 
 
-def _kdtree(c: np.ndarray) -> cKDTree:
-    """A kd-tree for exact kNN queries. Sliding-midpoint splits without node compaction build 3x
-    faster than scipy's median splits (single-threaded, so the build dominates on many cores) and
-    answer queries as fast."""
-    return cKDTree(c, balanced_tree=False, compact_nodes=False)
+def _pca_normals(data: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Least-squares plane normals from neighbour indices: :func:`dmrt.preprocess.knn.pca_normals`.
+
+    Parameters
+    ----------
+    data : (m, 3) float64, already centred near the origin (precision)
+    idx : (b, k) int indices into ``data``
+
+    Returns
+    -------
+    (b, 3) float64 unit normals (sign arbitrary).
+    """
+    return pca_normals(data, idx)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -76,26 +70,6 @@ def _as_positions(positions) -> np.ndarray:
     if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"positions must have shape (n, 3), got {p.shape}")
     return p.astype(np.float64, copy=False)
-
-
-def _pca_normals(data: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """Least-squares plane normals from neighbour indices.
-
-    Parameters
-    ----------
-    data : (m, 3) float64, already centred near the origin (precision)
-    idx : (b, k) int64 indices into ``data``
-
-    Returns
-    -------
-    (b, 3) float64 unit normals (sign arbitrary).
-    """
-    nb = data[idx]  # (b, k, 3)
-    nb -= nb.mean(axis=1, keepdims=True)
-    cov = np.einsum("bki,bkj->bij", nb, nb)
-    del nb
-    _, vec = np.linalg.eigh(cov)  # eigenvalues ascending: column 0 is the smallest's eigenvector
-    return vec[:, :, 0]
 
 
 def orient_normals(normals: np.ndarray, positions: np.ndarray, viewpoints=None,
@@ -135,7 +109,7 @@ def orient_normals(normals: np.ndarray, positions: np.ndarray, viewpoints=None,
 
 
 def estimate_normals(positions, k: int = 16, viewpoints=None, *, per_point: bool | None = None,
-                     tree: cKDTree | None = None) -> np.ndarray:
+                     tree: KnnTree | None = None) -> np.ndarray:
     """Least-squares plane normals of the ``k`` nearest neighbours (the point itself included).
 
     Parameters
@@ -148,8 +122,8 @@ def estimate_normals(positions, k: int = 16, viewpoints=None, *, per_point: bool
         Orientation: see :func:`orient_normals`.
     per_point : bool, optional
         See :func:`orient_normals`.
-    tree : cKDTree, optional
-        A tree already built on ``positions``.
+    tree : KnnTree, optional
+        A tree already built on ``positions`` less their mean (as :func:`_kdtree`).
 
     Returns
     -------
@@ -163,37 +137,16 @@ def estimate_normals(positions, k: int = 16, viewpoints=None, *, per_point: bool
         return orient_normals(out, p, viewpoints, per_point).astype(np.float32)
     c = p - p.mean(axis=0)  # centred: large real-world coordinates would lose digits in the covariance
     tree = tree if tree is not None else _kdtree(c)
-    k = min(int(k), n)
-    out = np.empty((n, 3), np.float64)
-
-    def work(a, b):
-        _, idx = tree.query(c[a:b], k=k)
-        out[a:b] = _pca_normals(c, idx.reshape(-1, k))
-
-    _batches(n, work)
+    out, _ = neighbourhoods(tree, c, k_normals=min(int(k), n))
     return orient_normals(out, p, viewpoints, per_point).astype(np.float32)
 
 
-# The radius factor. For points on a square grid of spacing h, the discs of radius h/sqrt(2) (half
-# the cell diagonal) are the smallest that cover the plane: each cell's centre is h/sqrt(2) from its
-# four corner points. A grid point's 8 nearest neighbours (itself excluded) are the ring of its 3x3
-# block, the farthest of them diagonal at sqrt(2)*h, so radius = d_8 / 2 gives exactly h/sqrt(2).
-# For other k we keep the same radius for the same density: on a surface d_k grows like sqrt(k)
-# (k ~ pi d_k^2 * density), hence radius = d_k / 2 * sqrt(8 / k).
-# Irregular (random) sampling has larger gaps than a grid of the same density: there a ``scale`` of
-# about 1.5 closes nearly all holes (a Poisson sample of density rho leaves exp(-pi rho r^2) of the
-# plane uncovered: 1 % at r = 1.2 / sqrt(rho), i.e. scale ~1.5 on top of the grid factor).
-def radius_factor(k: int) -> float:
-    """Radius / (distance to the k-th neighbour) for gap-free discs on a square grid: ``sqrt(8/k)/2``."""
-    return 0.5 * math.sqrt(8.0 / k)
-
-
-def splat_radii(positions, k: int = 8, scale: float = 1.0, *, tree: cKDTree | None = None) -> np.ndarray:
+def splat_radii(positions, k: int = 8, scale: float = 1.0, *, tree: KnnTree | None = None) -> np.ndarray:
     """Splat radii from the local point density.
 
     ``radius = scale * d_k * sqrt(8/k) / 2`` with ``d_k`` the distance to the k-th nearest other
     point; on a square grid of spacing h this is h/sqrt(2), the smallest radius whose discs cover
-    the plane (comment above :func:`radius_factor`).
+    the plane (comment above :func:`dmrt.preprocess.knn.radius_factor`).
 
     Parameters
     ----------
@@ -214,13 +167,8 @@ def splat_radii(positions, k: int = 8, scale: float = 1.0, *, tree: cKDTree | No
     c = p - p.mean(axis=0)
     tree = tree if tree is not None else _kdtree(c)
     k = min(int(k), n - 1)
-    out = np.empty(n, np.float64)
-
-    def work(a, b):
-        out[a:b] = tree.query(c[a:b], k=[k + 1])[0][:, 0]  # k + 1: the point itself
-
-    _batches(n, work)
-    return (out * (scale * radius_factor(k))).astype(np.float32)
+    _, d_k = neighbourhoods(tree, c, k_radius=k)
+    return (d_k * (scale * radius_factor(k))).astype(np.float32)
 
 
 # ---------------------------------------------------------------------------------------------
