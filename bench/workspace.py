@@ -131,11 +131,11 @@ PRESETS = {
         name="paper-scene3", scene="paper-scene3",
         preprocess={"depthmap_width": 1024, "memory_limit_mb": 32000, "resident_mb": 40000, "radii": "scan"},
         proxy_levels=(4,), main_proxy_levels=4),
-    # paper-scene3's rooms and stations at 1/2000 of its points with 16 photos of 256x171: the
-    # CPU dry run of bench/scene3_run.sh (about a minute on 2 cores)
+    # paper-scene3's rooms and stations at 1/2000 of its points, 40 photos of 256x171 (two a room):
+    # the CPU dry run of bench/scene3_run.sh (15 - 30 s on 2 shared cores)
     "paper-scene3-mini": BenchPreset(
         name="paper-scene3-mini", scene="paper-scene3",
-        synth={"points": 546_000, "photos": 16, "photo_size": (256, 171)},
+        synth={"points": 546_000, "photos": 40, "photo_size": (256, 171)},
         preprocess={"depthmap_width": 256, "radii": "scan"}, proxy_levels=(4,), main_proxy_levels=4),
 }
 

@@ -161,6 +161,6 @@ def check_free(needed: int, folder, what: str) -> None:
     bytes free for ``what``."""
     free = free_bytes(folder)
     if free < needed:
-        raise InputError(folder, f"{what} needs {needed / GB:.1f} GB of disk at its peak, and its file system "
-                                 f"has {free / GB:.1f} GB free (python -m bench.workspace PRESET WORK --dry-run "
-                                 f"prints the estimate)")
+        raise InputError(folder, f"too little free disk for {what}: {needed / GB:.1f} GB needed at the peak, "
+                                 f"{free / GB:.1f} GB free (bench/scenes/disk.py; python -m bench.workspace "
+                                 f"PRESET WORK --dry-run prints the estimate)")

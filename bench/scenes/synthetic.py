@@ -744,12 +744,16 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
 
     The scene is assembled in ``<out>.partial`` and renamed when complete, so an interrupted run
     never leaves a scene that looks whole. An existing ``out`` is replaced only with ``force``.
+    A file system with less free space than the scene takes (:mod:`bench.scenes.disk`) is an
+    :class:`InputError` before any work.
     """
+    from bench.scenes.disk import check_free, scene_files
     from dmrt.io.colmap import write_model
     from dmrt.io.pointcloud import PointCloud, PointWriter
 
     out = Path(out)
     require("skimage", "the synthetic scenes' textures", "bench")  # before any work
+    check_free(sum(scene_files(config).values()), out.parent, f"the {config.name!r} scene")
     rng = np.random.default_rng(config.seed + 1)
     workers = workers if workers is not None else default_workers()
     offset = np.asarray(config.offset, np.float64)
