@@ -123,7 +123,7 @@ PRESETS = {
     # The paper's Scene 3 at its own size, for Table 1 (bench/scene3_run.sh): 1,092M points, 161
     # photos of 1024x684, on the same machine. The radii come from the scan's grid: the kNN path's
     # spill files (21 bytes a point and halos, 25 GB) do not fit a 64 GB disk beside the PLY and the
-    # octree (bench/scenes/disk.py: 63.3 GB at the peak so, 88.9 with float normals and kNN radii).
+    # octree (bench/scenes/disk.py: 63.2 GB at the peak so, 88.9 with float normals and kNN radii).
     # Half paper-full's memory limit: the octree's select holds up to W + 1 buckets on disk twice,
     # 2.5 GB at 32 GB (and ~230 buckets of 4.8M points keep 16 cores busy); the depth maps keep
     # the cloud (28 bytes a point, 30.6 GB) on the GPU.
@@ -360,9 +360,9 @@ class Workspace:
 
     def disk_needed(self) -> tuple[int, str]:
         """Bytes of free disk this workspace still needs, and for what: the estimate's peak, less
-        the scene when it is made already, plus nothing when the base bundle is made too; what a
-        stale scene or bundle (remade, :meth:`scene_dir`, :meth:`base_bundle`) holds is given back
-        first. (0, "") for a user's scene (``--scene``), whose size is its own."""
+        the scene when it is made already (0 when the base bundle is made too), less what a stale
+        scene or bundle holds (:meth:`scene_dir` and :meth:`base_bundle` delete them before
+        remaking them). (0, "") for a user's scene (``--scene``): its size is not the preset's."""
         if self._scene_arg is not None or self._bundle_ready():
             return 0, ""
         estimate, scene_made = self.disk_estimate(), self._scene_ready()

@@ -40,7 +40,7 @@ KNN_SPILL = 21  # bytes a point: float32 position, int64 index, uint8 flag (dmrt
 OCTREE_WORK = 112  # bytes a bucket point of work arrays beside two copies of its record (octree.py)
 # proxies of a fixed level of detail: the suite's largest proxy set is the paper preset's LOD 5, 3.0M
 MAX_PROXIES = 4_000_000
-PROXY_BYTES = 64  # a proxy in proxy.npz: positions, normals, radii, hd_radii, labels, 36 bytes, doubled
+PROXY_BYTES = 36  # a proxy in proxy.npz: positions 12, normals 12, radii 4, hd_radii 4, labels 4
 
 
 @dataclass
