@@ -120,6 +120,23 @@ PRESETS = {
         name="paper-full", scene="paper-full",
         preprocess={"depthmap_width": 1024, "memory_limit_mb": 64000, "resident_mb": 40000},
         proxy_levels=(4,), main_proxy_levels=4),
+    # The paper's Scene 3 at its own size, for Table 1 (bench/scene3_run.sh): 1,092M points, 161
+    # photos of 1024x684, on the same machine. The radii come from the scan's grid: the kNN path's
+    # spill files (21 bytes a point and halos, 25 GB) do not fit a 64 GB disk beside the PLY and the
+    # octree (bench/scenes/disk.py: 63.2 GB at the peak so, 88.9 with float normals and kNN radii).
+    # Half paper-full's memory limit: the octree's select holds up to W + 1 buckets on disk twice,
+    # 2.5 GB at 32 GB (and ~230 buckets of 4.8M points keep 16 cores busy); the depth maps keep
+    # the cloud (28 bytes a point, 30.6 GB) on the GPU.
+    "paper-scene3": BenchPreset(
+        name="paper-scene3", scene="paper-scene3",
+        preprocess={"depthmap_width": 1024, "memory_limit_mb": 32000, "resident_mb": 40000, "radii": "scan"},
+        proxy_levels=(4,), main_proxy_levels=4),
+    # paper-scene3's rooms and stations at 1/2000 of its points, 40 photos of 256x171 (two a room):
+    # the CPU dry run of bench/scene3_run.sh (15 - 30 s on 2 shared cores)
+    "paper-scene3-mini": BenchPreset(
+        name="paper-scene3-mini", scene="paper-scene3",
+        synth={"points": 546_000, "photos": 40, "photo_size": (256, 171)},
+        preprocess={"depthmap_width": 256, "radii": "scan"}, proxy_levels=(4,), main_proxy_levels=4),
 }
 
 
@@ -239,6 +256,11 @@ def _json_default(x):
 # ----------------------------------------------------------------------------------------------
 # The work folder: scene, bundles, reference frames
 # ----------------------------------------------------------------------------------------------
+def _bytes_under(path: Path) -> int:
+    """Bytes of the files under ``path`` (0 where there is nothing)."""
+    return sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file() and not f.is_symlink())
+
+
 def _stamp_ok(path: Path, stamp: dict) -> bool:
     try:
         return json.loads(path.read_text())["config"] == json.loads(json.dumps(stamp, default=_json_default))
@@ -312,17 +334,76 @@ class Workspace:
         Use this scene instead of generating the preset's synthetic one.
     progress : bool
         Progress bars (tqdm) for the long steps.
+    check_disk : bool
+        Refuse at once (:meth:`check_disk`) when the disk cannot hold what is still to be made.
     """
 
-    def __init__(self, preset: BenchPreset, work: Path, scene: Path | None = None, progress: bool = True):
+    def __init__(self, preset: BenchPreset, work: Path, scene: Path | None = None, progress: bool = True,
+                 check_disk: bool = True):
         self.preset = preset
         self.work = Path(work)
-        self.work.mkdir(parents=True, exist_ok=True)
         self.progress = progress
         self._scene_arg = Path(scene) if scene is not None else None
         self._bundles: dict = {}
         self._reference = None
         self.setup_s: dict = {}
+        if check_disk:  # before any work: a run that cannot fit fails now, not after an hour
+            self.check_disk()
+        self.work.mkdir(parents=True, exist_ok=True)
+
+    # -- disk ---------------------------------------------------------------------------------
+    def disk_estimate(self, workers: int | None = None):
+        """:class:`bench.scenes.disk.DiskEstimate` of the preset's synthetic scene and base bundle."""
+        from bench.scenes.disk import estimate
+
+        return estimate(self._synth_config(), self._base_config(), workers)
+
+    def disk_needed(self) -> tuple[int, str]:
+        """Bytes of free disk this workspace still needs, and for what: the estimate's peak, less
+        the scene when it is made already (0 when the base bundle is made too), less what a stale
+        scene or bundle holds (:meth:`scene_dir` and :meth:`base_bundle` delete them before
+        remaking them). (0, "") for a user's scene (``--scene``): its size is not the preset's."""
+        if self._scene_arg is not None or self._bundle_ready():
+            return 0, ""
+        estimate, scene_made = self.disk_estimate(), self._scene_ready()
+        peak = estimate.peak[1] - (estimate.scene if scene_made else 0)
+        stale = [self.work / "bundle-base"] + ([] if scene_made else [self.work / "scene"])
+        what = "preprocessing" if scene_made else "scene and its preprocessing"
+        return max(0, peak - sum(_bytes_under(p) for p in stale)), f"the {self.preset.name!r} preset's {what}"
+
+    def check_disk(self) -> None:
+        """Raise :class:`InputError` naming the work folder when its file system has less free
+        space than :meth:`disk_needed`."""
+        from bench.scenes.disk import check_free
+
+        needed, what = self.disk_needed()
+        if needed:
+            check_free(needed, self.work, what)
+
+    def _synth_config(self):
+        from bench.scenes.synthetic import PRESETS as SYNTH
+
+        return dataclasses.replace(SYNTH[self.preset.scene], **self.preset.synth)
+
+    def _base_config(self):
+        from dmrt.preprocess.pipeline import PreprocessConfig
+
+        return PreprocessConfig(**{**self.preset.preprocess, "proxy_levels": self.base_levels})
+
+    def _scene_wanted(self) -> dict:
+        return {"synth": dataclasses.asdict(self._synth_config())}
+
+    def _scene_ready(self) -> bool:
+        return _stamp_ok(self.work / "scene.stamp.json", self._scene_wanted()) and (self.work / "scene").is_dir()
+
+    def _base_wanted(self, scene: Path) -> dict:
+        return {"scene": str(scene.resolve()), "preprocess": dataclasses.asdict(self._base_config()),
+                "scene_stamp": self._file_text(self.work / "scene.stamp.json")}
+
+    def _bundle_ready(self) -> bool:
+        scene = self._scene_arg if self._scene_arg is not None else self.work / "scene"
+        return (_stamp_ok(self.work / "bundle-base.stamp.json", self._base_wanted(scene))
+                and (self.work / "bundle-base" / "bundle.json").is_file())
 
     # -- scene --------------------------------------------------------------------------------
     @property
@@ -332,13 +413,13 @@ class Workspace:
             if not (self._scene_arg / "sparse").exists() and not (self._scene_arg / "synthetic.json").exists():
                 raise InputError(self._scene_arg, "not a scene directory (no sparse/ model)")
             return self._scene_arg
-        from bench.scenes.synthetic import PRESETS as SYNTH, generate_scene
+        from bench.scenes.synthetic import generate_scene
 
-        config = dataclasses.replace(SYNTH[self.preset.scene], **self.preset.synth)
+        config, wanted = self._synth_config(), self._scene_wanted()
         out, stamp = self.work / "scene", self.work / "scene.stamp.json"
-        wanted = {"synth": dataclasses.asdict(config)}
-        if not (_stamp_ok(stamp, wanted) and out.is_dir()):
+        if not self._scene_ready():
             stamp.unlink(missing_ok=True)
+            shutil.rmtree(out, ignore_errors=True)  # stale: the disk holds one scene at a time
             print(f"[bench] generating the {config.name!r} scene in {out}", flush=True)
             t0 = time.perf_counter()
             generate_scene(config, out, force=True, progress=self.progress)
@@ -359,15 +440,14 @@ class Workspace:
         if "base" in self._bundles:
             return self._bundles["base"]
         from dmrt.preprocess.parallel import open_executor
-        from dmrt.preprocess.pipeline import PreprocessConfig, preprocess
+        from dmrt.preprocess.pipeline import preprocess
 
         scene = self.scene_dir
-        config = PreprocessConfig(**{**self.preset.preprocess, "proxy_levels": self.base_levels})
+        config, wanted = self._base_config(), self._base_wanted(scene)
         out, stamp = self.work / "bundle-base", self.work / "bundle-base.stamp.json"
-        wanted = {"scene": str(scene.resolve()), "preprocess": dataclasses.asdict(config),
-                  "scene_stamp": self._file_text(self.work / "scene.stamp.json")}
-        if not (_stamp_ok(stamp, wanted) and (out / "bundle.json").is_file()):
+        if not self._bundle_ready():
             stamp.unlink(missing_ok=True)
+            shutil.rmtree(out, ignore_errors=True)  # stale: its bytes go before the new one's
             print(f"[bench] preprocessing {scene} -> {out} ({self.base_levels} proxy levels)", flush=True)
             t0 = time.perf_counter()
             with open_executor(None, workers=None) as executor:  # every core, as `dmrt preprocess`
@@ -514,9 +594,12 @@ def default_work(preset: str) -> Path:
 
 
 def main(argv=None) -> None:
-    """``python -m bench.workspace PRESET WORK [--scene SCENE]``: make the preset's main bundle in the
-    work folder (as ``dmrt bench`` does: scene, preprocessing, proxy set; kept between runs) and
-    print its path (the GPU-machine scripts time renderers on it)."""
+    """``python -m bench.workspace PRESET WORK [--scene SCENE] [--dry-run [--json FILE]]``: make the
+    preset's main bundle in the work folder (as ``dmrt bench`` does: scene, preprocessing, proxy
+    set; kept between runs) and print its path (the GPU-machine scripts time renderers on it); with
+    ``--dry-run``, generate and preprocess nothing: print the disk the preset takes
+    (:mod:`bench.scenes.disk`), what the work folder still needs and has, and exit 2 when that is
+    short, as the run would."""
     import argparse
     import sys
 
@@ -525,13 +608,33 @@ def main(argv=None) -> None:
     p.add_argument("preset", choices=sorted(PRESETS))
     p.add_argument("work", type=Path)
     p.add_argument("--scene", type=Path, help="a scene made already (default: the preset's, generated)")
+    p.add_argument("--dry-run", action="store_true", help="make nothing: print the disk estimate and check it")
+    p.add_argument("--json", type=Path, help="with --dry-run: also write the estimate here as JSON")
     args = p.parse_args(argv)
     try:
+        if args.dry_run:
+            _dry_run(PRESETS[args.preset], args.work, args.scene, args.json)
+            return
         path = Workspace(PRESETS[args.preset], args.work, scene=args.scene, progress=False).bundle_path()
     except InputError as exc:
         print(f"bench.workspace: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     print(path)
+
+
+def _dry_run(preset: BenchPreset, work: Path, scene, json_path) -> None:
+    from bench.scenes.disk import GB, free_bytes
+
+    ws = Workspace(preset, work, scene, progress=False, check_disk=False)
+    estimate = ws.disk_estimate()
+    needed, what = ws.disk_needed()
+    free = free_bytes(work)
+    print("\n".join(estimate.lines()))
+    print(f"{work}: needs {needed / GB:.2f} GB more ({what or 'nothing left to make'}), {free / GB:.2f} GB free")
+    if json_path is not None:
+        write_json(json_path, {"preset": preset.name, **estimate.to_json(), "needed_bytes": needed,
+                               "free_bytes": free, "work": str(work)})
+    ws.check_disk()
 
 
 if __name__ == "__main__":

@@ -24,9 +24,11 @@ the photo any camera would take, held-out views included.
 
 from __future__ import annotations
 
+import collections
 import json
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import trimesh
@@ -66,6 +68,9 @@ class SynthConfig:
     range_noise: float = option(0.002, "1-sigma range noise, metres (a typical phase-based scanner)", minimum=0.0)
     write_normals: bool = option(False, "write normals with the points (real scans often lack them: "
                                         "preprocessing estimates them)")
+    normals_type: Literal["float", "short", "char"] = option(
+        "float", "PLY type of the written normals: float (12 bytes a point), short or char (6 or 3 bytes: "
+                 "signed, times 32767 or 127; read back as unit normals within 0.002 or 0.4 degrees)")
     float_positions: bool = option(False, "write positions as float32, 12 bytes a point less (a 682M-point "
                                           "cloud must fit a 64 GB disk twice); needs an offset within 1 km, "
                                           "where float32 keeps ~0.1 mm")
@@ -113,6 +118,17 @@ PRESETS = {
     "paper-full": SynthConfig(name="paper-full", rooms=(4, 3), stations_per_room=2, points=683_000_000,
                               photos=192, photo_size=(1024, 684), supersample=1, write_normals=True,
                               offset=(0.0, 0.0, 0.0), float_positions=True),
+    # The paper's Scene 3 (Centcelles: 1,091M points, 161 photos of 1024x684). The paper gives no
+    # areas; its scenes are scans of the same kind (terrestrial scans of Roman buildings), so the
+    # density is paper-full's: 20 rooms instead of 12 hold 220k points per m^2 of the mesh (4,947 m^2)
+    # against paper-full's 225k (3,042 m^2), 54.6M points a room against 56.9M, two stations each.
+    # The target lands the 40 stations' grids of 7838 x 3483 beams (every beam hits: the building
+    # is closed) at 1,091,990,160 points. Normals as char (3 bytes) and float32 positions: 18 bytes a
+    # point, a 19.7 GB PLY, so that the scene and its preprocessing fit a 64 GB disk
+    # (bench/scenes/disk.py, docs/scene3.md).
+    "paper-scene3": SynthConfig(name="paper-scene3", rooms=(5, 4), stations_per_room=2, points=1_092_000_000,
+                                photos=161, photo_size=(1024, 684), supersample=1, write_normals=True,
+                                normals_type="char", offset=(0.0, 0.0, 0.0), float_positions=True),
     # Thousands of photos (issue #39): a city block of 2 x 64 rooms (345 x 11 m), 80 photos of
     # 1024x684 in each (10,240), `paper`'s 32M points (250k a room, one station each). Photos cost
     # the generation: 0.43 s of one core each (Embree + shading 0.36, PNG 0.08; measured on the
@@ -464,12 +480,33 @@ def scan_grid(config: SynthConfig, n_stations: int) -> SphericalGrid:
                          len(np.arange(el0 + step / 2, el1, step)))
 
 
-def scan_directions(config: SynthConfig, n_stations: int) -> np.ndarray:
-    """(r, 3) unit beam directions of one station, its grid (:func:`scan_grid`) row by row."""
+def scan_directions(config: SynthConfig, n_stations: int, start: int = 0, stop: int | None = None) -> np.ndarray:
+    """(r, 3) unit beam directions of one station, its grid (:func:`scan_grid`) row by row: beams
+    ``start:stop`` of them (default all), the same values as that slice of the whole grid's, so a
+    batch of beams is made where it is cast and no station's grid is ever held whole."""
     el0, el1 = np.radians(config.scan_elevation)
     step = scan_grid(config, n_stations).azimuth_step
-    A, E = np.meshgrid(np.arange(0, 2 * np.pi, step), np.arange(el0 + step / 2, el1, step))
-    return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
+    azimuths, elevations = np.arange(0, 2 * np.pi, step), np.arange(el0 + step / 2, el1, step)
+    beam = np.arange(start, len(azimuths) * len(elevations) if stop is None else stop)
+    A, E = azimuths[beam % len(azimuths)], elevations[beam // len(azimuths)]
+    return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1)
+
+
+def scan_points(config: SynthConfig) -> int:
+    """Points the scene's scan holds, from its configuration alone: every beam of every station
+    (``rooms x stations_per_room`` of them) hits, the building being closed (tested)."""
+    n_stations = config.rooms[0] * config.rooms[1] * config.stations_per_room
+    grid = scan_grid(config, n_stations)
+    return n_stations * grid.rows * grid.columns
+
+
+def _beam_batches(n_beams: int, chunk_rays: int) -> list[tuple[int, int]]:
+    """``[start, stop)`` of each batch of a station's beams: ``np.array_split`` of them into
+    ``ceil(n_beams / chunk_rays)`` parts (the first ``n_beams % parts`` one longer)."""
+    parts = -(-n_beams // chunk_rays)
+    each, extra = divmod(n_beams, parts)
+    stops = np.cumsum([each + 1] * extra + [each] * (parts - extra)).tolist()
+    return list(zip([0] + stops[:-1], stops))
 
 
 def scan_beams(config: SynthConfig, geom: Geometry, raycaster, materials, station: np.ndarray,
@@ -626,9 +663,10 @@ def _init_worker(config: SynthConfig) -> None:
 
 
 def _scan_task(args):
-    k, station, dirs = args
+    k, station, n_stations, start, stop = args
     w, st = _WORKER, _WORKER["studio"]
     rng = np.random.default_rng([w["config"].seed, 2, k])  # per batch: same points for any worker count
+    dirs = scan_directions(w["config"], n_stations, start, stop)
     return scan_beams(w["config"], st.geom, st.scan_raycaster, st.materials, station, dirs, rng)
 
 
@@ -645,6 +683,16 @@ def _photo_task(args):
 # ----------------------------------------------------------------------------------------------
 # The scene on disk
 # ----------------------------------------------------------------------------------------------
+class _Deferred:
+    """An inline pool's ``apply_async`` result: the call runs when its result is asked for."""
+
+    def __init__(self, fn, args):
+        self.fn, self.args = fn, args
+
+    def get(self):
+        return self.fn(*self.args)
+
+
 class _InlinePool:
     """The pool interface, run in this process (one worker: no start-up cost)."""
 
@@ -652,6 +700,10 @@ class _InlinePool:
         _WORKER.update(config=studio.config, studio=studio)
 
     imap = imap_unordered = staticmethod(map)
+
+    @staticmethod
+    def apply_async(fn, args):
+        return _Deferred(fn, args)
 
     def __enter__(self):
         return self
@@ -669,6 +721,20 @@ def _pool(studio: Studio, workers: int):
     return multiprocessing.get_context("spawn").Pool(workers, _init_worker, (studio.config,))
 
 
+def _in_order(pool, fn, tasks, ahead: int):
+    """``fn(task)`` of each task on ``pool``, results in task order, with at most ``ahead`` tasks
+    submitted and not yet taken: results wait in the workers' queue for the writer instead of
+    piling up in this process (``Pool.imap`` queues every task at once and keeps every result that
+    the consumer has not reached)."""
+    pending: collections.deque = collections.deque()
+    for task in tasks:
+        pending.append(pool.apply_async(fn, (task,)))
+        if len(pending) >= ahead:
+            yield pending.popleft().get()
+    while pending:
+        yield pending.popleft().get()
+
+
 def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool = True,
                    workers: int | None = None) -> Path:
     """Write a synthetic scene in the scene input format to ``out``; returns the path.
@@ -678,12 +744,16 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
 
     The scene is assembled in ``<out>.partial`` and renamed when complete, so an interrupted run
     never leaves a scene that looks whole. An existing ``out`` is replaced only with ``force``.
+    A file system with less free space than the scene takes (:mod:`bench.scenes.disk`) is an
+    :class:`InputError` before any work.
     """
+    from bench.scenes.disk import check_free, scene_files
     from dmrt.io.colmap import write_model
     from dmrt.io.pointcloud import PointCloud, PointWriter
 
     out = Path(out)
     require("skimage", "the synthetic scenes' textures", "bench")  # before any work
+    check_free(sum(scene_files(config).values()), out.parent, f"the {config.name!r} scene")
     rng = np.random.default_rng(config.seed + 1)
     workers = workers if workers is not None else default_workers()
     offset = np.asarray(config.offset, np.float64)
@@ -697,22 +767,25 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
         cameras = place_cameras(config, geom, raycaster, rng)
         gains = [rng.uniform(*config.exposure_range) * rng.uniform(*config.white_balance_range, 3)
                  if config.lighting_variation else np.ones(3) for _ in cameras]
-        dirs = scan_directions(config, len(stations))
-        beams = [(i, s, d) for i, s in enumerate(stations)
-                 for d in np.array_split(dirs, -(-len(dirs) // config.chunk_rays))]
+        grid = scan_grid(config, len(stations))
+        # batches of beams as (station, first beam, end), each cast by a worker that makes its
+        # directions: memory is a few batches in flight, whatever the number of points
+        batches = [(i, a, b) for i in range(len(stations))
+                   for a, b in _beam_batches(grid.rows * grid.columns, config.chunk_rays)]
+        tasks = [(k, stations[i], len(stations), a, b) for k, (i, a, b) in enumerate(batches)]
         hits = np.zeros(len(stations) + 1, np.int64)  # each station's points, after the ones before
         with _pool(studio, workers) as pool:
             bar = tqdm(total=config.points, desc="scanning", unit="pt", unit_scale=True, disable=not progress)
             with PointWriter(tmp / "points.ply", normals=config.write_normals, colors=True,
-                             float_positions=config.float_positions) as writer:
-                tasks = [(k, s, d) for k, (_, s, d) in enumerate(beams)]
-                for (i, _, _), (pos, n, rgb) in zip(beams, pool.imap(_scan_task, tasks)):  # in order: deterministic
+                             float_positions=config.float_positions, normals_type=config.normals_type) as writer:
+                # in order (deterministic), two batches a worker ahead of the writer
+                for (i, _, _), (pos, n, rgb) in zip(batches, _in_order(pool, _scan_task, tasks, 2 * max(workers, 1))):
                     writer.write(PointCloud(pos + offset, n if config.write_normals else None, rgb))
                     hits[i + 1] += len(pos)
                     bar.update(len(pos))
             bar.close()
             # the scan structure (dmrt.io.stations): station runs of the file, each's grid
-            grid, first = scan_grid(config, len(stations)), np.cumsum(hits)
+            first = np.cumsum(hits)
             write_scans_json(tmp / "scans.json", [Station(s + offset, np.eye(3), (int(first[i]), int(first[i + 1])),
                                                           grid) for i, s in enumerate(stations)])
             tasks = [(cam, g, tmp / "images" / cam.name) for cam, g in zip(cameras, gains)]
