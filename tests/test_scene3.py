@@ -104,8 +104,9 @@ def test_scaled_copy_streams_and_matches_the_disk_estimate(tmp_path):
     n = scan_points(config)
     assert n > 500_000
     # a whole cloud held would add its 39 bytes a point (float64 positions, float32 normals, uchar
-    # colours) per extra point; a tenth of that is the margin for the batches' own noise
-    assert peak - peak_quarter < 0.1 * 39 * 0.75 * n
+    # colours) per extra point, 16 MB here; a quarter of that is the margin for the batches' own
+    # noise and first-use allocations (1.8 MB were seen when other test modules were collected first)
+    assert peak - peak_quarter < 0.25 * 39 * 0.75 * n
 
     meta = json.loads((scene / "synthetic.json").read_text())
     assert len(meta["stations"]) == 40  # the preset's 5 x 4 rooms, 2 stations each
