@@ -1,10 +1,13 @@
 """Preprocessing (paper Section 4): scene -> scene bundle.
 
-Phases, each with a progress bar and a wall-clock timing in ``bundle.json``:
+Phases, each with a progress bar and, in ``bundle.json``, a wall-clock timing and the bytes the run
+then holds on disk (``disk_bytes_after``; hard links to the scene's photos left out):
 
 1. **octree** — P_HD into nested levels of detail, out of core (:mod:`dmrt.preprocess.octree`);
 2. **normals/radii** — normals by plane fit where the input has none, oriented toward the nearest
    photo camera; splat radii from the local density (:mod:`dmrt.preprocess.normals`), out of core;
+   nothing on the scan path, whose radii and normals the octree carries (its work files are
+   deleted once the octree is built: ``docs/scene3.md``);
 3. **depth maps** — P_HD splatted as oriented discs from every photo's camera (:mod:`dmrt.preprocess.depthmaps`;
    :func:`render_depth_phase`: here, or on Dask each GPU worker its share, the maps merged exactly);
 4. **proxies** — P_LD = the k coarsest octree levels, with radii from their own density;
