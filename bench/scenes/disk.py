@@ -2,17 +2,20 @@
 arithmetic from the formats the code writes (``docs/scene3.md`` gives the sums for ``paper-scene3``).
 
 Preprocessing writes into the bundle's temporary folder and keeps its work files until the bundle
-is complete (:func:`dmrt.preprocess.pipeline.preprocess`), so the disk only grows until then:
+is complete (:func:`dmrt.preprocess.pipeline.preprocess`), but for the scan grid's, deleted once the
+octree carries them:
 
 * ``scan``: the scan grid's radii (and normals where the cloud has none) in input order, float32
-  ``.npy`` (``--radii scan``, or ``auto`` with the ``scans.json`` every synthetic scene has);
+  ``.npy`` (``--radii scan``, or ``auto`` with the ``scans.json`` every synthetic scene has), until
+  the octree is built;
 * ``octree``: every point once in its level files, a record of float32 positions (12 bytes), the
   normals the cloud or the scan carries (float32, 12), colours (3) and the scan's radii (4). While
   it is built the records move from spill files into level files, a bucket at a time; a bucket
   being selected (one per worker) or appended is held twice, ``(W + 1)`` buckets of the capacity
   of :class:`dmrt.preprocess.octree._Builder` (``0.4 M / W`` bytes of records and work arrays);
-* ``attrs``: radii (and kNN normals) in octree order, float32; the kNN path first spills every
-  point's position, index and a flag (21 bytes) once, plus the halo copies (``KNN_HALO``);
+* ``attrs``: the kNN path's radii (and normals) in octree order, float32; it first spills every
+  point's position, index and a flag (21 bytes) once, plus the halo copies (``KNN_HALO``). The
+  scan path writes none: the later phases read the radii and normals from the octree;
 * the bundle: depth maps (EXR, at most raw float32), low-resolution photos, ``proxy.npz``; the
   photos are hard links to the scene's (the work folder keeps both on one file system).
 
@@ -133,18 +136,20 @@ def estimate(config, preprocess=None, workers: int | None = None) -> DiskEstimat
         "scan/": scan * (NPY_HEADER + 4 * n + (normals == "scan") * (NPY_HEADER + 12 * n)),
         "octree/": n * record + (1 << 20),  # + octree.json
         "octree: buckets held twice": min(n, (workers + 1) * capacity) * record,
-        "attrs/": NPY_HEADER + 4 * n + (normals == "knn") * (NPY_HEADER + 12 * n),
+        "attrs/": (not scan) * (NPY_HEADER + 4 * n + (normals == "knn") * (NPY_HEADER + 12 * n)),
         "kNN spill": (not scan) * int(n * KNN_SPILL * (1 + KNN_HALO)),
         "bundle": config.photos * (pre.depthmap_width * depth_h * 4 + pre.lowres_width * low_h * 3 + 2048)
                   + proxies * PROXY_BYTES,
     }
     files = {k: int(b) for k, b in files.items() if b}
     scene = files["points.ply"] + files["images/"] + files["other scene files"]
-    octree = scene + files.get("scan/", 0) + files["octree/"]
-    moments = {"scene generated": scene, "octree built": octree + files["octree: buckets held twice"]}
+    octree = scene + files["octree/"]
+    # scan/ is read by the octree build, and deleted when it ends
+    moments = {"scene generated": scene,
+               "octree built": octree + files.get("scan/", 0) + files["octree: buckets held twice"]}
     if not scan:
         moments["kNN spill written"] = octree + files["kNN spill"] + files["attrs/"]
-    moments["bundle written"] = octree + files["attrs/"] + files["bundle"]
+    moments["bundle written"] = octree + files.get("attrs/", 0) + files["bundle"]
     return DiskEstimate(n, files, moments)
 
 

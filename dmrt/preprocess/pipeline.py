@@ -1,10 +1,13 @@
 """Preprocessing (paper Section 4): scene -> scene bundle.
 
-Phases, each with a progress bar and a wall-clock timing in ``bundle.json``:
+Phases, each with a progress bar and, in ``bundle.json``, a wall-clock timing and the bytes the run
+then holds on disk (``disk_bytes_after``; hard links to the scene's photos left out):
 
 1. **octree** — P_HD into nested levels of detail, out of core (:mod:`dmrt.preprocess.octree`);
 2. **normals/radii** — normals by plane fit where the input has none, oriented toward the nearest
    photo camera; splat radii from the local density (:mod:`dmrt.preprocess.normals`), out of core;
+   nothing on the scan path, whose radii and normals the octree carries (its work files are
+   deleted once the octree is built: ``docs/scene3.md``);
 3. **depth maps** — P_HD splatted as oriented discs from every photo's camera (:mod:`dmrt.preprocess.depthmaps`;
    :func:`render_depth_phase`: here, or on Dask each GPU worker its share, the maps merged exactly);
 4. **proxies** — P_LD = the k coarsest octree levels, with radii from their own density;
@@ -23,6 +26,7 @@ import os
 import resource
 import shlex
 import shutil
+import stat
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -44,6 +48,13 @@ from dmrt.preprocess.proxies import choose_proxy_levels, label_proxies
 from dmrt.preprocess.registration import coverage_summary
 from dmrt.preprocess.scangrid import scan_phase
 from dmrt.io.scene import Scene, load_scene
+
+
+def _new_bytes(folder) -> int:
+    """Bytes of the files under ``folder`` that take disk of their own: hard links (the photos
+    linked from the scene) share their data with the scene's files, and are left out."""
+    sizes = (f.lstat() for f in Path(folder).rglob("*"))
+    return sum(st.st_size for st in sizes if stat.S_ISREG(st.st_mode) and st.st_nlink == 1)
 
 
 def _gl_renderer_string() -> str:
@@ -133,14 +144,16 @@ def _float32(a) -> np.ndarray:
 def _depth_renderer(work, ranges, has_normals: bool, config: PreprocessConfig):
     """This process's depth-map renderer and the chunk source of P_HD's points in ``ranges`` (a
     list of :class:`~dmrt.preprocess.octree.OctreeRange`, read in turn) with their normals and
-    radii from ``work``; each call of the source reads its chunks two ahead of the consumer
+    radii: the octree's own where it carries them (the scan path: :func:`normals_radii_phase`),
+    else ``work/attrs``'s; each call of the source reads its chunks two ahead of the consumer
     (:func:`_read_ahead`)."""
     from dmrt.gl import GpuTimer, get_context
     from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer
 
     check_gpu_worker()
     normals = None if has_normals else np.load(Path(work) / "attrs" / "normals.npy", mmap_mode="r")
-    radii = np.load(Path(work) / "attrs" / "radii.npy", mmap_mode="r")
+    carried = any("radii" in points.fields for points in ranges)
+    radii = None if carried else np.load(Path(work) / "attrs" / "radii.npy", mmap_mode="r")
 
     def read():
         for points in ranges:
@@ -148,7 +161,8 @@ def _depth_renderer(work, ranges, has_normals: bool, config: PreprocessConfig):
             for ch in points():
                 m = len(ch["positions"])
                 nrm = ch["normals"] if has_normals else normals[g:g + m]
-                yield _float32(ch["positions"]), _float32(nrm), _float32(radii[g:g + m])
+                rad = ch["radii"] if carried else radii[g:g + m]
+                yield _float32(ch["positions"]), _float32(nrm), _float32(rad)
                 g += m
 
     def hd_chunks():  # a fresh reader (and thread) per call: render_many may read the cloud twice
@@ -290,11 +304,13 @@ def normals_radii_phase(octree, cameras, work, config: PreprocessConfig, executo
     ``work/attrs``. ``cameras``: the photos' cameras relative to the origin (normals face the
     nearest). Returns (the :func:`~dmrt.preprocess.normals.process_chunked` result, whether the
     octree carries normals). With ``scan`` (:mod:`dmrt.preprocess.scangrid`) the octree carries
-    them and the radii, which are only written out in octree order."""
+    the normals and the radii (its ``radii`` field), read from there by the later phases: nothing
+    is written and the result is None (a copy in ``work/attrs`` would cost 4 bytes a point of disk:
+    ``docs/scene3.md``)."""
     from dmrt.preprocess.normals import process_chunked
 
     if scan is not None:
-        return scan.finish(octree, Path(work) / "attrs"), True
+        return None, True
     executor = executor or InProcess()
     has_normals = octree.read_level(0).get("normals") is not None
     centers = np.array([c.center for c in cameras])
@@ -403,8 +419,11 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         cpu_s[name] = round(now - cpu_mark[0], 2)
         cpu_mark[0] = now
 
+    disk: dict[str, int] = {}  # bytes the run holds on disk after each phase
+
     def ended(name):
         cpu_tic(name)
+        disk[name] = _new_bytes(bw.tmp)
         # peak resident memory so far (MiB), so the phase that raised it can be read off, and the
         # phase's own peak of anonymous memory (what --memory-limit-mb governs: dmrt.preprocess.memory)
         peak_rss[name] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
@@ -426,6 +445,8 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         # 1. octree (positions relative to the origin, where its float32 keeps micrometres)
         t0 = time.perf_counter()
         octree = octree_phase(scene, work, config, executor, progress, scan)
+        if scan is not None:  # the octree carries the scan's radii and normals from here on
+            shutil.rmtree(scan.folder)
         tic("octree_s", t0)
 
         # 2. normals (if missing) and splat radii over P_HD, in octree order (coarsest level first)
@@ -452,7 +473,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         n_proxy = len(proxy["positions"])
         proxy = {"positions": proxy["positions"],
                  "normals": proxy["normals"] if has_normals else np.asarray(attrs.normals[:n_proxy]),
-                 "hd_radii": np.asarray(attrs.radii[:n_proxy], np.float32)}
+                 "hd_radii": np.asarray(proxy["radii"] if "radii" in proxy else attrs.radii[:n_proxy], np.float32)}
         read_s = time.perf_counter() - t0
         proxies = label_proxies(proxy, cams_local, _DepthFiles(work.parent, depth_files), _Photos(scene),
                                 config, labeling, progress=progress, executor=executor, phase_done=ended)
@@ -504,6 +525,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
             "peak_rss_mb_after": peak_rss,
             "peak_anon_mb_per_phase": peak_anon,
             "cpu_s_per_phase": cpu_s,
+            "disk_bytes_after": disk,
             "counts": {
                 "points": octree.n_points, "photos": len(scene.cameras), **proxies.counts(),
                 "proxy_levels": k, "octree_level_counts": list(octree.level_counts),

@@ -44,7 +44,8 @@ on disk. Chunks are prepared and processed on threads (numpy releases the GIL); 
 depend on the chunks or the threads. Neighbours farther in file order than the halo (a file not
 written line by line) are not seen: their points fall back as above. :meth:`ScanResult.attach`
 hands the results to the octree build as attributes of the points, so they arrive in octree order
-with the points.
+with the points: the later phases read them from the octree, and the pipeline deletes ``folder``
+once the octree is built (:func:`dmrt.preprocess.pipeline.preprocess`).
 
 Measured against the kNN path (:func:`dmrt.preprocess.normals.process_chunked`, k = 16 and 8) on
 the same points, both at ``--radius-scale`` 1.5 (``python -m bench.bench_scangrid --preset P``;
@@ -134,29 +135,6 @@ class ScanResult:
         """``source`` (chunks ``(positions, attrs)`` in input order) with ``radii`` and, when
         computed, ``normals`` added to each chunk's attributes: the octree build's input."""
         return ScanAttrs(source, str(self.folder), tuple(self.names()))
-
-    def finish(self, octree, attrs_dir):
-        """The radii the octree carried, in octree order, as ``attrs_dir/radii.npy`` (the file the
-        kNN path writes); returns a :class:`~dmrt.preprocess.normals.ChunkedResult` over it."""
-        from dmrt.io.atomic import atomic_file
-        from dmrt.preprocess.normals import ChunkedResult
-
-        t0 = time.perf_counter()
-        path = Path(attrs_dir) / "radii.npy"
-        with atomic_file(path) as tmp:
-            out = np.lib.format.open_memmap(tmp, "w+", np.float32, (octree.n_points,))
-            g = 0
-            for level, n in enumerate(octree.level_counts):  # level_XX/radii.bin: raw float32, in order
-                src = np.memmap(Path(octree.path) / f"level_{level:02d}" / "radii.bin", "<f4", "r", shape=(n,)) \
-                    if n else np.zeros(0, np.float32)
-                for s in range(0, n, 1 << 22):
-                    out[g + s:g + min(n, s + (1 << 22))] = src[s:s + (1 << 22)]
-                g += n
-            out.flush()
-            del out
-        return ChunkedResult(normals=None, radii=np.load(path, mmap_mode="r"), n_points=octree.n_points,
-                             margin=0.0, n_unverified=0, n_buckets=0, max_bucket_points=0,
-                             seconds=time.perf_counter() - t0)
 
     def meta(self) -> dict:
         """What ``bundle.json`` records under ``normals_radii``."""
