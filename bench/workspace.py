@@ -123,7 +123,7 @@ PRESETS = {
     # The paper's Scene 3 at its own size, for Table 1 (bench/scene3_run.sh): 1,092M points, 161
     # photos of 1024x684, on the same machine. The radii come from the scan's grid: the kNN path's
     # spill files (21 bytes a point and halos, 25 GB) do not fit a 64 GB disk beside the PLY and the
-    # octree (bench/scenes/disk.py: 63.2 GB at the peak so, 88.9 with float normals and kNN radii).
+    # octree (bench/scenes/disk.py: 60.8 GB at the peak so, 88.9 with float normals and kNN radii).
     # Half paper-full's memory limit: the octree's select holds up to W + 1 buckets on disk twice,
     # 2.5 GB at 32 GB (and ~230 buckets of 4.8M points keep 16 cores busy); the depth maps keep
     # the cloud (28 bytes a point, 30.6 GB) on the GPU.
