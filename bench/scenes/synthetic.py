@@ -95,11 +95,18 @@ class SynthConfig:
                                               "ones along their outward normals, metres (negative: behind)",
                                          minimum=-0.02, maximum=0.1)
     chunk_rays: int = option(2_000_000, "rays per Embree batch: bounds memory on big presets", minimum=1)
+    photographer: Literal["auto", "embree", "gl"] = option(
+        "auto", "what renders the photos: embree (ray casts on the CPU), gl (OpenGL rasterization, matte photos "
+                "only: specular 0) or auto (gl when specular is 0 and an OpenGL 4.3 context can be made); the "
+                "two agree on >= 99 % of pixels and differ at texel boundaries and triangle edges")
 
     def __post_init__(self):
         validate(self)
         if self.room_size[0] > self.room_size[1]:
             raise ConfigError("room_size", f"the range {self.room_size} must be (min, max)")
+        if self.photographer == "gl" and self.specular > 0:
+            raise ConfigError("photographer", "'gl' takes matte photos only: with --specular > 0 the highlight's "
+                                              "shadow rays need 'embree' (or 'auto')")
         if self.float_positions and max(abs(v) for v in self.offset) > 1000.0:
             raise ConfigError("float_positions", f"float32 keeps only ~{max(map(abs, self.offset)) * 6e-8:.2g} m "
                                                  f"at the offset {self.offset}: use an offset within 1 km")
@@ -649,9 +656,21 @@ class Studio:
         rgb[hit] = albedo(self.materials, self.photo_geom.face_material[face[hit]], p, n) * shade(n)[:, None]
         if len(self.lights):
             rgb[hit] += self.specular(p, n, center)[:, None]
-        img = rgb.reshape(camera.height, s, camera.width, s, 3).mean(axis=(1, 3))
-        img = img * (np.ones(3) if gain is None else np.asarray(gain))
-        return np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
+        return develop(rgb, camera, s, gain)
+
+
+def develop(rgb: np.ndarray, camera: Camera, supersample: int, gain=None) -> np.ndarray:
+    """The photo ``camera`` keeps of its rays' colours: each pixel the box-filtered mean of its
+    ``supersample`` x ``supersample`` rays, times the ``gain`` (3,) (default 1), 8-bit.
+
+    ``rgb``: (height * s, width * s, 3) or (height * s * width * s, 3) float32 linear colour 0..1,
+    row-major from the top-left ray. Returns (height, width, 3) uint8. Shared by both
+    photographers (Embree here, OpenGL in :mod:`bench.scenes.glphoto`) so that they round alike.
+    """
+    s = supersample
+    img = rgb.reshape(camera.height, s, camera.width, s, 3).mean(axis=(1, 3))
+    img = img * (np.ones(3) if gain is None else np.asarray(gain))
+    return np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
 
 
 # Each worker process builds the scene once (Embree scenes do not pickle) and serves batches.
