@@ -149,6 +149,12 @@ class GLPhotographer:
         s = self.studio.config.supersample
         return develop(self.colors(camera.scaled(camera.width * s, camera.height * s)), camera, s, gain)
 
+    def __enter__(self) -> "GLPhotographer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
     def release(self) -> None:
         """Free the GPU objects (the cached program stays with the context)."""
         for obj in (self.vao, self.faces, self.vertices, self.indices, self.textures,
