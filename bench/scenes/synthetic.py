@@ -669,9 +669,13 @@ def develop(rgb: np.ndarray, camera: Camera, supersample: int, gain=None) -> np.
     photographers (Embree here, OpenGL in :mod:`bench.scenes.glphoto`) so that they round alike.
     """
     s = supersample
-    img = rgb.reshape(camera.height, s, camera.width, s, 3).mean(axis=(1, 3))
+    img = rgb.reshape(camera.height, s, camera.width, s, 3)
+    # the mean of one ray is the ray (x / 1), skipped: the GL photographer's main process runs this
+    # for every photo, and the in-place float64 steps below halve its time (1024x684: 15 ms)
+    img = img.mean(axis=(1, 3)) if s > 1 else img.reshape(camera.height, camera.width, 3)
     img = img * (np.ones(3) if gain is None else np.asarray(gain))
-    return np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
+    img *= 255
+    return np.clip(np.rint(img, out=img), 0, 255, out=img).astype(np.uint8)
 
 
 # Each worker process builds the scene once (Embree scenes do not pickle) and serves batches.
