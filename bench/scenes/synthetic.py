@@ -140,7 +140,9 @@ PRESETS = {
     # Thousands of photos (issue #39): a city block of 2 x 64 rooms (345 x 11 m), 80 photos of
     # 1024x684 in each (10,240), `paper`'s 32M points (250k a room, one station each). Photos cost
     # the generation: 0.43 s of one core each (Embree + shading 0.36, PNG 0.08; measured on the
-    # 2-core CI machine), ~5 min on 16 cores; 10.5 GB of PNGs. --photo-size 512 342 takes a
+    # 2-core CI machine), 20 min measured on the H200 machine's 16 cores (8.7 photos/s); the
+    # OpenGL photographer (bench/scenes/glphoto.py, chosen by photographer="auto" since the photos
+    # are matte) leaves the workers only the PNGs; 10.5 GB of PNGs. --photo-size 512 342 takes a
     # quarter of that, at half the paper's photo resolution.
     "many": SynthConfig(name="many", rooms=(64, 2), points=32_000_000, photos=10_240, photo_size=(1024, 684),
                         supersample=1),
