@@ -25,6 +25,7 @@ the photo any camera would take, held-out views included.
 from __future__ import annotations
 
 import collections
+import contextlib
 import json
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -95,11 +96,18 @@ class SynthConfig:
                                               "ones along their outward normals, metres (negative: behind)",
                                          minimum=-0.02, maximum=0.1)
     chunk_rays: int = option(2_000_000, "rays per Embree batch: bounds memory on big presets", minimum=1)
+    photographer: Literal["auto", "embree", "gl"] = option(
+        "auto", "what renders the photos: embree (ray casts on the CPU), gl (OpenGL rasterization, matte photos "
+                "only: specular 0) or auto (gl when specular is 0 and an OpenGL 4.3 context can be made); the "
+                "two agree on >= 99 % of pixels and differ at texel boundaries and triangle edges")
 
     def __post_init__(self):
         validate(self)
         if self.room_size[0] > self.room_size[1]:
             raise ConfigError("room_size", f"the range {self.room_size} must be (min, max)")
+        if self.photographer == "gl" and self.specular > 0:
+            raise ConfigError("photographer", "'gl' takes matte photos only: with --specular > 0 the highlight's "
+                                              "shadow rays need 'embree' (or 'auto')")
         if self.float_positions and max(abs(v) for v in self.offset) > 1000.0:
             raise ConfigError("float_positions", f"float32 keeps only ~{max(map(abs, self.offset)) * 6e-8:.2g} m "
                                                  f"at the offset {self.offset}: use an offset within 1 km")
@@ -132,7 +140,9 @@ PRESETS = {
     # Thousands of photos (issue #39): a city block of 2 x 64 rooms (345 x 11 m), 80 photos of
     # 1024x684 in each (10,240), `paper`'s 32M points (250k a room, one station each). Photos cost
     # the generation: 0.43 s of one core each (Embree + shading 0.36, PNG 0.08; measured on the
-    # 2-core CI machine), ~5 min on 16 cores; 10.5 GB of PNGs. --photo-size 512 342 takes a
+    # 2-core CI machine), 20 min measured on the H200 machine's 16 cores (8.7 photos/s); the
+    # OpenGL photographer (bench/scenes/glphoto.py, chosen by photographer="auto" since the photos
+    # are matte) leaves the workers only the PNGs; 10.5 GB of PNGs. --photo-size 512 342 takes a
     # quarter of that, at half the paper's photo resolution.
     "many": SynthConfig(name="many", rooms=(64, 2), points=32_000_000, photos=10_240, photo_size=(1024, 684),
                         supersample=1),
@@ -649,9 +659,25 @@ class Studio:
         rgb[hit] = albedo(self.materials, self.photo_geom.face_material[face[hit]], p, n) * shade(n)[:, None]
         if len(self.lights):
             rgb[hit] += self.specular(p, n, center)[:, None]
-        img = rgb.reshape(camera.height, s, camera.width, s, 3).mean(axis=(1, 3))
-        img = img * (np.ones(3) if gain is None else np.asarray(gain))
-        return np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
+        return develop(rgb, camera, s, gain)
+
+
+def develop(rgb: np.ndarray, camera: Camera, supersample: int, gain=None) -> np.ndarray:
+    """The photo ``camera`` keeps of its rays' colours: each pixel the box-filtered mean of its
+    ``supersample`` x ``supersample`` rays, times the ``gain`` (3,) (default 1), 8-bit.
+
+    ``rgb``: (height * s, width * s, 3) or (height * s * width * s, 3) float32 linear colour 0..1,
+    row-major from the top-left ray. Returns (height, width, 3) uint8. Shared by both
+    photographers (Embree here, OpenGL in :mod:`bench.scenes.glphoto`) so that they round alike.
+    """
+    s = supersample
+    img = rgb.reshape(camera.height, s, camera.width, s, 3)
+    # the mean of one ray is the ray (x / 1), skipped: the GL photographer's main process runs this
+    # for every photo, and the in-place float64 steps below halve its time (1024x684: 15 ms)
+    img = img.mean(axis=(1, 3)) if s > 1 else img.reshape(camera.height, camera.width, 3)
+    img = img * (np.ones(3) if gain is None else np.asarray(gain))
+    img *= 255
+    return np.clip(np.rint(img, out=img), 0, 255, out=img).astype(np.uint8)
 
 
 # Each worker process builds the scene once (Embree scenes do not pickle) and serves batches.
@@ -670,14 +696,19 @@ def _scan_task(args):
     return scan_beams(w["config"], st.geom, st.scan_raycaster, st.materials, station, dirs, rng)
 
 
-def _photo_task(args):
-    cam, gain, path = args
+def _png_task(args):
+    img, path = args
     from PIL import Image
 
     # compress level 1: 3x faster than PIL's default 6 for 4 % more bytes (1024x684: 0.08 against
     # 0.24 s, the third of a photo's time at the default)
-    Image.fromarray(_WORKER["studio"].photograph(cam, gain)).save(path, compress_level=1)
+    Image.fromarray(img).save(path, compress_level=1)
     return path
+
+
+def _photo_task(args):
+    cam, gain, path = args
+    return _png_task((_WORKER["studio"].photograph(cam, gain), path))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -740,7 +771,9 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
     """Write a synthetic scene in the scene input format to ``out``; returns the path.
 
     ``workers`` processes (default: one per CPU core) scan and photograph in parallel; the
-    result does not depend on their number.
+    result does not depend on their number. With the OpenGL photographer
+    (:func:`~bench.scenes.glphoto.choose_photographer`, recorded in ``synthetic.json`` as
+    ``photographer``) this process renders the photos and the workers PNG-encode them.
 
     The scene is assembled in ``<out>.partial`` and renamed when complete, so an interrupted run
     never leaves a scene that looks whole. An existing ``out`` is replaced only with ``force``.
@@ -748,12 +781,14 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
     :class:`InputError` before any work.
     """
     from bench.scenes.disk import check_free, scene_files
+    from bench.scenes.glphoto import GLPhotographer, choose_photographer
     from dmrt.io.colmap import write_model
     from dmrt.io.pointcloud import PointCloud, PointWriter
 
     out = Path(out)
     require("skimage", "the synthetic scenes' textures", "bench")  # before any work
     check_free(sum(scene_files(config).values()), out.parent, f"the {config.name!r} scene")
+    photographer = choose_photographer(config)
     rng = np.random.default_rng(config.seed + 1)
     workers = workers if workers is not None else default_workers()
     offset = np.asarray(config.offset, np.float64)
@@ -789,13 +824,19 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
             write_scans_json(tmp / "scans.json", [Station(s + offset, np.eye(3), (int(first[i]), int(first[i + 1])),
                                                           grid) for i, s in enumerate(stations)])
             tasks = [(cam, g, tmp / "images" / cam.name) for cam, g in zip(cameras, gains)]
-            for _ in tqdm(pool.imap_unordered(_photo_task, tasks), total=len(tasks), desc="photographing",
-                          unit="photo", disable=not progress):
-                pass
+            with GLPhotographer(studio) if photographer == "gl" else contextlib.nullcontext() as gl:
+                if gl is None:
+                    done = pool.imap_unordered(_photo_task, tasks)
+                else:  # rendered here, one photo at a time; the workers only encode, two photos each in flight
+                    photos = ((gl.photograph(cam, g), path) for cam, g, path in tasks)
+                    done = _in_order(pool, _png_task, photos, 2 * max(workers, 1))
+                for _ in tqdm(done, total=len(tasks), desc=f"photographing ({photographer})", unit="photo",
+                              disable=not progress):
+                    pass
         # Cameras go to disk in world coordinates: t_world = t_local - R @ offset.
         world = [replace(c, t=c.t - c.R @ offset) for c in cameras]
         write_model(tmp / "sparse", world, binary=False)
-        meta = {"generator": "bench.scenes.synthetic", "config": asdict(config),
+        meta = {"generator": "bench.scenes.synthetic", "config": asdict(config), "photographer": photographer,
                 "stations": (stations + offset).tolist(),
                 "photo_gains": [g.tolist() for g in gains],
                 "lights": (studio.lights + offset).tolist(),
