@@ -52,7 +52,10 @@ def test_scene_with_gl_photos_is_the_embree_scene(tmp_path):
     for photographer, workers in (("gl", 2), ("embree", 1)):
         out = generate_scene(SynthConfig(**{**vars(cfg), "photographer": photographer}), tmp_path / photographer,
                              progress=False, workers=workers)
-        assert json.loads((out / "synthetic.json").read_text())["photographer"] == photographer
+        meta = json.loads((out / "synthetic.json").read_text())
+        assert meta["photographer"] == photographer
+        assert (meta["photographer_check"]["equal_fraction"] >= EXACT) if photographer == "gl" else \
+            meta["photographer_check"] is None
     gl, embree = tmp_path / "gl", tmp_path / "embree"
     for name in ("points.ply", "scans.json", "mesh.ply", "sparse/cameras.txt", "sparse/images.txt"):
         assert (gl / name).read_bytes() == (embree / name).read_bytes(), name
@@ -61,6 +64,19 @@ def test_scene_with_gl_photos_is_the_embree_scene(tmp_path):
     for j in range(cfg.photos):
         exact, within_one = _agreement(scene_gl.read_image(j), scene_embree.read_image(j))
         assert exact >= EXACT and within_one >= WITHIN_ONE, (j, exact, within_one)
+
+
+def test_gl_photos_that_disagree_with_embree_are_refused(tmp_path, monkeypatch):
+    """The first photo's check (a driver that rasterizes differently): one ConfigError naming the
+    fallback, and no scene left behind."""
+    import bench.scenes.synthetic as synthetic
+
+    monkeypatch.setattr(synthetic, "GL_CHECK_EQUAL", 1.01)  # no photo can reach it
+    cfg = SynthConfig(rooms=(1, 1), points=5_000, photos=2, photo_size=(48, 32), photographer="gl")
+    with pytest.raises(ConfigError, match="--photographer embree"):
+        generate_scene(cfg, tmp_path / "s", progress=False, workers=1)
+    assert not list(tmp_path.iterdir())
+
 
 def test_gl_refuses_the_glossy_highlight(tmp_path, capfd):
     with pytest.raises(ConfigError, match="--photographer: 'gl' takes matte photos only"):

@@ -97,9 +97,10 @@ class SynthConfig:
                                          minimum=-0.02, maximum=0.1)
     chunk_rays: int = option(2_000_000, "rays per Embree batch: bounds memory on big presets", minimum=1)
     photographer: Literal["auto", "embree", "gl"] = option(
-        "auto", "what renders the photos: embree (ray casts on the CPU), gl (OpenGL rasterization, matte photos "
-                "only: specular 0) or auto (gl when specular is 0 and an OpenGL 4.3 context can be made); the "
-                "two agree on >= 99 % of pixels and differ at texel boundaries and triangle edges")
+        "embree", "what renders the photos: embree (ray casts on the CPU: the truth, the same photos on any "
+                  "machine), gl (OpenGL rasterization, matte photos only: specular 0) or auto (gl when specular is "
+                  "0 and an OpenGL 4.3 context can be made); the two agree on >= 99 % of pixels and differ at "
+                  "texel boundaries and triangle edges")
 
     def __post_init__(self):
         validate(self)
@@ -141,14 +142,14 @@ PRESETS = {
     # 1024x684 in each (10,240), `paper`'s 32M points (250k a room, one station each). Photos cost
     # the generation: 0.43 s of one core each (Embree + shading 0.36, PNG 0.08; measured on the
     # 2-core CI machine), 20 min measured on the H200 machine's 16 cores (8.7 photos/s); the
-    # OpenGL photographer (bench/scenes/glphoto.py, chosen by photographer="auto" since the photos
-    # are matte) leaves the workers only the PNGs; 10.5 GB of PNGs. --photo-size 512 342 takes a
-    # quarter of that, at half the paper's photo resolution.
+    # OpenGL photographer (bench/scenes/glphoto.py, "auto": the photos are matte) leaves the workers
+    # only the PNGs; 10.5 GB of PNGs. --photo-size 512 342 takes a quarter of that, at half the
+    # paper's photo resolution.
     "many": SynthConfig(name="many", rooms=(64, 2), points=32_000_000, photos=10_240, photo_size=(1024, 684),
-                        supersample=1),
+                        supersample=1, photographer="auto"),
     # The tiny scene with more photos than a texture array has layers (GL_MAX_ARRAY_TEXTURE_LAYERS
     # = 2048 on Mesa and NVIDIA): 2,100 photos of 64x43, for the Mesa tests of issue #39.
-    "tiny-many": SynthConfig(name="tiny-many", photos=2_100, photo_size=(64, 43)),
+    "tiny-many": SynthConfig(name="tiny-many", photos=2_100, photo_size=(64, 43), photographer="auto"),
 }
 
 LIGHT = np.array([0.35, 0.25, 0.9]) / np.linalg.norm([0.35, 0.25, 0.9])
@@ -711,6 +712,25 @@ def _photo_task(args):
     return _png_task((_WORKER["studio"].photograph(cam, gain), path))
 
 
+# The GL photographer's photos agree with Embree's on 99.87-99.95 % of the pixels exactly on Mesa
+# (tests/test_synth_gl.py); below this, the driver renders something else (a depth format, a
+# rasterization rule): refused rather than written as a scene.
+GL_CHECK_EQUAL = 0.99
+
+
+def _check_gl_photo(studio: Studio, gl, camera: Camera, gain) -> dict:
+    """The first photo by both photographers: ``{"photo", "equal_fraction"}`` for ``synthetic.json``;
+    a :class:`ConfigError` naming ``--photographer embree`` when they agree on fewer than
+    ``GL_CHECK_EQUAL`` of the pixels (a driver whose rasterization differs from Mesa's, where the
+    GL photographer was checked)."""
+    equal = float(np.mean(np.all(gl.photograph(camera, gain) == studio.photograph(camera, gain), axis=-1)))
+    if equal < GL_CHECK_EQUAL:
+        raise ConfigError("photographer", f"the OpenGL photographer agrees with Embree on only {equal:.2%} of "
+                                          f"photo {camera.name}'s pixels (>= {GL_CHECK_EQUAL:.0%} expected): "
+                                          f"generate with --photographer embree")
+    return {"photo": camera.name, "equal_fraction": round(equal, 6)}
+
+
 # ----------------------------------------------------------------------------------------------
 # The scene on disk
 # ----------------------------------------------------------------------------------------------
@@ -828,6 +848,7 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
                 if gl is None:
                     done = pool.imap_unordered(_photo_task, tasks)
                 else:  # rendered here, one photo at a time; the workers only encode, two photos each in flight
+                    check = _check_gl_photo(studio, gl, *tasks[0][:2])
                     photos = ((gl.photograph(cam, g), path) for cam, g, path in tasks)
                     done = _in_order(pool, _png_task, photos, 2 * max(workers, 1))
                 for _ in tqdm(done, total=len(tasks), desc=f"photographing ({photographer})", unit="photo",
@@ -837,6 +858,7 @@ def generate_scene(config: SynthConfig, out, force: bool = False, progress: bool
         world = [replace(c, t=c.t - c.R @ offset) for c in cameras]
         write_model(tmp / "sparse", world, binary=False)
         meta = {"generator": "bench.scenes.synthetic", "config": asdict(config), "photographer": photographer,
+                "photographer_check": check if photographer == "gl" else None,
                 "stations": (stations + offset).tolist(),
                 "photo_gains": [g.tolist() for g in gains],
                 "lights": (studio.lights + offset).tolist(),
