@@ -64,4 +64,5 @@ def test_knn_path_records_its_attrs(tiny_bundle):
     meta = read_bundle(tiny_bundle).meta
     disk, n = meta["disk_bytes_after"], meta["counts"]["points"]
     assert meta["normals_radii"]["method"] == "knn" and "scan_grid_s" not in disk
+    assert meta["normals_radii"]["kernel"].startswith("pykdtree")  # the kNN kernel recorded
     assert disk["normals_radii_s"] - disk["octree_s"] == 16 * n + 2 * 128  # two .npy headers of 128 bytes

@@ -24,7 +24,14 @@ from pykdtree.kdtree import KDTree
 
 from dmrt.preprocess.parallel import default_workers
 
-__all__ = ["KnnTree", "pca_normals", "smallest_eigenvectors", "radius_factor", "neighbourhoods"]
+__all__ = ["KnnTree", "pca_normals", "smallest_eigenvectors", "radius_factor", "neighbourhoods", "kernel"]
+
+
+def kernel() -> str:
+    """What ``bundle.json`` records as the kNN kernel (``normals_radii.kernel``)."""
+    from importlib.metadata import version
+
+    return f"pykdtree {version('pykdtree')} exact kNN, closed-form PCA"
 
 # rows per PCA block: the block's (k, rows, 3) float64 neighbourhood and its products stay in the
 # L2 cache (16 x 2048 x 24 B = 768 KiB); blocks of 16,384 rows measured 10-40 % slower, numpy's

@@ -42,6 +42,7 @@ from dmrt.io.exr import read_depth_exr, write_depth_exr
 from dmrt.preprocess.config import PreprocessConfig
 from dmrt.preprocess.memory import AnonPeak, cpu_seconds
 from dmrt.preprocess.labeling import LabelingConfig
+from dmrt.preprocess.knn import kernel as knn_kernel
 from dmrt.preprocess.parallel import InProcess, check_gpu_worker, default_workers
 from dmrt.preprocess.photometric import solve_for_proxies
 from dmrt.preprocess.proxies import choose_proxy_levels, label_proxies
@@ -537,7 +538,8 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
                                                        "bucket_capacity", "workers", "timings")},
             # which method gave the radii and normals (dmrt.preprocess.scangrid: how many points fell back)
             "normals_radii": scan.meta() if scan is not None else {
-                "method": "knn", "radii": "knn", "normals": "input" if has_normals else "knn", "margin_m": attrs.margin,
+                "method": "knn", "radii": "knn", "normals": "input" if has_normals else "knn", "kernel": knn_kernel(),
+                "margin_m": attrs.margin,
                 "buckets": attrs.n_buckets, "max_bucket_points": attrs.max_bucket_points,
                 "unverified_points": attrs.n_unverified},
             "labeling": proxies.labeling_meta(),
