@@ -212,6 +212,25 @@ class _Grid:
         dz = z - (o[2] + (qz + 0.5) * s)
         return dx * dx + dy * dy + dz * dz
 
+    def d2_columns(self, cols, qc, shift: int, level: int) -> np.ndarray:
+        """:meth:`d2` of coordinate columns ``cols`` and finest-grid integer columns ``qc`` (cells
+        ``qc >> shift`` of level ``level``), bit for bit (the same operations in the same order),
+        computed in place in two float64 buffers rather than a dozen fresh temporaries."""
+        s, o = self.cell(level), self.origin
+        d2 = np.empty(len(cols[0]))
+        buf = np.empty_like(d2)
+        for j in range(3):
+            np.add(qc[j] >> shift, 0.5, out=buf)
+            buf *= s
+            buf += o[j]
+            np.subtract(cols[j], buf, out=buf)
+            if j == 0:
+                np.multiply(buf, buf, out=d2)
+            else:
+                buf *= buf
+                d2 += buf
+        return d2
+
 
 def _best_in_runs(keys, d2, cols) -> np.ndarray:
     """Like :func:`_best_per_cell` for ``keys`` already sorted (cells are contiguous runs) and
@@ -274,6 +293,36 @@ def _top_m(keys, d2, pos, m: int) -> np.ndarray:
         mask[np.concatenate(out)] = False
         alive = np.flatnonzero(mask)
     return np.concatenate(out) if out else np.zeros(0, np.int64)
+
+
+def _stable_order(keys: np.ndarray):
+    """The permutation of a stable argsort of ``keys`` and the sorted keys, both (n,) int64.
+
+    Where the keys' range and the index fit 63 bits together, one plain sort of the keys packed
+    above their index (equal keys fall to the index: stable), an order of magnitude faster than
+    numpy's stable argsort of int64 (measured 23 against 374 ms on 2M random 39-bit keys)."""
+    n = len(keys)
+    if n == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    lo = int(keys.min())
+    ib = max(1, (n - 1).bit_length())
+    if (int(keys.max()) - lo).bit_length() + ib > 63:
+        o = np.argsort(keys, kind="stable")
+        return o, keys[o]
+    packed = keys - lo
+    packed <<= ib
+    packed |= np.arange(n)
+    packed.sort()
+    srt = packed >> ib
+    srt += lo
+    packed &= (1 << ib) - 1
+    return packed, srt
+
+
+def _gather(rec: dict, idx: np.ndarray) -> dict:
+    """The records ``idx`` (an index array) of every field of ``rec``: ``np.take`` along the first
+    axis, several times faster than fancy indexing for per-point rows such as (n, 3) positions."""
+    return {k: np.take(v, idx, axis=0) for k, v in rec.items()}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -841,36 +890,44 @@ class _BucketWork:
 
     def _select_in_memory(self, rec, coarse_local, writers):
         """One stable sort by the finest Morton key, after which the cells of every coarser level
-        are contiguous runs too (their keys are prefixes). The work arrays are 1-D columns
-        compacted per level; the records are gathered once, at writing."""
+        are contiguous runs too (their keys are prefixes). The records are permuted into that
+        order once, so each level's picks are gathered in increasing order (cache-friendly); the
+        work arrays are 1-D columns (float32 positions, int32 cell coordinates) compacted per
+        level."""
         g, c = self.grid, self.c
-        keep = np.ones(len(rec["positions"]), bool)
-        keep[coarse_local] = False
-        base = np.flatnonzero(keep)
-        del keep
-        pos = rec["positions"][base]
-        q = g.coords(pos)
-        kf = morton_encode(q)
-        o = np.argsort(kf, kind="stable")  # stable: exact duplicates keep their input order
-        idx, kf = base[o], kf[o]
-        cols = [np.ascontiguousarray(pos[o, j]) for j in range(3)]
-        qc = [np.ascontiguousarray(q[o, j]) for j in range(3)]
-        del base, pos, q, o
+        n = len(rec["positions"])
+        if len(coarse_local):
+            keep = np.ones(n, bool)
+            keep[coarse_local] = False
+            base = np.flatnonzero(keep)
+            del keep
+            q = g.coords(np.take(rec["positions"], base, axis=0))
+        else:
+            base, q = None, g.coords(rec["positions"])
+        o, kf = _stable_order(morton_encode(q))  # stable: exact duplicates keep their input order
+        q = np.take(q, o, axis=0)
+        rec = _gather(rec, o if base is None else base[o])
+        del base, o
+        pos = rec["positions"]
+        cols = [np.ascontiguousarray(pos[:, j]) for j in range(3)]
+        qc = [q[:, j].astype(np.int32) for j in range(3)]  # < 2**21: int32 halves the traffic
+        del pos, q
+        idx = np.arange(len(kf))
         for lvl in range(c, g.n_grid):
             if len(idx) == 0:
                 break
             shift = g.finest - lvl
-            d2 = g.d2(*cols, *(a >> shift for a in qc), lvl)
+            d2 = g.d2_columns(cols, qc, shift, lvl)
             best = _best_in_runs(kf >> (3 * shift), d2, cols)
             del d2
-            writers[lvl].write(take(rec, idx[best]))
+            writers[lvl].write(_gather(rec, idx[best]))
             mask = np.ones(len(idx), bool)
             mask[best] = False
             idx, kf = idx[mask], kf[mask]
             cols = [a[mask] for a in cols]
             qc = [a[mask] for a in qc]
         if len(idx):
-            writers[-1].write(take(rec, idx))  # the remainder, in Morton order already
+            writers[-1].write(_gather(rec, idx))  # the remainder, in Morton order already
 
     def _select_streaming(self, b, n, coarse_local, writers):
         """Levels of an over-full bucket by per-level running reductions over its spill file; the
