@@ -192,7 +192,9 @@ class _Grid:
     def coords(self, pos: np.ndarray) -> np.ndarray:
         """(n, 3) int64 cell coordinates at the finest grid level (coarser: ``>> (finest - l)``)."""
         bits = self.bits0 + self.finest
-        q = np.floor((pos - self.origin) * (1.0 / self.cell(self.finest)))
+        q = np.subtract(pos, self.origin)  # float64, in place from here
+        q *= 1.0 / self.cell(self.finest)
+        np.floor(q, out=q)
         np.clip(q, 0, (1 << bits) - 1, out=q)
         return q.astype(np.int64)
 
@@ -236,18 +238,33 @@ def _best_in_runs(keys, d2, cols) -> np.ndarray:
     """Like :func:`_best_per_cell` for ``keys`` already sorted (cells are contiguous runs) and
     positions given as coordinate columns ``(x, y, z)``; among exact ties of distance and position
     the earliest index wins."""
-    n = len(keys)
-    if n == 0:
+    if len(keys) == 0:
         return np.zeros(0, np.int64)
-    start = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    return _best_of_runs(np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]]), d2, cols)
+
+
+def _best_of_runs(start, d2, cols) -> np.ndarray:
+    """Index of the best point of each run ``d2[start[i]:start[i + 1]]`` (smallest ``d2``, then
+    lowest x, y, z of the columns ``cols``, then earliest), in run order. A point whose ``d2`` is
+    ``inf`` is no candidate (real distances never are) and a run of only such points has no best.
+
+    Parameters
+    ----------
+    start : (r,) int64, increasing, ``start[0] == 0``
+    d2 : (n,) float64 squared distances, m**2
+    cols : three (n,) float32 (or float64) coordinate columns, m
+    """
+    n = len(d2)
     gmin = np.minimum.reduceat(d2, start)
     is_min = d2 == np.repeat(gmin, np.diff(np.r_[start, n]))
-    del gmin
     idx = np.flatnonzero(is_min)  # sorted; every run has at least one minimum
-    grp = np.searchsorted(start, idx, side="right") - 1
-    first = np.r_[True, grp[1:] != grp[:-1]]
-    best = idx[first]
-    if len(idx) > len(best):  # exact distance ties (regular grids, duplicates): lowest x, y, z
+    del is_min
+    if len(idx) == len(start):  # one minimum per run, the common case: no run search
+        best = idx
+    else:  # exact distance ties (regular grids, duplicates): lowest x, y, z
+        grp = np.searchsorted(start, idx, side="right") - 1
+        first = np.r_[True, grp[1:] != grp[:-1]]
+        best = idx[first]
         n_min = np.diff(np.r_[np.flatnonzero(first), len(idx)])
         sel = np.repeat(n_min > 1, n_min)
         ti, tg = idx[sel], grp[sel]
@@ -255,7 +272,8 @@ def _best_in_runs(keys, d2, cols) -> np.ndarray:
         tgs = tg[ot]
         firsts = np.r_[True, tgs[1:] != tgs[:-1]]
         best[tgs[firsts]] = ti[ot[firsts]]
-    return best
+    dead = gmin == np.inf
+    return best[~dead] if dead.any() else best
 
 
 def _best_per_cell(keys, d2, pos) -> np.ndarray:
@@ -892,8 +910,8 @@ class _BucketWork:
         """One stable sort by the finest Morton key, after which the cells of every coarser level
         are contiguous runs too (their keys are prefixes). The records are permuted into that
         order once, so each level's picks are gathered in increasing order (cache-friendly); the
-        work arrays are 1-D columns (float32 positions, int32 cell coordinates) compacted per
-        level."""
+        work arrays are 1-D columns (float32 positions, int32 cell coordinates), compacted once
+        a quarter of them is taken."""
         g, c = self.grid, self.c
         n = len(rec["positions"])
         if len(coarse_local):
@@ -905,28 +923,40 @@ class _BucketWork:
         else:
             base, q = None, g.coords(rec["positions"])
         o, kf = _stable_order(morton_encode(q))  # stable: exact duplicates keep their input order
-        q = np.take(q, o, axis=0)
+        q = np.take(q.astype(np.int32), o, axis=0)  # < 2**21: int32 halves the traffic
         rec = _gather(rec, o if base is None else base[o])
         del base, o
         pos = rec["positions"]
         cols = [np.ascontiguousarray(pos[:, j]) for j in range(3)]
-        qc = [q[:, j].astype(np.int32) for j in range(3)]  # < 2**21: int32 halves the traffic
+        qc = [np.ascontiguousarray(q[:, j]) for j in range(3)]
         del pos, q
-        idx = np.arange(len(kf))
+        idx = np.arange(len(kf))  # the work arrays' records
+        # a level-l run starts where consecutive keys differ at bit 3 * (finest - l) or above
+        dk = kf[1:] ^ kf[:-1]
+        # points taken since the work arrays were last compacted: the coarse levels take few
+        # points, so compacting after each would copy nearly all the arrays for nothing
+        taken = np.zeros(0, np.int64)
         for lvl in range(c, g.n_grid):
-            if len(idx) == 0:
+            if len(idx) == len(taken):
                 break
             shift = g.finest - lvl
             d2 = g.d2_columns(cols, qc, shift, lvl)
-            best = _best_in_runs(kf >> (3 * shift), d2, cols)
+            d2[taken] = np.inf
+            best = _best_of_runs(np.r_[0, np.flatnonzero(dk >= 1 << 3 * shift) + 1], d2, cols)
             del d2
             writers[lvl].write(_gather(rec, idx[best]))
-            mask = np.ones(len(idx), bool)
-            mask[best] = False
-            idx, kf = idx[mask], kf[mask]
-            cols = [a[mask] for a in cols]
-            qc = [a[mask] for a in qc]
-        if len(idx):
+            taken = np.concatenate([taken, best])
+            if len(taken) > len(idx) // 4:
+                mask = np.ones(len(idx), bool)
+                mask[taken] = False
+                idx, kf = idx[mask], kf[mask]
+                cols = [a[mask] for a in cols]
+                qc = [a[mask] for a in qc]
+                dk = kf[1:] ^ kf[:-1]
+                taken = taken[:0]
+        if len(idx) > len(taken):
+            if len(taken):
+                idx = np.delete(idx, taken)
             writers[-1].write(_gather(rec, idx))  # the remainder, in Morton order already
 
     def _select_streaming(self, b, n, coarse_local, writers):
