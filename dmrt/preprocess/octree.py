@@ -280,7 +280,7 @@ def _best_per_cell(keys, d2, pos) -> np.ndarray:
     """Index of the best point of every cell — smallest distance to the cell centre, ties broken by
     x, then y, then z, then index — in Morton order of the cells.
 
-    One stable ``argsort`` of the keys and a segmented minimum; only exact distance ties (regular
+    One stable sort of the keys (:func:`_stable_order`) and a segmented minimum; only exact distance ties (regular
     grids) take a lexicographic sort, on the tied points alone.
 
     Parameters
@@ -291,9 +291,9 @@ def _best_per_cell(keys, d2, pos) -> np.ndarray:
     """
     if len(keys) == 0:
         return np.zeros(0, np.int64)
-    o = np.argsort(keys, kind="stable")
-    p = pos[o]
-    return o[_best_in_runs(keys[o], d2[o], (p[:, 0], p[:, 1], p[:, 2]))]
+    o, ks = _stable_order(keys)
+    p = np.take(pos, o, axis=0)
+    return o[_best_in_runs(ks, d2[o], (p[:, 0], p[:, 1], p[:, 2]))]
 
 
 def _top_m(keys, d2, pos, m: int) -> np.ndarray:
@@ -1025,7 +1025,7 @@ class _BucketWork:
             else:
                 rec = read_records(app.dir, self.schema)
                 kf = morton_encode(g.coords(rec["positions"]))
-                writer.write(take(rec, np.argsort(kf, kind="stable")))
+                writer.write(_gather(rec, _stable_order(kf)[0]))
                 del rec, kf
             shutil.rmtree(app.dir, ignore_errors=True)
 
