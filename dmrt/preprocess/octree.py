@@ -280,8 +280,8 @@ def _best_per_cell(keys, d2, pos) -> np.ndarray:
     """Index of the best point of every cell — smallest distance to the cell centre, ties broken by
     x, then y, then z, then index — in Morton order of the cells.
 
-    One stable sort of the keys (:func:`_stable_order`) and a segmented minimum; only exact distance ties (regular
-    grids) take a lexicographic sort, on the tied points alone.
+    One stable sort of the keys (:func:`_stable_order`) and a segmented minimum; only exact
+    distance ties (regular grids) take a lexicographic sort, on the tied points alone.
 
     Parameters
     ----------
