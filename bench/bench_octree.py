@@ -229,7 +229,8 @@ def main(argv=None):
         "max_bucket_points": tree.meta["max_bucket_points"], "bucket_capacity": tree.meta["bucket_capacity"],
         "wall_s": wall, "generator_s": gen_s, "build_s": wall - gen_s,
         "points_per_s": args.points / (wall - gen_s), "phases_s": phases,
-        "phases_without_generator_s": own, "generator_per_pass_s": gen_calls,
+        "phases_without_generator_s": own,
+        "phases_us_per_point": {k[:-2]: v * 1e6 / max(1, args.points) for k, v in own.items()}, "generator_per_pass_s": gen_calls,
         "input": args.ply or "generated", "input_parts": tree.meta["input_parts"],
         "workers": args.workers, "worker_spawn_s": spawn_s, "cpu_s": cpu, "workers_cpu_s": workers_cpu,
         "baseline_rss_mb": baseline, "peak_rss_mb": peak, "worker_peak_rss_mb": worker_peak,
@@ -249,6 +250,8 @@ def main(argv=None):
              if args.workers > 1 else ""))
     print("phases  " + ", ".join(f"{k} {v:.2f}" for k, v in phases.items()) + " (generator time included)")
     print("own     " + ", ".join(f"{k} {v:.2f}" for k, v in own.items()) + " (generator time excluded)")
+    print("us/pt   " + ", ".join(f"{k[:-2]} {v * 1e6 / max(1, args.points):.3f}" for k, v in own.items())
+          + " (microseconds a point, generator time excluded)")
     print(f"rss     baseline {baseline:.0f} MB, peak {peak:.0f} MB (getrusage) vs limit {args.memory_limit_mb:g} MB"
           + (f"; largest worker {worker_peak:.0f} MB" if worker_peak is not None else ""))
     if args.json:

@@ -21,7 +21,7 @@ import pytest
 from dmrt.errors import InputError
 from dmrt.io.pointcloud import PointCloud, PointWriter, point_range
 from dmrt.morton import morton_encode
-from dmrt.preprocess.octree import Octree, OctreeConfig
+from dmrt.preprocess.octree import Octree, OctreeConfig, _best_of_runs, _Grid, _stable_order
 from dmrt.preprocess.parallel import InProcess, ProcessPool
 
 N_BIG = 2_000_000
@@ -580,3 +580,45 @@ def test_split_input_outside_bbox_one_part_and_errors(tmp_path, pool):
     with pytest.raises(ValueError, match="input part 2 of 2, chunk 3: attributes .* differ"):
         Octree.build(bad, tmp_path / "x", cfg, bbox=box, progress=False, executor=pool)
     assert not (tmp_path / "x").exists() and not (tmp_path / "x.partial").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# the select's helpers against plain numpy twins
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("span", [1 << 20, 1 << 61])  # packed into one int64 / too wide: argsort
+def test_stable_order_is_a_stable_argsort(span):
+    keys = np.random.default_rng(1).integers(0, 50, 5000) * (span // 50) + 7  # many equal keys
+    o, srt = _stable_order(keys)
+    np.testing.assert_array_equal(o, np.argsort(keys, kind="stable"))
+    np.testing.assert_array_equal(srt, keys[o])
+
+
+def test_best_of_runs_matches_a_per_run_loop():
+    """Exact distance ties (resolved by x, y, z, then index), runs of taken points (d2 = inf)."""
+    rng = np.random.default_rng(2)
+    n = 3000
+    cols = [rng.integers(0, 3, n).astype(np.float32) for _ in range(3)]  # few values: position ties
+    d2 = rng.integers(0, 4, n).astype(np.float64)  # few values: distance ties
+    d2[rng.random(n) < 0.3] = np.inf
+    start = np.r_[0, np.sort(rng.choice(np.arange(1, n), 900, replace=False))]
+    want = []
+    for a, b in zip(start, np.r_[start[1:], n]):
+        i = np.arange(a, b)[np.isfinite(d2[a:b])]
+        if len(i):
+            want.append(i[np.lexsort((i, cols[2][i], cols[1][i], cols[0][i], d2[i]))[0]])
+    assert len(want) < len(start), "no run of taken points"
+    np.testing.assert_array_equal(_best_of_runs(start, d2, cols), want)
+
+
+def test_distance_columns_equal_the_formula_bit_for_bit():
+    rng = np.random.default_rng(3)
+    g = _Grid(np.array([-3.1, 0.7, 12.9]), 0.37, 6, 5)
+    pos = (rng.random((4000, 3)) * 11.8 + g.origin).astype(np.float32)
+    q = g.coords(pos)
+    for lvl in range(g.n_grid):
+        shift = g.finest - lvl
+        ql = q >> shift
+        want = g.d2(pos[:, 0], pos[:, 1], pos[:, 2], ql[:, 0], ql[:, 1], ql[:, 2], lvl)
+        got = g.d2_columns([pos[:, j].copy() for j in range(3)], [q[:, j].astype(np.int32) for j in range(3)],
+                           shift, lvl)
+        assert got.tobytes() == want.tobytes(), f"level {lvl}"

@@ -192,7 +192,9 @@ class _Grid:
     def coords(self, pos: np.ndarray) -> np.ndarray:
         """(n, 3) int64 cell coordinates at the finest grid level (coarser: ``>> (finest - l)``)."""
         bits = self.bits0 + self.finest
-        q = np.floor((pos - self.origin) * (1.0 / self.cell(self.finest)))
+        q = np.subtract(pos, self.origin)  # float64, in place from here
+        q *= 1.0 / self.cell(self.finest)
+        np.floor(q, out=q)
         np.clip(q, 0, (1 << bits) - 1, out=q)
         return q.astype(np.int64)
 
@@ -212,23 +214,57 @@ class _Grid:
         dz = z - (o[2] + (qz + 0.5) * s)
         return dx * dx + dy * dy + dz * dz
 
+    def d2_columns(self, cols, qc, shift: int, level: int) -> np.ndarray:
+        """:meth:`d2` of coordinate columns ``cols`` and finest-grid integer columns ``qc`` (cells
+        ``qc >> shift`` of level ``level``), bit for bit (the same operations in the same order),
+        computed in place in two float64 buffers rather than a dozen fresh temporaries."""
+        s, o = self.cell(level), self.origin
+        d2 = np.empty(len(cols[0]))
+        buf = np.empty_like(d2)
+        for j in range(3):
+            np.add(qc[j] >> shift, 0.5, out=buf)
+            buf *= s
+            buf += o[j]
+            np.subtract(cols[j], buf, out=buf)
+            if j == 0:
+                np.multiply(buf, buf, out=d2)
+            else:
+                buf *= buf
+                d2 += buf
+        return d2
+
 
 def _best_in_runs(keys, d2, cols) -> np.ndarray:
     """Like :func:`_best_per_cell` for ``keys`` already sorted (cells are contiguous runs) and
     positions given as coordinate columns ``(x, y, z)``; among exact ties of distance and position
     the earliest index wins."""
-    n = len(keys)
-    if n == 0:
+    if len(keys) == 0:
         return np.zeros(0, np.int64)
-    start = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    return _best_of_runs(np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]]), d2, cols)
+
+
+def _best_of_runs(start, d2, cols) -> np.ndarray:
+    """Index of the best point of each run ``d2[start[i]:start[i + 1]]`` (smallest ``d2``, then
+    lowest x, y, z of the columns ``cols``, then earliest), in run order. A point whose ``d2`` is
+    ``inf`` is no candidate (real distances never are) and a run of only such points has no best.
+
+    Parameters
+    ----------
+    start : (r,) int64, increasing, ``start[0] == 0``
+    d2 : (n,) float64 squared distances, m**2
+    cols : three (n,) float32 (or float64) coordinate columns, m
+    """
+    n = len(d2)
     gmin = np.minimum.reduceat(d2, start)
     is_min = d2 == np.repeat(gmin, np.diff(np.r_[start, n]))
-    del gmin
     idx = np.flatnonzero(is_min)  # sorted; every run has at least one minimum
-    grp = np.searchsorted(start, idx, side="right") - 1
-    first = np.r_[True, grp[1:] != grp[:-1]]
-    best = idx[first]
-    if len(idx) > len(best):  # exact distance ties (regular grids, duplicates): lowest x, y, z
+    del is_min
+    if len(idx) == len(start):  # one minimum per run, the common case: no run search
+        best = idx
+    else:  # exact distance ties (regular grids, duplicates): lowest x, y, z
+        grp = np.searchsorted(start, idx, side="right") - 1
+        first = np.r_[True, grp[1:] != grp[:-1]]
+        best = idx[first]
         n_min = np.diff(np.r_[np.flatnonzero(first), len(idx)])
         sel = np.repeat(n_min > 1, n_min)
         ti, tg = idx[sel], grp[sel]
@@ -236,15 +272,16 @@ def _best_in_runs(keys, d2, cols) -> np.ndarray:
         tgs = tg[ot]
         firsts = np.r_[True, tgs[1:] != tgs[:-1]]
         best[tgs[firsts]] = ti[ot[firsts]]
-    return best
+    dead = gmin == np.inf
+    return best[~dead] if dead.any() else best
 
 
 def _best_per_cell(keys, d2, pos) -> np.ndarray:
     """Index of the best point of every cell — smallest distance to the cell centre, ties broken by
     x, then y, then z, then index — in Morton order of the cells.
 
-    One stable ``argsort`` of the keys and a segmented minimum; only exact distance ties (regular
-    grids) take a lexicographic sort, on the tied points alone.
+    One stable sort of the keys (:func:`_stable_order`) and a segmented minimum; only exact
+    distance ties (regular grids) take a lexicographic sort, on the tied points alone.
 
     Parameters
     ----------
@@ -254,9 +291,9 @@ def _best_per_cell(keys, d2, pos) -> np.ndarray:
     """
     if len(keys) == 0:
         return np.zeros(0, np.int64)
-    o = np.argsort(keys, kind="stable")
-    p = pos[o]
-    return o[_best_in_runs(keys[o], d2[o], (p[:, 0], p[:, 1], p[:, 2]))]
+    o, ks = _stable_order(keys)
+    p = np.take(pos, o, axis=0)
+    return o[_best_in_runs(ks, d2[o], (p[:, 0], p[:, 1], p[:, 2]))]
 
 
 def _top_m(keys, d2, pos, m: int) -> np.ndarray:
@@ -274,6 +311,36 @@ def _top_m(keys, d2, pos, m: int) -> np.ndarray:
         mask[np.concatenate(out)] = False
         alive = np.flatnonzero(mask)
     return np.concatenate(out) if out else np.zeros(0, np.int64)
+
+
+def _stable_order(keys: np.ndarray):
+    """The permutation of a stable argsort of ``keys`` and the sorted keys, both (n,) int64.
+
+    Where the keys' range and the index fit 63 bits together, one plain sort of the keys packed
+    above their index (equal keys fall to the index: stable), an order of magnitude faster than
+    numpy's stable argsort of int64 (measured 23 against 374 ms on 2M random 39-bit keys)."""
+    n = len(keys)
+    if n == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    lo = int(keys.min())
+    ib = max(1, (n - 1).bit_length())
+    if (int(keys.max()) - lo).bit_length() + ib > 63:
+        o = np.argsort(keys, kind="stable")
+        return o, keys[o]
+    packed = keys - lo
+    packed <<= ib
+    packed |= np.arange(n)
+    packed.sort()
+    srt = packed >> ib
+    srt += lo
+    packed &= (1 << ib) - 1
+    return packed, srt
+
+
+def _gather(rec: dict, idx: np.ndarray) -> dict:
+    """The records ``idx`` (an index array) of every field of ``rec``: ``np.take`` along the first
+    axis, several times faster than fancy indexing for per-point rows such as (n, 3) positions."""
+    return {k: np.take(v, idx, axis=0) for k, v in rec.items()}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -841,36 +908,56 @@ class _BucketWork:
 
     def _select_in_memory(self, rec, coarse_local, writers):
         """One stable sort by the finest Morton key, after which the cells of every coarser level
-        are contiguous runs too (their keys are prefixes). The work arrays are 1-D columns
-        compacted per level; the records are gathered once, at writing."""
+        are contiguous runs too (their keys are prefixes). The records are permuted into that
+        order once, so each level's picks are gathered in increasing order (cache-friendly); the
+        work arrays are 1-D columns (float32 positions, int32 cell coordinates), compacted once
+        a quarter of them is taken."""
         g, c = self.grid, self.c
-        keep = np.ones(len(rec["positions"]), bool)
-        keep[coarse_local] = False
-        base = np.flatnonzero(keep)
-        del keep
-        pos = rec["positions"][base]
-        q = g.coords(pos)
-        kf = morton_encode(q)
-        o = np.argsort(kf, kind="stable")  # stable: exact duplicates keep their input order
-        idx, kf = base[o], kf[o]
-        cols = [np.ascontiguousarray(pos[o, j]) for j in range(3)]
-        qc = [np.ascontiguousarray(q[o, j]) for j in range(3)]
-        del base, pos, q, o
+        n = len(rec["positions"])
+        if len(coarse_local):
+            keep = np.ones(n, bool)
+            keep[coarse_local] = False
+            base = np.flatnonzero(keep)
+            del keep
+            q = g.coords(np.take(rec["positions"], base, axis=0))
+        else:
+            base, q = None, g.coords(rec["positions"])
+        o, kf = _stable_order(morton_encode(q))  # stable: exact duplicates keep their input order
+        q = np.take(q.astype(np.int32), o, axis=0)  # < 2**21: int32 halves the traffic
+        rec = _gather(rec, o if base is None else base[o])
+        del base, o
+        pos = rec["positions"]
+        cols = [np.ascontiguousarray(pos[:, j]) for j in range(3)]
+        qc = [np.ascontiguousarray(q[:, j]) for j in range(3)]
+        del pos, q
+        idx = np.arange(len(kf))  # the work arrays' records
+        # a level-l run starts where consecutive keys differ at bit 3 * (finest - l) or above
+        dk = kf[1:] ^ kf[:-1]
+        # points taken since the work arrays were last compacted: the coarse levels take few
+        # points, so compacting after each would copy nearly all the arrays for nothing
+        taken = np.zeros(0, np.int64)
         for lvl in range(c, g.n_grid):
-            if len(idx) == 0:
+            if len(idx) == len(taken):
                 break
             shift = g.finest - lvl
-            d2 = g.d2(*cols, *(a >> shift for a in qc), lvl)
-            best = _best_in_runs(kf >> (3 * shift), d2, cols)
+            d2 = g.d2_columns(cols, qc, shift, lvl)
+            d2[taken] = np.inf
+            best = _best_of_runs(np.r_[0, np.flatnonzero(dk >= 1 << 3 * shift) + 1], d2, cols)
             del d2
-            writers[lvl].write(take(rec, idx[best]))
-            mask = np.ones(len(idx), bool)
-            mask[best] = False
-            idx, kf = idx[mask], kf[mask]
-            cols = [a[mask] for a in cols]
-            qc = [a[mask] for a in qc]
-        if len(idx):
-            writers[-1].write(take(rec, idx))  # the remainder, in Morton order already
+            writers[lvl].write(_gather(rec, idx[best]))
+            taken = np.concatenate([taken, best])
+            if len(taken) > len(idx) // 4:
+                mask = np.ones(len(idx), bool)
+                mask[taken] = False
+                idx, kf = idx[mask], kf[mask]
+                cols = [a[mask] for a in cols]
+                qc = [a[mask] for a in qc]
+                dk = kf[1:] ^ kf[:-1]
+                taken = taken[:0]
+        if len(idx) > len(taken):
+            if len(taken):
+                idx = np.delete(idx, taken)
+            writers[-1].write(_gather(rec, idx))  # the remainder, in Morton order already
 
     def _select_streaming(self, b, n, coarse_local, writers):
         """Levels of an over-full bucket by per-level running reductions over its spill file; the
@@ -938,7 +1025,7 @@ class _BucketWork:
             else:
                 rec = read_records(app.dir, self.schema)
                 kf = morton_encode(g.coords(rec["positions"]))
-                writer.write(take(rec, np.argsort(kf, kind="stable")))
+                writer.write(_gather(rec, _stable_order(kf)[0]))
                 del rec, kf
             shutil.rmtree(app.dir, ignore_errors=True)
 
