@@ -28,6 +28,9 @@ def field_bytes(schema: dict) -> int:
 
 def take(rec: dict, idx) -> dict:
     """The records ``idx`` (an index array, mask or slice) of every field of ``rec``."""
+    if isinstance(idx, np.ndarray) and idx.dtype.kind in "iu":
+        # np.take gathers whole rows: ~5x faster than fancy indexing on (n, 3) fields, same result
+        return {k: np.take(v, idx, axis=0) for k, v in rec.items()}
     return {k: v[idx] for k, v in rec.items()}
 
 
