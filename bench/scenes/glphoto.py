@@ -62,9 +62,12 @@ def _depth32f(ctx: moderngl.Context, size: tuple[int, int]) -> moderngl.Texture:
     tex = ctx.depth_texture(size)
     egl = ctypes.CDLL("libEGL.so.1")
     egl.eglGetProcAddress.restype, egl.eglGetProcAddress.argtypes = ctypes.c_void_p, [ctypes.c_char_p]
+    address = egl.eglGetProcAddress(b"glTexImage2D")
+    if not address:  # EGL < 1.5 need not return core functions: calling NULL would end the process
+        raise ConfigError("photographer", "gl: this EGL gives no glTexImage2D for a float depth buffer: "
+                                          "use --photographer embree")
     tex_image_2d = ctypes.CFUNCTYPE(None, *[ctypes.c_uint, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_int,
-                                            ctypes.c_int, ctypes.c_uint, ctypes.c_uint, ctypes.c_void_p])(
-        egl.eglGetProcAddress(b"glTexImage2D"))
+                                            ctypes.c_int, ctypes.c_uint, ctypes.c_uint, ctypes.c_void_p])(address)
     tex.use(0)
     tex_image_2d(_GL_TEXTURE_2D, 0, _GL_DEPTH_COMPONENT32F, size[0], size[1], 0, _GL_DEPTH_COMPONENT, _GL_FLOAT, None)
     check_gl(ctx, "making a float depth buffer for the synthetic photos")
