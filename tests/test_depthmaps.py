@@ -5,6 +5,8 @@ Both GPU paths (compute, raster) are checked against analytic planes and against
 same primitive written in world space (every pixel against every disc, no bounding boxes).
 """
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -13,6 +15,7 @@ from dmrt.io.exr import read_depth_exr, write_depth_exr
 from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer, depth_map_size
 from dmrt.errors import InputError
 from dmrt.gl import GpuTimer
+from dmrt.preprocess.pipeline import _read_ahead
 from reference.twins import splat_depth_map
 
 W, H = 96, 64  # depth-map size used throughout: small enough for llvmpipe and the numpy reference
@@ -260,18 +263,22 @@ def many_scene():
     return cams, chunks
 
 
-@pytest.mark.parametrize("method", ["compute", "raster"])
+# "ahead": the GPU batches packed and bucketed on a thread (the preprocessing's), which every mode
+# drops half read at some point (the first upload that exceeds the budget, an early stop)
+@pytest.mark.parametrize("method", ["compute", "raster", "ahead"])
 @pytest.mark.parametrize("mode", ["resident", "grouped", "camera-groups", "streamed"])
 def test_render_many_equals_render(ctx, many_scene, method, mode):
     cams, chunks = many_scene
     chunk_points = 256
     timer = GpuTimer(ctx)
-    renderer = DepthMapRenderer(ctx, DepthMapConfig(width=W, method=method, chunk_points=chunk_points),
-                                timer=timer)
+    threads = threading.active_count()
+    renderer = DepthMapRenderer(ctx, DepthMapConfig(width=W, method=method.replace("ahead", "compute"),
+                                                    chunk_points=chunk_points),
+                                timer=timer, ahead=_read_ahead if method == "ahead" else None)
     try:
         expected = [renderer.render(c, iter(chunks)) for c in cams]
         maps = sum(renderer.map_bytes(c) for c in cams)
-        assert maps == W * (H + 72) * (4 if method == "compute" else 8)
+        assert maps == W * (H + 72) * (8 if method == "raster" else 4)
         batch = chunk_points * 7 * 4
         cloud = sum(len(c[0]) for c in chunks) * 7 * 4
         # resident: the whole cloud; grouped: the maps and three batches; camera-groups: one map and
@@ -315,6 +322,7 @@ def test_render_many_equals_render(ctx, many_scene, method, mode):
         first = renderer.render_many(cams, chunks_fn, resident_mb=budget / 2**20)
         np.testing.assert_array_equal(next(first)[1], expected[0])
         first.close()
+        assert threading.active_count() == threads  # no batch producer left behind
         # no points at all: empty maps
         empty = list(renderer.render_many(cams, lambda: iter([])))
         assert all((d == 0).all() for _, d in empty) and renderer.last_stats["mode"] == "resident"

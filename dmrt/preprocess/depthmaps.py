@@ -143,6 +143,12 @@ class DepthMapRenderer:
         ~3 ms for 1024 x 684 on an H200).
         Do not also wrap :meth:`render` or :meth:`render_many` in a section of the same timer:
         sections cannot nest.
+    ahead : callable, optional
+        Wraps the iterator of GPU batches, each packed and bucketed from the chunks, in one that
+        produces them ahead of the consumer, e.g. on a background thread (the preprocessing's
+        ``_read_ahead``): packing (an interleaving copy) and bucketing (min/max reductions) then
+        overlap uploading and splatting the batch before. It must yield the same items in order
+        and close the iterator it wraps when closed.
 
     Attributes
     ----------
@@ -159,10 +165,12 @@ class DepthMapRenderer:
     """
 
     def __init__(self, ctx: moderngl.Context, config: DepthMapConfig | None = None,
-                 timer: GpuTimer | None = None):
+                 timer: GpuTimer | None = None,
+                 ahead: Callable[[Iterator], Iterator] | None = None):
         self.ctx = ctx
         self.config = config or DepthMapConfig()
         self.timer = timer
+        self._ahead = ahead
         self.last_stats: dict = {}
         if self.config.method not in ("compute", "raster"):
             raise ValueError(f"DepthMapConfig.method must be 'compute' or 'raster', not {self.config.method!r}")
@@ -209,8 +217,8 @@ class DepthMapRenderer:
         """
         target = self._begin(camera, self._target(camera, slot=0))
         t0 = time.perf_counter()
-        for data, breaks in _batches(chunks, self.config.chunk_points):
-            buckets, n = self._buckets(data, breaks), len(data)
+        for data, buckets in self._feed(chunks):
+            n = len(data)
             if buckets is not None:  # only what this camera can see goes to the GPU
                 data = data[buckets.rows(buckets.visible(self._camera, lines=True))]
             self._totals["splats_all"] += n - len(data)  # _splat counts the rest
@@ -277,7 +285,7 @@ class DepthMapRenderer:
         totals = dict(self._totals)
         try:
             # try to upload the whole cloud, stopping before the batch that would exceed the budget
-            group, pending = self._upload_until(_batches(chunks_fn(), self.config.chunk_points), budget)
+            group, pending = self._upload_until(self._feed(chunks_fn()), budget)
             if pending is None:
                 stats.update(mode="resident", groups=1, camera_groups=1, points=sum(s.count for s in group))
                 yield from self._render_resident(cameras, group, bar)
@@ -301,9 +309,9 @@ class DepthMapRenderer:
                         keep += 1
                     _release(group[keep:])
                     group = group[:keep]
-                    rest = itertools.islice(_batches(chunks_fn(), self.config.chunk_points), keep, None)
+                    rest = itertools.islice(self._feed(chunks_fn()), keep, None)
                 else:
-                    group, rest = [], _batches(chunks_fn(), self.config.chunk_points)
+                    group, rest = [], self._feed(chunks_fn())
                 stats["camera_groups"] += 1
                 stats["points"] = 0  # counted again by each group: the cloud's points
                 yield from self._render_grouped(cameras[first:stop], first, group, rest, room, bar)
@@ -384,10 +392,9 @@ class DepthMapRenderer:
         group, used = [], 0
         t0 = time.perf_counter()
         try:
-            for data, breaks in batches:
+            for data, buckets in batches:
                 if used + data.nbytes > budget:
-                    return group, (data, breaks)
-                buckets = self._buckets(data, breaks)
+                    return group, (data, buckets)
                 with self._timed("depthmap_upload"):
                     group.append(_Splats(self, self.ctx.buffer(data), len(data), buckets))
                 used += data.nbytes
@@ -406,11 +413,15 @@ class DepthMapRenderer:
             target = self._targets[slot] = _Target(self.ctx, self.config.method, *size)
         return target
 
-    def _buckets(self, data: np.ndarray, breaks) -> Buckets | None:
-        """The culling buckets of a batch (``data`` (m, 7) float32 rows, new chunks at ``breaks``)."""
-        if not self.config.cull_points:
-            return None
-        return Buckets.of(data[:, 0:3], data[:, 6], self.config.cull_points, breaks)
+    def _feed(self, chunks) -> Iterator[tuple[np.ndarray, Buckets | None]]:
+        """The GPU batches of ``chunks`` (:func:`_batches`) with their culling buckets (None: no
+        culling), produced ahead by ``ahead`` when the renderer has one."""
+        def prepared():
+            cull = self.config.cull_points
+            for data, breaks in _batches(chunks, self.config.chunk_points):
+                yield data, (Buckets.of(data[:, 0:3], data[:, 6], cull, breaks) if cull else None)
+
+        return self._ahead(prepared()) if self._ahead is not None else prepared()
 
     def _set_camera(self, camera: Camera) -> None:
         w, h = depth_map_size(camera, self.config.width)

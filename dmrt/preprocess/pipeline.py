@@ -147,7 +147,8 @@ def _depth_renderer(work, ranges, has_normals: bool, config: PreprocessConfig):
     list of :class:`~dmrt.preprocess.octree.OctreeRange`, read in turn) with their normals and
     radii: the octree's own where it carries them (the scan path: :func:`normals_radii_phase`),
     else ``work/attrs``'s; each call of the source reads its chunks two ahead of the consumer
-    (:func:`_read_ahead`)."""
+    (:func:`_read_ahead`), and the renderer packs and buckets its GPU batches two ahead of its
+    uploads on another thread, so that reading, packing and uploading overlap."""
     from dmrt.gl import GpuTimer, get_context
     from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer
 
@@ -174,7 +175,8 @@ def _depth_renderer(work, ranges, has_normals: bool, config: PreprocessConfig):
     # GPU batches of one read chunk: on a CPU renderer (llvmpipe) GPU buffers are host memory
     renderer = DepthMapRenderer(ctx, DepthMapConfig(width=config.depthmap_width, method=config.depthmap_method,
                                                     chunk_points=config.chunk_points,
-                                                    cull_points=config.cull_points), timer=timer)
+                                                    cull_points=config.cull_points), timer=timer,
+                                ahead=_read_ahead)  # packing and bucketing a batch on a thread too
     return renderer, hd_chunks, timer
 
 
