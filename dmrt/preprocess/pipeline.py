@@ -30,7 +30,7 @@ import stat
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Iterator
 
@@ -156,6 +156,9 @@ def _depth_renderer(work, ranges, has_normals: bool, config: PreprocessConfig):
     normals = None if has_normals else np.load(Path(work) / "attrs" / "normals.npy", mmap_mode="r")
     carried = any("radii" in points.fields for points in ranges)
     radii = None if carried else np.load(Path(work) / "attrs" / "radii.npy", mmap_mode="r")
+    # only the fields splatted are read (not the colours: 3 of every 15 bytes of a coloured scan)
+    wanted = {"positions", *(["normals"] if has_normals else []), *(["radii"] if carried else [])}
+    ranges = [replace(points, fields={k: v for k, v in points.fields.items() if k in wanted}) for points in ranges]
 
     def read():
         for points in ranges:
