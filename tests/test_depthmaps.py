@@ -403,3 +403,25 @@ def test_culled_depth_maps_of_the_tiny_scene_equal_the_whole_ones(tiny_scene, tm
     # each photo sees about one of the two rooms; buckets of 1024 points (a level's Morton order)
     # keep a margin around that: 62 % of the splats were sent
     assert culled["splats_all"] == 4 * octree.n_points and culled["splats"] < 0.7 * culled["splats_all"]
+
+
+def test_batch_buckets_equal_those_of_the_whole_batch():
+    """Each batch's culling buckets, reduced chunk piece by chunk piece (over the chunks' own
+    arrays where they are float32), are Buckets.of the batch's packed rows cut where a chunk begins."""
+    from dmrt.preprocess.depthmaps import _batches
+    from dmrt.preprocess.frustum import Buckets
+
+    rng = np.random.default_rng(3)
+    sizes = [5, 0, 700, 1, 333, 1200, 64]
+    chunks = [(rng.normal(size=(m, 3)).astype(np.float32 if k % 2 else np.float64), rng.normal(size=(m, 3)),
+               rng.random(m).astype(np.float32 if k % 3 else np.float64)) for k, m in enumerate(sizes)]
+    chunks[2][0][7] = np.nan  # a NaN point spoils nothing but its box
+    starts = np.cumsum([0] + sizes)[:-1]
+    batches = list(_batches(iter(chunks), 500, cull=64))
+    assert [len(rows) for rows, _ in batches] == [500] * 4 + [sum(sizes) - 2000]
+    for b, (rows, got) in enumerate(batches):
+        breaks = [s - 500 * b for s, m in zip(starts, sizes) if m and 0 < s - 500 * b < len(rows)]
+        want = Buckets.of(rows[:, 0:3], rows[:, 6], 64, breaks)
+        for k in ("starts", "counts", "lo", "hi"):
+            np.testing.assert_array_equal(getattr(got, k), getattr(want, k))
+    assert all(buckets is None for _, buckets in _batches(iter(chunks), 500))

@@ -414,14 +414,10 @@ class DepthMapRenderer:
         return target
 
     def _feed(self, chunks) -> Iterator[tuple[np.ndarray, Buckets | None]]:
-        """The GPU batches of ``chunks`` (:func:`_batches`) with their culling buckets (None: no
-        culling), produced ahead by ``ahead`` when the renderer has one."""
-        def prepared():
-            cull = self.config.cull_points
-            for data, breaks in _batches(chunks, self.config.chunk_points):
-                yield data, (Buckets.of(data[:, 0:3], data[:, 6], cull, breaks) if cull else None)
-
-        return self._ahead(prepared()) if self._ahead is not None else prepared()
+        """The GPU batches of ``chunks`` with their culling buckets (:func:`_batches`), produced
+        ahead by ``ahead`` when the renderer has one."""
+        batches = _batches(chunks, self.config.chunk_points, self.config.cull_points)
+        return self._ahead(batches) if self._ahead is not None else batches
 
     def _set_camera(self, camera: Camera) -> None:
         w, h = depth_map_size(camera, self.config.width)
@@ -533,29 +529,53 @@ class _NoBar:
         pass
 
 
-def _batches(chunks, size: int) -> Iterator[tuple[np.ndarray, list[int]]]:
+def _batches(chunks, size: int, cull: int = 0) -> Iterator[tuple[np.ndarray, Buckets | None]]:
     """Interleave (positions, normals, radii) chunks into (m, 7) float32 rows (position, normal,
     radius), in batches of exactly ``size`` rows (the last one: fewer) whatever the chunks' sizes.
-    Each value is copied once, straight into its batch. Yields ``(rows, breaks)``: ``breaks`` are
-    the rows where a chunk begins inside the batch (the culling buckets are cut there)."""
-    batch, n, breaks = np.empty((size, SPLAT_FLOATS), np.float32), 0, []
+    Each value is copied once, straight into its batch. Yields ``(rows, buckets)``: the batch's
+    culling buckets of ``cull`` rows, also cut where a chunk begins inside the batch (None when
+    ``cull`` is 0)."""
+    batch, n, pieces = np.empty((size, SPLAT_FLOATS), np.float32), 0, []
     for chunk in chunks:
         positions, normals, radii = _checked(*chunk)
         start, m = 0, len(positions)
-        if n and m:
-            breaks.append(n)
         while start < m:
             take = min(m - start, size - n)
             rows, part = batch[n:n + take], slice(start, start + take)
             rows[:, 0:3] = positions[part]
             rows[:, 3:6] = normals[part]
             rows[:, 6] = radii[part]
+            if cull:
+                pieces.append(_piece_buckets(rows, positions[part], radii[part], n, cull))
             n, start = n + take, start + take
             if n == size:
-                yield batch, breaks
-                batch, n, breaks = np.empty((size, SPLAT_FLOATS), np.float32), 0, []
+                yield batch, _joined(pieces, cull)
+                batch, n, pieces = np.empty((size, SPLAT_FLOATS), np.float32), 0, []
     if n:
-        yield batch[:n], breaks
+        yield batch[:n], _joined(pieces, cull)
+
+
+def _piece_buckets(rows: np.ndarray, positions, radii, first: int, cull: int) -> Buckets:
+    """The buckets of a chunk's ``rows`` (its piece ``positions``, ``radii`` packed at row
+    ``first`` of a batch), cut at the batch's multiples of ``cull``: :meth:`Buckets.of` of the whole
+    batch's rows, cut also at ``first``, has these buckets. The boxes are reduced over the chunk's
+    own (contiguous) arrays where they are float32 already, 2.5x faster than over the batch's
+    28-byte rows (the same values: min and max are exact); else over the rows (the float32 values
+    splatted)."""
+    if positions.dtype != np.float32 or radii.dtype != np.float32:
+        positions, radii = rows[:, 0:3], rows[:, 6]
+    m = len(rows)
+    cuts = np.arange(-(-first // cull) * cull, first + m, cull, dtype=np.int64) - first
+    piece = Buckets.of(positions, radii, m, cuts[cuts > 0])  # size m: cut only at `cuts`
+    piece.starts += first
+    return piece
+
+
+def _joined(pieces: list[Buckets], cull: int) -> Buckets | None:
+    """One batch's buckets from its pieces' (:func:`_piece_buckets`), in row order."""
+    if not cull:
+        return None
+    return Buckets(*(np.concatenate([getattr(b, k) for b in pieces]) for k in ("starts", "counts", "lo", "hi")))
 
 
 def _camera_groups(sizes: list[int], room: float) -> Iterator[tuple[int, int]]:
