@@ -406,8 +406,9 @@ def test_culled_depth_maps_of_the_tiny_scene_equal_the_whole_ones(tiny_scene, tm
 
 
 def test_batch_buckets_equal_those_of_the_whole_batch():
-    """Each batch's culling buckets, reduced chunk piece by chunk piece (over the chunks' own
-    arrays where they are float32), are Buckets.of the batch's packed rows cut where a chunk begins."""
+    """Batches hold the chunks' values as float32 rows, and their culling buckets, reduced chunk
+    piece by chunk piece (over the chunks' own arrays where they are float32), are Buckets.of the
+    batch's rows cut where a chunk begins."""
     from dmrt.preprocess.depthmaps import _batches
     from dmrt.preprocess.frustum import Buckets
 
@@ -419,6 +420,9 @@ def test_batch_buckets_equal_those_of_the_whole_batch():
     starts = np.cumsum([0] + sizes)[:-1]
     batches = list(_batches(iter(chunks), 500, cull=64))
     assert [len(rows) for rows, _ in batches] == [500] * 4 + [sum(sizes) - 2000]
+    # the rows: each value cast to float32 (float64 chunks) or copied bit for bit (float32 ones)
+    want = np.concatenate([np.column_stack(c).astype(np.float32) for c in chunks if len(c[0])])
+    np.testing.assert_array_equal(np.concatenate([rows for rows, _ in batches]).view(np.uint32), want.view(np.uint32))
     for b, (rows, got) in enumerate(batches):
         breaks = [s - 500 * b for s, m in zip(starts, sizes) if m and 0 < s - 500 * b < len(rows)]
         want = Buckets.of(rows[:, 0:3], rows[:, 6], 64, breaks)
