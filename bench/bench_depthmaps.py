@@ -2,7 +2,7 @@
 cloud, with :meth:`dmrt.preprocess.depthmaps.DepthMapRenderer.render_many` (the cloud uploaded once).
 
     python -m bench.bench_depthmaps --points 30000000 --photos 192 --width 1024 \\
-        --method compute|raster|both [--resident-mb 4096 1024] [--out FILE.json]
+        --method compute|raster|both [--resident-mb 4096 1024] [--out FILE.json] [--stages]
 
 The cloud is synthetic but shaped like an indoor scan: points spread uniformly over the floor and
 the four walls of a 40 x 30 x 3 m box building, normals facing in, radii equal to the mean point
@@ -14,6 +14,10 @@ warm-up, with GL timer queries (upload, splatting, read-back: GPU milliseconds) 
 ``splats/s = points x photos / splatting GPU seconds``; ``splats/s (wall)`` divides by the whole
 loop's wall time instead (uploads and read-backs included). The first map is checked to be equal,
 bit for bit, to :meth:`~dmrt.preprocess.depthmaps.DepthMapRenderer.render` of the same camera.
+
+``--stages`` also times, one by one, the CPU stages around the GPU that the preprocessing runs per
+point (packing the chunks into GPU batches with their culling boxes; the copy to the GPU) and per
+map (writing its EXR), as us/point and ms/map, the best of three.
 """
 
 from __future__ import annotations
@@ -27,7 +31,8 @@ import time
 import numpy as np
 
 from dmrt.camera import Camera
-from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer, depth_map_size
+from dmrt.io.exr import write_depth_exr
+from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer, _batches, depth_map_size
 from dmrt.gl import GpuTimer, get_context, renderer_info
 
 BENCH_VERSION = 1
@@ -131,6 +136,34 @@ def run_one(ctx, method: str, chunks, cameras, width: int, resident_mb: float, c
     }
 
 
+def stage_costs(ctx, chunks, chunk_points: int, depth: np.ndarray, folder) -> dict:
+    """Best-of-three wall time of each CPU stage of the depth-map phase around the GPU: ``pack_us``
+    (chunks to float32 batches with their culling buckets, us/point), ``upload_us`` (the batches'
+    copy into GPU buffers, finished, us/point) and ``exr_ms`` (writing ``depth`` as an EXR, ms/map)."""
+    points = sum(len(c[0]) for c in chunks)
+    batches = []
+
+    def pack():
+        batches[:] = list(_batches(iter(chunks), chunk_points, DepthMapConfig().cull_points))
+
+    def upload():
+        buffers = [ctx.buffer(rows) for rows, _ in batches]
+        ctx.finish()
+        for b in buffers:
+            b.release()
+
+    def best(fn):
+        times = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+        return min(times)
+
+    return {"pack_us": 1e6 * best(pack) / points, "upload_us": 1e6 * best(upload) / points,
+            "exr_ms": 1e3 * best(lambda: write_depth_exr(os.path.join(folder, "stage.exr"), depth))}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--points", type=int, default=30_000_000)
@@ -144,6 +177,7 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-check", action="store_true", help="skip the bit-identity check against render()")
     ap.add_argument("--out", help="write the results as JSON here")
+    ap.add_argument("--stages", action="store_true", help="also time the CPU stages around the GPU")
     args = ap.parse_args(argv)
 
     ctx = get_context()
@@ -171,6 +205,17 @@ def main(argv=None):
         "results": [],
     }
     results = out["results"]
+    if args.stages:
+        import tempfile
+
+        renderer = DepthMapRenderer(ctx, DepthMapConfig(width=args.width, chunk_points=args.chunk_points))
+        try:  # a real map to compress: the first camera's
+            (_, depth), = renderer.render_many(cameras[:1], lambda: iter(chunks))
+        finally:
+            renderer.release()
+        with tempfile.TemporaryDirectory() as folder:
+            out["stages"] = stage_costs(ctx, chunks, args.chunk_points, depth, folder)
+        print("  stages: " + ", ".join(f"{k} {v:.4f}" for k, v in out["stages"].items()), flush=True)
     for method in methods:
         for budget in args.resident_mb:
             r = run_one(ctx, method, chunks, cameras, args.width, budget, not args.no_check, args.chunk_points)
