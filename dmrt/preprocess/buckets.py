@@ -278,14 +278,30 @@ def merge_counts(k1, c1, k2=None, c2=None) -> tuple[np.ndarray, np.ndarray]:
     k1, c1 = _reduce_runs(k1, c1)
     if k2 is None:
         return k1, c1
-    k2, c2 = _reduce_runs(k2, c2)
+    return _merge_unique(k1, c1, *_reduce_runs(k2, c2))
+
+
+def _merge_unique(k1, c1, k2, c2) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`merge_counts` of two tables of unique sorted keys. The merged table is filled once
+    through one mask of the new keys' places (two ``np.insert`` calls built that mask twice and
+    copied the first table's counts a third time)."""
     i = np.searchsorted(k1, k2)
     hit = i < len(k1)
     hit[hit] = k1[i[hit]] == k2[hit]
-    c = c1.copy()
-    c[i[hit]] += c2[hit]  # the second's keys are unique: no index repeats
     new = ~hit
-    return np.insert(k1, i[new], k2[new]), np.insert(c, i[new], c2[new])
+    i_new = i[new]
+    at = i_new + np.arange(len(i_new))  # a new key's place: its insertion point after those before it
+    keep = np.ones(len(k1) + len(at), bool)
+    keep[at] = False
+    k = np.empty(len(keep), k1.dtype)
+    k[keep] = k1
+    k[at] = k2[new]
+    c = np.empty(len(keep), c1.dtype)
+    c[keep] = c1
+    c[at] = c2[new]
+    i_hit = i[hit]  # the second's keys are unique: no place repeats
+    c[i_hit + np.searchsorted(i_new, i_hit, side="right")] += c2[hit]
+    return k, c
 
 
 def _reduce_runs(k, c):
@@ -327,7 +343,9 @@ class CellCounts:
         """Add a table at ``shift``: both brought to the coarser shift, merged, then coarsened
         while over the cap."""
         s = max(self.shift, shift)
-        k, c = merge_counts(_shifted(self.keys, s - self.shift), self.counts, _shifted(keys, s - shift), counts)
+        # the table's keys are unique unless shifted: no pass over it to reduce runs
+        k1, c1 = (self.keys, self.counts) if s == self.shift else coarsen(self.keys, self.counts, s - self.shift)
+        k, c = _merge_unique(k1, c1, *merge_counts(_shifted(keys, s - shift), counts))
         while len(k) > self.cap and (self.max_shift is None or s < self.max_shift):
             s += 1
             k, c = coarsen(k, c)
@@ -353,16 +371,27 @@ def count_cells(part: InputPart, grid, cap: int, slice_points: int, *, schema=No
     """
     counts = CellCounts(cap, max_shift)
     n = n_out = 0
+    # The slices' keys wait (8 bytes a point, at most a slice's or the table's worth) and are
+    # counted and merged into the table together: merging costs time linear in the table, and a
+    # table larger than a slice took most of this pass merged slice by slice. The table ends the
+    # same whatever the batches (CellCounts: a function of the point set).
+    waiting, n_waiting = [], 0
     for pos, _ in iter_chunks(part.source, schema, slice_points, part.where, dtype):
         if not np.isfinite(pos).all():
             beyond = " (or beyond float32's range)" if np.dtype(dtype) == np.float32 else ""
             raise ValueError(f"the point source contains non-finite coordinates{beyond}")
         if bbox is not None:
             n_out += int(np.count_nonzero(np.any((pos < bbox[0]) | (pos > bbox[1]), axis=1)))
-        counts.add_coords(grid.coords(pos))
+        waiting.append(morton_encode(grid.coords(pos) >> counts.shift))
+        n_waiting += len(pos)
+        if n_waiting >= max(slice_points, len(counts.keys)):
+            counts.add(*unique_counts(np.concatenate(waiting)), counts.shift)
+            waiting, n_waiting = [], 0
         n += len(pos)
         if bar is not None:
             bar.update(len(pos))
+    if waiting:
+        counts.add(*unique_counts(np.concatenate(waiting)), counts.shift)
     return counts, n, n_out
 
 
