@@ -306,9 +306,14 @@ def _merge_unique(k1, c1, k2, c2) -> tuple[np.ndarray, np.ndarray]:
 
 def _reduce_runs(k, c):
     """A sorted (key, count) table with each run of equal keys summed into one entry."""
-    if len(k) < 2 or not np.any(k[1:] == k[:-1]):
+    if len(k) < 2:
         return k, c
-    start = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    head = np.empty(len(k), bool)  # one comparison pass both tests and finds the runs
+    head[0] = True
+    np.not_equal(k[1:], k[:-1], out=head[1:])
+    if head.all():
+        return k, c
+    start = np.flatnonzero(head)
     return k[start], np.add.reduceat(c, start)
 
 
