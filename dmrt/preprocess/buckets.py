@@ -351,14 +351,18 @@ class CellCounts:
         # the table's keys are unique unless shifted: no pass over it to reduce runs
         k1, c1 = (self.keys, self.counts) if s == self.shift else coarsen(self.keys, self.counts, s - self.shift)
         k, c = _merge_unique(k1, c1, *merge_counts(_shifted(keys, s - shift), counts))
-        while len(k) > self.cap and (self.max_shift is None or s < self.max_shift):
-            s += 1
-            k, c = coarsen(k, c)
+        top = self.max_shift if self.max_shift is not None else np.inf
+        if len(k) > self.cap and s < top:
+            # the cells d doublings coarser, counted on the adjacent keys' XOR (two sorted keys
+            # differ there iff it has a bit at 3 * d or above), then one coarsening: a merged
+            # table coarsened one doubling at a time took most of the count pass
+            x = k[1:] ^ k[:-1]
+            d = 1
+            while 1 + np.count_nonzero(x >> (3 * d)) > self.cap and s + d < top:
+                d += 1
+            s += d
+            k, c = coarsen(k, c, d)
         self.keys, self.counts, self.shift = k, c, s
-
-    def add_coords(self, q: np.ndarray):
-        """Count points given by their (n, 3) int64 fine-grid coordinates."""
-        self.add(*unique_counts(morton_encode(q >> self.shift)), self.shift)
 
 
 def count_cells(part: InputPart, grid, cap: int, slice_points: int, *, schema=None, dtype=np.float64,
@@ -478,10 +482,6 @@ class Buckets:
     def __len__(self) -> int:
         return len(self.starts)
 
-    def keys(self, pos: np.ndarray) -> np.ndarray:
-        """(n,) int64 Morton keys of the points' cells at the bucket grid."""
-        return morton_encode(self.grid.coords(pos) >> self.shift)
-
     def of_keys(self, keys: np.ndarray) -> np.ndarray:
         """(n,) int64 bucket of each cell key."""
         return np.searchsorted(self.starts, keys, side="right") - 1
@@ -491,7 +491,8 @@ class Buckets:
         q = self.grid.coords(pos) >> self.shift
         # Scans come in scan order, so runs of consecutive points share a bucket-grid cell: a cheap
         # packing of the coordinates finds the runs, and only each run's cell is Morton-encoded and
-        # looked up (the same buckets; on every point when the runs are short)
+        # looked up (the same buckets; on every point when the runs are short). Coordinates are
+        # below 2**21, as Morton keys need: 21 bits an axis pack them exactly
         packed = (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
         heads = np.flatnonzero(np.r_[True, packed[1:] != packed[:-1]])
         if len(heads) > len(q) // 4:
