@@ -616,7 +616,10 @@ class _Builder:
         # At most COUNT_CELLS cells: the table only chooses the bucket level and cuts the buckets,
         # for which 4M cells (~170 points each at 683M points) are plenty, while merging the parts'
         # tables here costs time linear in their size (a 16 GB budget allowed 65M cells: 6.9 of the
-        # octree's 11.7 s on 32M points and 16 cores went into counting)
+        # octree's 11.7 s on 32M points and 16 cores went into counting). Before a merge the count
+        # pass keeps up to max(a slice, the table) of waiting keys (buckets.count_cells): 8 B a point
+        # of a slice beside its ~4 * rb + 64 of work arrays, or 8 B a cell beside the table's 96
+        # (within the margins of both plans)
         self.count_cap = max(4096, min(self.budget // 256, COUNT_CELLS))
         self.part_count_cap = max(4096, self.count_cap // k)
         # spill buffers: a quarter of the budget
