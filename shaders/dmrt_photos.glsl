@@ -16,23 +16,33 @@ uniform sampler2DArray u_depthmaps;
 
 // Layer = photo index, unless the scene has more photos than the arrays hold (dmrt/runtime/maps.py):
 // then MAP_SLOTS maps a photo to its layer, and a photo whose map is not resident is flagged for
-// the renderer, which loads it and renders the frame again.
+// the renderer, which loads it and renders the frame again. A resident map that is read is flagged
+// as used, so that the cache keeps the maps a frame reads (not only those of its final labels:
+// the search also reads the deeper layers' and the label check's) and evicts others first.
 #ifndef MAP_SLOTS
 #define MAP_SLOTS 0
 #endif
-#ifndef MAP_FLAGS  // 0: a missing map only reads as no surface (a pass that tests every photo)
+#ifndef MAP_FLAGS  // 0: a missing map only reads as no surface, nothing flagged (a pass that tests every photo)
 #define MAP_FLAGS 1
 #endif
 #if MAP_SLOTS
 layout(std430, binding = B_MAP_SLOTS) readonly buffer MapSlots { int map_slots[]; };
-layout(std430, binding = B_MAP_MISSING) writeonly buffer MapMissing { uint map_missing[]; };
+// [0]: any map missing; [1 + l]: MAP_MISSING or MAP_USED (within a frame a photo is either resident
+// or not, so every write to a word stores the same value: plain stores, no atomics)
+layout(std430, binding = B_MAP_MISSING) buffer MapFlags { uint map_flags[]; };
+const uint MAP_MISSING = 1u;
+const uint MAP_USED = 2u;
 
 // The layer of photo l's map and low-resolution copy; -1 (and l flagged) when not resident.
 int map_layer(int l) {
     int s = map_slots[l];
-    if (MAP_FLAGS != 0 && s < 0) {
-        map_missing[0] = 1u;
-        map_missing[1 + l] = 1u;
+    if (MAP_FLAGS != 0) {
+        if (s < 0) {
+            map_flags[0] = 1u;
+            map_flags[1 + l] = MAP_MISSING;
+        } else if (map_flags[1 + l] == 0u) {  // a read (cached) spares most of the stores
+            map_flags[1 + l] = MAP_USED;
+        }
     }
     return s;
 }

@@ -131,3 +131,53 @@ def test_more_photos_than_a_texture_array_holds(ctx, bundle, tmp_path):
         big.release()
     with pytest.raises(InputError, match="2100 photos: DMT holds every depth map in one texture array"):
         DMTRenderer(many, DMTConfig(progress=False), ctx)
+
+
+def test_the_maps_a_frame_reads_become_the_most_recently_used(ctx, bundle):
+    """The cache evicts the least recently used maps: a map the search or the label check reads
+    counts as used even when no final label names it (else a map every frame reads would be
+    evicted and loaded again, frame after frame)."""
+    full = Renderer(bundle, RenderConfig(**SYNC, photo_choice="labels"), ctx)
+    # no full-resolution photo cache: the frame's wanted photos (its final labels) are none, so only
+    # the passes' own flags can make a map recently used
+    small = Renderer(bundle, RenderConfig(**SYNC, photo_choice="labels", cache_mb=0,
+                                          map_cache_mb=_slot_mb(full, 8.5)), ctx)
+    try:
+        views = [novel_camera(bundle.cameras[0], bundle.cameras[5], t).resized(96, 64) for t in (1.0, 0.0)]
+        for view in (*views, views[0]):
+            f = small.render(view)
+        read = np.unique(f["label_raw"][f["label_raw"] >= 0])  # the maps the search hit
+        maps = small.maps
+        assert small.images.wanted == () and len(read) >= 2
+        np.testing.assert_array_equal(maps._last_used[maps.slot_of[read]], maps._frame)
+    finally:
+        full.release()
+        small.release()
+
+
+def test_frames_left_on_the_gpu_do_not_wait_for_the_maps_they_miss(ctx, bundle):
+    """With async_photos a frame left on the GPU starts the reads of its missing maps and goes on;
+    later frames upload them, at most max_map_loads_per_frame each, and the frame is then the one
+    rendered with every map resident."""
+    full = Renderer(bundle, RenderConfig(**SYNC, photo_choice="labels"), ctx)
+    small = Renderer(bundle, RenderConfig(photo_choice="labels", max_uploads_per_frame=0, max_map_loads_per_frame=1,
+                                          map_cache_mb=_slot_mb(full, 8.5)), ctx)
+    try:
+        view = novel_camera(bundle.cameras[0], bundle.cameras[5], 1.0).resized(96, 64)
+        a = full.render(view)
+        loads, pending = [0], []
+        for _ in range(12):
+            small.render(view, readback=False)
+            loads.append(small.maps.loads)
+            pending.append(small.maps.pending)
+            small.ctx.finish()
+        steps = np.diff(loads)
+        assert max(pending) >= 1 and steps.max() == 1 and steps.sum() >= 2  # one upload a frame, several frames
+        small.flush_photos()
+        b = small.render(view)
+        assert "rerendered" not in b and b["maps_missing"] == 0 and small.maps.pending == 0
+        for key in ("depth", "label"):
+            np.testing.assert_array_equal(a[key], b[key])
+    finally:
+        full.release()
+        small.release()

@@ -141,16 +141,22 @@ class RenderConfig:
                 "(int64 where the driver has it); the same results")
     cache_mb: float = option(1024.0, "GPU memory for the full-resolution photo cache, MiB (paper: 1 GB); 0 = "
                                      "low-resolution copies only", minimum=0.0, level="common")
-    async_photos: bool = option(True, "decode photos on background threads so that no frame waits for a disk read "
-                                      "(the low-resolution copy stands in until the upload); off, every frame's "
-                                      "cache holds exactly its most frequent labels (deterministic colours)")
+    async_photos: bool = option(True, "decode photos (and depth maps a partial map cache misses) on background "
+                                      "threads so that no frame waits for a disk read (the low-resolution copy "
+                                      "stands in until the upload); off, every frame's cache holds exactly its most "
+                                      "frequent labels (deterministic colours)")
     max_uploads_per_frame: int = option(4, "photos uploaded to the cache per frame at most; 0 = no bound",
                                         minimum=0)
     cpu_cache_mb: float = option(1024.0, "decoded photos kept in CPU memory, MiB", minimum=0.0)
     map_cache_mb: float = option(0.0, "GPU memory for the photos' depth maps and low-resolution copies, MiB; 0 = "
                                       "as many as one texture array holds (2048 photos on NVIDIA and Mesa). With "
-                                      "fewer slots than photos they are a cache: a frame that finds a map missing "
-                                      "loads it and is rendered again (dmrt/runtime/maps.py)", minimum=0.0)
+                                      "fewer slots than photos they are a cache: a frame read back that finds a "
+                                      "map missing loads it and is rendered again; with async_photos a frame left "
+                                      "on the GPU does not wait: the map is read in the background and shows as a "
+                                      "hole until a later frame uploads it (dmrt/runtime/maps.py)", minimum=0.0)
+    max_map_loads_per_frame: int = option(4, "depth maps (with their low-resolution copies) a frame left on the GPU "
+                                             "uploads at most, with a partial map cache and async_photos; 0 = no "
+                                             "bound", minimum=0)
     labeling: bool = option(True, "the per-pixel labeling pass (paper 5.2.1); off keeps the raytraced layer's "
                                   "label (ablation)")
     label_check: bool = option(True, "addition to the paper: a labeling-pass label whose depth map does not see the "
@@ -249,7 +255,8 @@ class Renderer:
         self.int64 = self.config.atomics == "int64" or (self.config.atomics == "auto" and has_int64)
 
         # depth maps and low-resolution photos: every one resident, or a cache of them
-        self.maps = MapCache(self.ctx, bundle, self.config.map_cache_mb)
+        self.maps = MapCache(self.ctx, bundle, self.config.map_cache_mb, self.config.async_photos,
+                             self.config.max_map_loads_per_frame)
         self._centres = np.array([c.center for c in self.cameras])
         self.depthmaps, self.depth_sizes = self.maps.depthmaps, self.maps.depth_sizes
         map_defines = self.maps.defines
@@ -348,7 +355,8 @@ class Renderer:
             partial map cache also ``maps_missing``: the maps the frame still did not find (0
             unless it needs more maps than the cache holds); without ``readback`` the frame is not
             rendered again, and ``maps_missing`` counts those the frame two before did not find,
-            loaded now (:mod:`dmrt.runtime.maps`).
+            loaded now (with ``async_photos``: read in the background, uploaded by this or a later
+            frame, at most ``max_map_loads_per_frame`` a frame; :mod:`dmrt.runtime.maps`).
         """
         # None: the tile list outgrew its buffer (grown now), or depth maps were missing (loaded
         # now; a frame's second rendering may find a map that only its first's results needed)
@@ -385,7 +393,7 @@ class Renderer:
             k = min(4 * self.config.view_candidates, self.maps.n_slots // 4)
             dist = np.linalg.norm(self._centres - cam.center, axis=1)
             near = np.argpartition(dist, k - 1)[:k] if 0 < k < len(dist) else np.arange(len(dist))[:k]
-            self.maps.ensure(near[np.argsort(dist[near])])
+            self.maps.ensure(near[np.argsort(dist[near])], block=readback)
 
         self.visibility.run(cam_uniforms, (w, h), cfg.layers, b["layer_depth"], b["layer_label"], timer)
 
@@ -471,7 +479,7 @@ class Renderer:
             used = self.images.wanted
             missing = self.maps.end_frame(used, wait=readback)
             # the photos this frame used stay: the missing ones take the least recently used others
-            loaded = self.maps.ensure([*missing, *used]) if len(missing) else 0
+            loaded = self.maps.ensure([*missing, *used], block=readback) if len(missing) else 0
             if readback and loaded and not retry:
                 return None
             frame["maps_missing"] = len(missing)
