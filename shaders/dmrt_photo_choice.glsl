@@ -4,55 +4,57 @@
 // of the counts), at most u_slots of them, go into the next frame's FrameStatus record
 // (dmrt/runtime/status.py): the CPU reads them with the list length it reads anyway.
 //
-// One invocation per photo finds its rank by counting the photos ahead of it: n^2 loads of a
-// few-kilobyte buffer that stays in cache (10,000 photos: 10^8 cached loads spread over the GPU);
-// ranks are unique, so each wanted photo writes its own entry and nothing is cleared first.
+// The second of two passes (dmrt/runtime/ranking.py issues both): dmrt_photo_compact.glsl has
+// listed the m photos with a non-zero count, and one invocation per list entry finds its rank by
+// counting the entries ahead of it: m^2 loads of a list that stays in cache (a frame's few hundred
+// photos: ~10^5 loads, whatever the scene's number of photos; before the list, every photo of the
+// scene compared itself with every other, 10^8 loads at 10,240 photos). The rank compares (count,
+// photo), never list positions, so the order in which the compaction appended is irrelevant; ranks
+// are unique, so each wanted photo writes its own entry and nothing is cleared first.
 //
 // Buffers (binding: layout):
-//   B_COUNTS        uint[N_PHOTOS]: pixels per final label (dmrt_label_histogram.glsl)
-//   B_FRAME_STATUS  the next frame's record: n_wanted and wanted[] written, tile_total untouched
-// The view-dependent photo choice ranks its scores into its candidate list with the same program
-// (COUNTS_BINDING B_VIEW_SCORES, STATUS_BINDING B_VIEW_CANDIDATES: dmrt/runtime/view_choice.py).
+//   B_PHOTO_LIST    the compacted list (dmrt_photo_compact.glsl), read
+//   STATUS_BINDING  the next frame's record (B_FRAME_STATUS): n_wanted and wanted[] written,
+//                   tile_total untouched
+// The view-dependent photo choice ranks its scores into its candidate list with the same passes
+// (STATUS_BINDING B_VIEW_CANDIDATES: dmrt/runtime/view_choice.py).
 #if defined COMPUTE_SHADER
 
-#ifndef N_PHOTOS
-#define N_PHOTOS 1
-#endif
-#ifndef COUNTS_BINDING
-#define COUNTS_BINDING B_COUNTS
-#endif
 #ifndef STATUS_BINDING
 #define STATUS_BINDING B_FRAME_STATUS
 #endif
 
 layout(local_size_x = 64) in;
 
-layout(std430, binding = COUNTS_BINDING) readonly buffer Counts { uint counts[]; };
+layout(std430, binding = B_PHOTO_LIST) readonly buffer Listed {
+    uint n_listed;
+    uint spare;
+    uvec2 listed[];  // (count, photo)
+};
 layout(std430, binding = STATUS_BINDING) buffer Status {
     uint tile_total;
     uint n_wanted;
-    uint spare[STATUS_HEADER_WORDS - 2];
+    uint spare_words[STATUS_HEADER_WORDS - 2];
     int wanted[];
 };
 
 uniform uint u_slots;  // the cache's slots, >= 1
 
 void main() {
-    uint j = gl_GlobalInvocationID.x;
-    if (j == 0u) {  // the list's length: every photo with pixels, up to the slots
-        uint nonzero = 0u;
-        for (uint i = 0u; i < uint(N_PHOTOS); ++i) nonzero += uint(counts[i] > 0u);
-        n_wanted = min(nonzero, u_slots);
+    uint m = n_listed;
+    if (gl_GlobalInvocationID.x == 0u) n_wanted = min(m, u_slots);
+    // invocations past the list return at once: the dispatch covers every photo, so the CPU never
+    // reads the list's length
+    uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+    for (uint e = gl_GlobalInvocationID.x; e < m; e += stride) {
+        uvec2 me = listed[e];
+        uint rank = 0u;
+        for (uint i = 0u; i < m && rank < u_slots; ++i) {
+            uvec2 other = listed[i];
+            rank += uint(other.x > me.x || (other.x == me.x && other.y < me.y));
+        }
+        if (rank < u_slots) wanted[rank] = int(me.y);
     }
-    if (j >= uint(N_PHOTOS)) return;
-    uint c = counts[j];
-    if (c == 0u) return;
-    uint rank = 0u;
-    for (uint i = 0u; i < uint(N_PHOTOS) && rank < u_slots; ++i) {
-        uint ci = counts[i];
-        rank += uint(ci > c || (ci == c && i < j));
-    }
-    if (rank < u_slots) wanted[rank] = int(j);
 }
 
 #endif

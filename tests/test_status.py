@@ -13,41 +13,50 @@ from dmrt.runtime.texturing import ImageCache, choose_photos
 from helpers import W
 
 
-@pytest.mark.parametrize("n_photos, n_slots", [(1, 1), (7, 3), (192, 480), (1000, 64)])
+def _choice_cases(n_photos: int, rng) -> list:
+    """Counts the choice must rank: a frame's few hundred photos among the scene's (labels come in
+    few sizes: many ties), none at all, and, where the photos are few, most or all of them counted
+    (many ties and zeros; all distinct)."""
+    seen = rng.choice(n_photos, min(n_photos, 300), replace=False)
+    sparse = np.zeros(n_photos, np.int64)
+    sparse[seen] = rng.integers(1, 6, seen.size) * rng.integers(1, 3, seen.size)
+    cases = [sparse, np.zeros(n_photos, np.int64)]
+    if n_photos <= 1000:  # all photos counted: m^2 comparisons, slow on llvmpipe at 10,240
+        cases += [rng.integers(0, 4, n_photos) * rng.integers(0, 3, n_photos), rng.permutation(n_photos) + 1]
+    return cases
+
+
+# 10,240 photos (the `many` scene) with ~300 counted: slots fewer and more than the counted photos
+@pytest.mark.parametrize("n_photos, n_slots", [(1, 1), (7, 3), (192, 480), (1000, 64), (10_240, 64),
+                                               (10_240, 480)])
 def test_photo_choice_matches_numpy(ctx, n_photos, n_slots):
-    """``shaders/dmrt_photo_choice.glsl`` writes exactly :func:`choose_photos`'s list (same photos,
-    same order, ties to the smaller index) into the record, whatever it held before, and leaves
-    the record's tile total alone."""
-    from dmrt.gl.kernels import groups
-    from dmrt.gl.shaders import load_program, set_uniforms
+    """The photo choice on the GPU (:class:`dmrt.runtime.ranking.PhotoRanking`, as the renderer runs
+    it) writes exactly :func:`choose_photos`'s list (same photos, same order, ties to the smaller
+    index) into the record, whatever it held before, and leaves the record's tile total alone. One
+    ranking serves every case in turn: its list must start empty each time."""
+    from dmrt.runtime.ranking import PhotoRanking
     from dmrt.runtime.status import FrameStatus
 
     rng = np.random.default_rng(n_photos)
-    program = load_program(ctx, "dmrt_photo_choice", {"N_PHOTOS": n_photos})
+    ranking = PhotoRanking(ctx, n_photos)
     status = FrameStatus(ctx, n_slots)
     counts_buf = ctx.buffer(reserve=4 * n_photos)
     try:
-        # many ties and zeros (labels come in few sizes), then all zero, then all distinct
-        cases = [rng.integers(0, 4, n_photos) * rng.integers(0, 3, n_photos), np.zeros(n_photos, np.int64),
-                 rng.permutation(n_photos) + 1]
-        for counts in cases:
+        for counts in _choice_cases(n_photos, rng):
             status.begin()
             record = status.record(-1)
             stale = np.full(abi.STATUS_HEADER_WORDS + n_slots, 7, np.uint32)  # what a reused record holds
             stale[0] = 12345
             record.write(stale.tobytes())
             counts_buf.write(counts.astype(np.uint32).tobytes())
-            counts_buf.bind_to_storage_buffer(abi.B_COUNTS)
-            record.bind_to_storage_buffer(abi.B_FRAME_STATUS)
-            set_uniforms(program, u_slots=n_slots)
-            program.run(groups(n_photos, 64))
+            ranking.run(counts_buf, record, n_slots)
             ctx.finish()
             total, wanted = status.read(-1)
             np.testing.assert_array_equal(wanted, choose_photos(counts, n_slots))
             assert total == 12345
     finally:
-        counts_buf.release()
-        status.release()
+        for obj in (counts_buf, status, ranking):
+            obj.release()
 
 
 def test_choose_photos():

@@ -67,6 +67,9 @@ B_VIEW_BLEND = 38       # h x w ivec4: the 2nd-4th photo of a pixel's blend (-1 
 # the depth-map cache (dmrt/runtime/maps.py), where a texture array cannot hold every photo
 B_MAP_SLOTS = 39        # n_photos int: photo -> slot of the depth-map and low-resolution arrays, -1 = not resident
 B_MAP_MISSING = 40      # 1 + n_photos uint: [0] any map missing this frame, [1 + j] photo j's: 1 missing, 2 read
+# the photo choice's compacted list (dmrt/runtime/ranking.py): uint length, uint spare, then
+# (count, photo) uvec2 per photo with a non-zero count
+B_PHOTO_LIST = 41
 
 # -- sentinels ---------------------------------------------------------------------------------
 EMPTY_BITS = 0xFFFFFFFF  # an empty depth (above every positive float's bits: atomicMin keeps the nearest)

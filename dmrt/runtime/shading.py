@@ -31,6 +31,7 @@ from dmrt.gl.kernels import Staging, fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.io.frames import empty_frame
 from dmrt.runtime.leveling import ScreenLeveler
+from dmrt.runtime.ranking import PhotoRanking
 from dmrt.runtime.status import FrameStatus
 from dmrt.runtime.texturing import ImageCache, gains_buffer_data, texture_frame
 
@@ -131,7 +132,7 @@ class FrameShading:
         view = getattr(config, "photo_choice", "labels") == "view"
         self._histogram = load_program(ctx, "dmrt_label_histogram", {"PIXELS_PER_THREAD": HISTOGRAM_RUN,
                                                                      "VIEW_CANDIDATES": int(view)})
-        self._choice = load_program(ctx, "dmrt_photo_choice", {"N_PHOTOS": n})
+        self._choice = PhotoRanking(ctx, n)
         self.status = FrameStatus(ctx, self.images.n_slots)
         self.sync_photos = not config.async_photos
         self.leveler = ScreenLeveler(ctx, n, config.leveling_min_samples, config.leveling_max_gain,
@@ -181,9 +182,7 @@ class FrameShading:
             self._histogram.run(groups(w, 64), groups(h, HISTOGRAM_RUN))
             ctx.memory_barrier(_BARRIER)
             if self.images.n_slots:  # into the next frame's status record
-                self.status.record(-1).bind_to_storage_buffer(abi.B_FRAME_STATUS)
-                set_uniforms(self._choice, u_slots=self.images.n_slots)
-                self._choice.run(groups(n_photos, 64))
+                self._choice.run(self._counts_gpu, self.status.record(-1), self.images.n_slots)
                 self.status.record(-1).written()
         t0 = time.perf_counter()
         if not self.images.n_slots:
@@ -224,6 +223,6 @@ class FrameShading:
 
     def release(self) -> None:
         self.images.release()
-        for obj in (self.photos, self.gains, self._counts_gpu, self.status, self.leveler, self.staging):
+        for obj in (self.photos, self.gains, self._counts_gpu, self._choice, self.status, self.leveler, self.staging):
             if obj is not None:
                 obj.release()

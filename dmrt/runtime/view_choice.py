@@ -36,6 +36,7 @@ from dmrt.gl import abi
 from dmrt.gl.abi import STATUS_HEADER_WORDS
 from dmrt.gl.kernels import fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
+from dmrt.runtime.ranking import PhotoRanking
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT
 # Samples of the frame scored against every photo: enough that a photo covering a 2 % corner of the
@@ -107,16 +108,17 @@ class ViewChoice:
         self.candidates.write(np.zeros(STATUS_HEADER_WORDS, np.uint32).tobytes())  # no candidates
         # the scores test every photo: a map not resident is no candidate, not a miss
         self._scores = load_program(ctx, "dmrt_view_scores", {**map_defines, "MAP_FLAGS": 0} if map_defines else None)
-        self._rank = load_program(ctx, "dmrt_photo_choice", {
-            "N_PHOTOS": self.n_photos, "COUNTS_BINDING": "B_VIEW_SCORES", "STATUS_BINDING": "B_VIEW_CANDIDATES"})
+        self._rank = PhotoRanking(ctx, self.n_photos, "B_VIEW_SCORES", "B_VIEW_CANDIDATES")
         self._choice = load_program(ctx, "dmrt_view_choice", {"BLEND": self.blend, "CANDIDATES": self.n_candidates,
                                                               **(map_defines or {})})
         self.blend_buffer: moderngl.Buffer | None = None
 
     @property
     def nbytes(self) -> int:
-        """GPU bytes held (scores, candidates, the blend records of the last frame size)."""
-        return self.scores.size + self.candidates.size + (self.blend_buffer.size if self.blend_buffer else 0)
+        """GPU bytes held (scores, candidates, their ranking's list, the blend records of the last
+        frame size)."""
+        blend = self.blend_buffer.size if self.blend_buffer else 0
+        return self.scores.size + self.candidates.size + self._rank.nbytes + blend
 
     def run(self, timer, hits: moderngl.Buffer, photos: moderngl.Buffer, depthmaps, cam_uniforms: dict) -> None:
         """Choose the photos of every pixel of a frame whose ``Hit`` records (with final labels) are
@@ -142,9 +144,7 @@ class ViewChoice:
                                  **self._uniforms, **cam_uniforms)
                     self._scores.run(groups(grid[0] * grid[1], 64), min(self.n_photos - photo0, 65535))
                 ctx.memory_barrier(_BARRIER)
-                self.candidates.bind_to_storage_buffer(abi.B_VIEW_CANDIDATES)
-                set_uniforms(self._rank, u_slots=self.n_candidates)
-                self._rank.run(groups(self.n_photos, 64))
+                self._rank.run(self.scores, self.candidates, self.n_candidates)
                 ctx.memory_barrier(_BARRIER)
         with timer.section("image_management:view_choice"):
             self.candidates.bind_to_storage_buffer(abi.B_VIEW_CANDIDATES)
@@ -175,6 +175,6 @@ class ViewChoice:
         return rec[..., :3].copy(), weights
 
     def release(self) -> None:
-        for obj in (self.scores, self.candidates, self.blend_buffer):
+        for obj in (self.scores, self.candidates, self._rank, self.blend_buffer):
             if obj is not None:
                 obj.release()
