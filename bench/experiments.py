@@ -178,8 +178,9 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         (``render()`` wall clock), ``median_cpu_ms``, ``mean_iterations`` (over the pixels with a
         surface), ``surface_fraction``, ``photo_uploads`` (in the timed passes: 0 once the cache is
         steady), ``warm_up`` {``loops``, ``uploads``, ``steady``} (:func:`warm_photo_cache`), ``gpu_bytes``,
-        ``map_cache`` {``slots``, ``partial``, ``loads_before_timed``, ``loads_timed``, ``rerendered_timed``}
-        (the depth-map cache: :mod:`dmrt.runtime.maps`) and ``tile_stats`` (the tiles
+        ``map_cache`` {``slots``, ``partial``, ``loads_before_timed``, ``loads_timed``, ``rerendered_timed``,
+        ``missing_per_frame_timed``, ``frames_missing_timed``} (the depth-map cache:
+        :mod:`dmrt.runtime.maps`; missing maps are holes until loaded) and ``tile_stats`` (the tiles
         path's :meth:`~dmrt.runtime.tiles.TileVisibility.stats` of the last frame, else None).
     """
     from tqdm import tqdm
@@ -199,7 +200,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
             if on_frame is not None:
                 on_frame(f)
         warm_up = warm_photo_cache(renderer, cameras, list(wanted))
-        uploads0, map_loads0, rerendered = renderer.images.uploads, renderer.maps.loads, 0
+        uploads0, map_loads0, rerendered, missing = renderer.images.uploads, renderer.maps.loads, 0, []
         clocks_before = gpu_clocks()  # the statistics pass just ran back to back: clocks are up
         timings, parts, cpu, wall = [], [], [], []
         renderer.timer.fenced = fenced
@@ -210,6 +211,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
             wall.append((time.perf_counter() - t0) * 1e3)
             timings.append(f["timings"])
             rerendered += bool(f.get("rerendered"))
+            missing.append(f.get("maps_missing", 0))
             parts.append(f.get("part_timings", {}))
             cpu.append(f.get("cpu_ms", {}))
         clocks = {"before": clocks_before, "after": gpu_clocks()}
@@ -257,7 +259,11 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
                 "gpu_bytes": dict(renderer.gpu_bytes),
                 "map_cache": {"slots": renderer.maps.n_slots, "partial": renderer.maps.partial,
                               "loads_before_timed": map_loads0, "loads_timed": renderer.maps.loads - map_loads0,
-                              "rerendered_timed": rerendered},
+                              "rerendered_timed": rerendered,
+                              # maps a frame two before wanted and did not find (holes meanwhile, with
+                              # async_photos), and how many frames had any
+                              "missing_per_frame_timed": float(np.mean(missing)),
+                              "frames_missing_timed": int(np.count_nonzero(missing))},
                 "tile_stats": tile_stats}
     finally:
         renderer.release()
