@@ -129,16 +129,7 @@ def estimate_normals(positions, k: int = 16, viewpoints=None, *, per_point: bool
     -------
     (n, 3) float32 unit normals, ``n . (v - p) > 0`` toward each point's viewpoint.
     """
-    p = _as_positions(positions)
-    n = len(p)
-    if n < 3:
-        out = np.zeros((n, 3), np.float64)
-        out[:, 2] = 1.0
-        return orient_normals(out, p, viewpoints, per_point).astype(np.float32)
-    c = p - p.mean(axis=0)  # centred: large real-world coordinates would lose digits in the covariance
-    tree = tree if tree is not None else _kdtree(c)
-    out, _ = neighbourhoods(tree, c, k_normals=min(int(k), n))
-    return orient_normals(out, p, viewpoints, per_point).astype(np.float32)
+    return normals_and_radii(positions, k, None, viewpoints=viewpoints, per_point=per_point, tree=tree)[0]
 
 
 def splat_radii(positions, k: int = 8, scale: float = 1.0, *, tree: KnnTree | None = None) -> np.ndarray:
@@ -160,15 +151,34 @@ def splat_radii(positions, k: int = 8, scale: float = 1.0, *, tree: KnnTree | No
     -------
     (n,) float32 radii, metres.
     """
+    return normals_and_radii(positions, None, k, scale, tree=tree)[1]
+
+
+def normals_and_radii(positions, k_normals: int | None, k_radius: int | None, scale: float = 1.0,
+                      viewpoints=None, *, per_point: bool | None = None,
+                      tree: KnnTree | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """:func:`estimate_normals` (``k_normals``) and/or :func:`splat_radii` (``k_radius``, ``scale``)
+    from one kNN query; None skips either. Returns ``(normals, radii)``, None for the one skipped."""
     p = _as_positions(positions)
     n = len(p)
-    if n < 2:
-        return np.zeros(n, np.float32)
-    c = p - p.mean(axis=0)
-    tree = tree if tree is not None else _kdtree(c)
-    k = min(int(k), n - 1)
-    _, d_k = neighbourhoods(tree, c, k_radius=k)
-    return (d_k * (scale * radius_factor(k))).astype(np.float32)
+    kn = min(int(k_normals), n) if k_normals else None
+    kr = min(int(k_radius), n - 1) if k_radius else None
+    normals = radii = None
+    if kn is not None and n < 3:  # no plane: straight up
+        out = np.zeros((n, 3), np.float64)
+        out[:, 2] = 1.0
+        normals, kn = orient_normals(out, p, viewpoints, per_point).astype(np.float32), None
+    if kr is not None and n < 2:
+        radii, kr = np.zeros(n, np.float32), None
+    if kn or kr:
+        c = p - p.mean(axis=0)  # centred: large real-world coordinates would lose digits in the covariance
+        tree = tree if tree is not None else _kdtree(c)
+        out, d_k = neighbourhoods(tree, c, k_normals=kn, k_radius=kr)
+        if kn:
+            normals = orient_normals(out, p, viewpoints, per_point).astype(np.float32)
+        if kr:
+            radii = (d_k * (scale * radius_factor(kr))).astype(np.float32)
+    return normals, radii
 
 
 # ---------------------------------------------------------------------------------------------
@@ -467,12 +477,9 @@ def _process_in_memory(src, n, work, normals, radii, k_normals, k_radii, scale, 
             bar.update(len(p))
     if g != n:
         raise RuntimeError("chunks_fn must yield the same points on every call")
-    tree = _kdtree(pos - pos.mean(axis=0))  # the centring estimate_normals and splat_radii apply
-    results = {}
-    if normals:
-        results["normals"] = estimate_normals(pos, k_normals, viewpoints, per_point=False, tree=tree)
-    if radii:
-        results["radii"] = splat_radii(pos, k_radii, scale, tree=tree)
+    found = normals_and_radii(pos, k_normals if normals else None, k_radii if radii else None, scale, viewpoints,
+                              per_point=False)
+    results = {name: a for name, a in zip(("normals", "radii"), found) if a is not None}
     for name, a in results.items():
         with atomic_file(work / f"{name}.npy") as tmp, open(tmp, "wb") as fh:
             np.save(fh, a, allow_pickle=False)
