@@ -63,11 +63,12 @@ __all__ = ["progress_bar", "chunk_source", "normalize_chunk", "iter_chunks", "fi
            "FineGrid", "Buckets", "halo_schema", "distribute"]
 
 
-def progress_bar(total, desc: str, enabled: bool):
-    """A tqdm bar over points (a do-nothing one when disabled or without tqdm); a context manager."""
+def progress_bar(total, desc: str, enabled: bool, unit: str = "pt"):
+    """A tqdm bar over points, or another ``unit`` (a do-nothing one when disabled or without tqdm);
+    a context manager."""
     if not enabled or _tqdm is None:
         return _NullBar()
-    return _tqdm(total=total, desc=desc, unit="pt", unit_scale=True, leave=False)
+    return _tqdm(total=total, desc=desc, unit=unit, unit_scale=unit == "pt", leave=False)
 
 
 class _NullBar:

@@ -51,6 +51,7 @@ from dmrt.gl.abi import EMPTY_BITS, EMPTY_Z, SPLAT_FLOATS
 from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
+from dmrt.preprocess.buckets import progress_bar
 from dmrt.preprocess.frustum import Buckets
 
 
@@ -281,7 +282,7 @@ class DepthMapRenderer:
         cameras = list(cameras)
         budget = float(resident_mb) * 2**20
         stats = self.last_stats = {"mode": None, "groups": 0, "camera_groups": 0, "points": None}
-        bar = _progress_bar(len(cameras), progress)
+        bar = progress_bar(len(cameras), "depth maps", progress, unit="map")
         totals = dict(self._totals)
         try:
             # try to upload the whole cloud, stopping before the batch that would exceed the budget
@@ -511,22 +512,6 @@ class DepthMapRenderer:
 def _release(objects) -> None:
     for obj in objects:
         obj.release()
-
-
-def _progress_bar(total: int, enabled: bool):
-    if enabled:
-        from tqdm import tqdm
-
-        return tqdm(total=total, desc="depth maps", unit="map")
-    return _NoBar()
-
-
-class _NoBar:
-    def update(self, n: int = 1) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
 
 
 def _batches(chunks, size: int, cull: int = 0) -> Iterator[tuple[np.ndarray, Buckets | None]]:
