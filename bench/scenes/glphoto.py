@@ -22,11 +22,8 @@ import numpy as np
 from bench.scenes.synthetic import Studio, SynthConfig, develop, shade
 from dmrt.camera import Camera
 from dmrt.errors import ConfigError
-from dmrt.gl import check_gl, get_context, load_program, set_uniforms
+from dmrt.gl import abi, check_gl, get_context, load_program, set_uniforms
 
-# The program's one storage buffer, bound only while it draws (its own binding: no DMRT pass runs
-# in between).
-DEFINES = {"B_SYNTH_FACES": 0}
 FACE = np.dtype([("plane", "f4", 4), ("material", "i4"), ("axis", "i4"), ("shade_front", "f4"),
                  ("shade_back", "f4")])  # std430 Face of the shader, 32 bytes
 # near plane, metres: only clips, the depth test reads the ray's own camera z (cameras stand >= 0.3 m
@@ -92,7 +89,7 @@ class GLPhotographer:
         self.studio, self.ctx = studio, ctx or get_context(430)
         geom, normals = studio.photo_geom, studio.photo_raycaster.face_normals
         materials = studio.materials
-        self.program = load_program(self.ctx, "synth_photograph", {**DEFINES, "N_MATERIALS": len(materials)})
+        self.program = load_program(self.ctx, "synth_photograph", {"N_MATERIALS": len(materials)})
         faces = np.zeros(len(geom.faces), FACE)
         faces["plane"][:, :3] = normals
         faces["plane"][:, 3] = np.einsum("ij,ij->i", normals, geom.vertices[geom.faces[:, 0]])
@@ -139,7 +136,7 @@ class GLPhotographer:
             self.ctx.depth_func = "<"
             fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
             self.textures.use(0)
-            self.faces.bind_to_storage_buffer(DEFINES["B_SYNTH_FACES"])
+            self.faces.bind_to_storage_buffer(abi.B_SYNTH_FACES)
             self.vao.render(moderngl.TRIANGLES)
             data = fbo.read(components=3, dtype="f4")
         check_gl(self.ctx, "rendering a synthetic photo")

@@ -70,6 +70,8 @@ B_MAP_MISSING = 40      # 1 + n_photos uint: [0] any map missing this frame, [1 
 # the photo choice's compacted list (dmrt/runtime/ranking.py): uint length, uint spare, then
 # (count, photo) uvec2 per photo with a non-zero count
 B_PHOTO_LIST = 41
+# the synthetic scenes' OpenGL photographer (bench/scenes/glphoto.py): the photographed mesh's faces
+B_SYNTH_FACES = 43
 
 # -- sentinels ---------------------------------------------------------------------------------
 EMPTY_BITS = 0xFFFFFFFF  # an empty depth (above every positive float's bits: atomicMin keeps the nearest)
