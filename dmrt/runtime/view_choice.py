@@ -97,8 +97,8 @@ class ViewChoice:
     ----------
     blend_buffer : moderngl.Buffer or None
         After :meth:`run` with ``blend`` > 1: (h, w) ivec4 records of ``shaders/dmrt_view_choice.glsl``.
-    photo_list : moderngl.Buffer
-        (m,) int32 the photos the last :meth:`run` given a ``photo_list`` scored (``abi.B_VIEW_LIST``).
+    listed : np.ndarray or None
+        (m,) int32 the photos the last :meth:`run` scored; None: every photo.
     """
 
     def __init__(self, ctx: moderngl.Context, n_photos: int, candidates: int, blend: int,
@@ -115,7 +115,8 @@ class ViewChoice:
         # the scores test every photo: a map not resident is no candidate, not a miss
         self._scores_defines = {**map_defines, "MAP_FLAGS": 0} if map_defines else {}
         self._scores = load_program(ctx, "dmrt_view_scores", self._scores_defines or None)
-        self.photo_list = ctx.buffer(reserve=4 * 64)  # grown by run() to the longest list
+        self._list = ctx.buffer(reserve=4 * 64)  # B_VIEW_LIST, grown to the longest list
+        self.listed: np.ndarray | None = None
         self._rank = PhotoRanking(ctx, self.n_photos, "B_VIEW_SCORES", "B_VIEW_CANDIDATES")
         self._choice = load_program(ctx, "dmrt_view_choice", {"BLEND": self.blend, "CANDIDATES": self.n_candidates,
                                                               **(map_defines or {})})
@@ -126,7 +127,7 @@ class ViewChoice:
         """GPU bytes held (scores, candidates, the photo list, their ranking's list, the blend records
         of the last frame size)."""
         blend = self.blend_buffer.size if self.blend_buffer else 0
-        return self.scores.size + self.candidates.size + self.photo_list.size + self._rank.nbytes + blend
+        return self.scores.size + self.candidates.size + self._list.size + self._rank.nbytes + blend
 
     def run(self, timer, hits: moderngl.Buffer, photos: moderngl.Buffer, depthmaps, cam_uniforms: dict,
             photo_list=None) -> None:
@@ -152,7 +153,7 @@ class ViewChoice:
                 fill_u32(ctx, self.scores, 0, self.n_photos)
                 ctx.memory_barrier(_BARRIER)
                 self.scores.bind_to_storage_buffer(abi.B_VIEW_SCORES)
-                program, rows = self._scores, self.n_photos
+                program, rows, self.listed = self._scores, self.n_photos, None
                 if photo_list is not None:
                     program = load_program(ctx, "dmrt_view_scores", {**self._scores_defines, "PHOTO_LIST": 1})
                     rows = self._upload_list(photo_list)
@@ -173,16 +174,16 @@ class ViewChoice:
             ctx.memory_barrier(_BARRIER)
 
     def _upload_list(self, photo_list) -> int:
-        """``photo_list`` into :attr:`photo_list` (grown if needed), bound at ``abi.B_VIEW_LIST``;
-        returns its length."""
-        data = np.ascontiguousarray(photo_list, np.int32)
-        if data.nbytes > self.photo_list.size:
-            self.photo_list.release()
-            self.photo_list = self.ctx.buffer(reserve=data.nbytes)
-        if data.size:
-            self.photo_list.write(data.tobytes())
-        self.photo_list.bind_to_storage_buffer(abi.B_VIEW_LIST)
-        return int(data.size)
+        """``photo_list`` into the list buffer (grown if needed), bound at ``abi.B_VIEW_LIST``, and
+        :attr:`listed`; returns its length."""
+        self.listed = np.ascontiguousarray(photo_list, np.int32)
+        if self.listed.nbytes > self._list.size:
+            self._list.release()
+            self._list = self.ctx.buffer(reserve=self.listed.nbytes)
+        if self.listed.size:
+            self._list.write(self.listed.tobytes())
+        self._list.bind_to_storage_buffer(abi.B_VIEW_LIST)
+        return int(self.listed.size)
 
     def read_candidates(self) -> np.ndarray:
         """(m,) int32 the last frame's candidates, best-scored first (waits for the GPU)."""
@@ -204,6 +205,6 @@ class ViewChoice:
         return rec[..., :3].copy(), weights
 
     def release(self) -> None:
-        for obj in (self.scores, self.candidates, self.photo_list, self._rank, self.blend_buffer):
+        for obj in (self.scores, self.candidates, self._list, self._rank, self.blend_buffer):
             if obj is not None:
                 obj.release()
