@@ -181,3 +181,30 @@ def test_frames_left_on_the_gpu_do_not_wait_for_the_maps_they_miss(ctx, bundle):
     finally:
         full.release()
         small.release()
+
+
+def test_with_a_partial_cache_the_view_choice_scores_a_short_list(ctx, bundle):
+    """With a partial map cache the view choice scores the renderer's short list (the photos
+    nearest the camera and those the last frame wanted), not every photo: where the list holds the
+    photo the full scoring makes the candidate, the frame is the one rendered with every map
+    resident. One candidate: the list (4 nearest, the last frame's first 4 wanted) is at most 8 of
+    the 12 photos."""
+    cfg = {**SYNC, "photo_choice": "view", "view_candidates": 1}
+    full = Renderer(bundle, RenderConfig(**cfg), ctx)
+    small = Renderer(bundle, RenderConfig(**cfg, map_cache_mb=_slot_mb(full, 8.5)), ctx)
+    try:
+        covered = 0
+        for t in np.linspace(0.0, 1.0, 6):
+            view = novel_camera(bundle.cameras[0], bundle.cameras[5], t).resized(96, 64)
+            a, b = full.render(view), small.render(view)
+            listed = small.view_choice.listed
+            assert full.view_choice.listed is None and 4 <= len(listed) == len(np.unique(listed)) <= 8
+            if np.isin(full.view_choice.read_candidates(), listed).all():
+                covered += 1
+                for key in ("depth", "label", "color"):
+                    np.testing.assert_array_equal(a[key], b[key], err_msg=f"{key} at t={t}")
+        # measured 5 of 6: at t=0.4 the full scoring's candidate was the last frame's 5th wanted
+        assert covered >= 5
+    finally:
+        full.release()
+        small.release()

@@ -165,3 +165,31 @@ def test_view_blend_changes_smoothly_along_a_slow_walk(ctx, bundle):
     assert pops[3] < 0.005 and pops[1] > 2 * pops[3], pops
     assert np.percentile(jumps[3], 90) < 0.1 and np.percentile(jumps[3], 99) < 0.75
     assert np.percentile(jumps[1], 99) == 2.0
+
+
+def test_a_photo_list_scores_only_the_listed_photos(ctx, bundle):
+    """``ViewChoice.run(photo_list=...)`` (a partial map cache's path) scores the listed photos
+    exactly as the full scoring does (integer atomics: order-free) and leaves every other photo at
+    0, so no unlisted photo becomes a candidate."""
+    from dmrt.runtime.shading import camera_uniforms
+
+    view = novel_camera(bundle.cameras[0], bundle.cameras[3], 0.4).resized(W, H)
+    r = Renderer(bundle, RenderConfig(**SYNC, photo_choice="view", view_candidates=4), ctx)
+    try:
+        r.render(view, W, H)
+        choice = r.view_choice
+        assert choice.listed is None  # every map resident: every photo scored
+        every = np.frombuffer(choice.scores.read(), np.uint32).copy()
+        seen = np.flatnonzero(every > 0)
+        assert len(seen) >= 3
+        unseen = np.flatnonzero(every == 0)[:1]
+        listed = np.concatenate([seen[:0:-1], unseen])  # reversed: row r scores listed[r], not photo r
+        uniforms = camera_uniforms(view.relative_to(bundle.origin))
+        choice.run(r.timer, r._buffers["hits"], r.photos, r.depthmaps, uniforms, photo_list=listed)
+        some = np.frombuffer(choice.scores.read(), np.uint32)
+        np.testing.assert_array_equal(choice.listed, listed)
+        np.testing.assert_array_equal(some[listed], every[listed])
+        assert some[seen[0]] == 0 and (np.delete(some, listed) == 0).all()
+        assert set(choice.read_candidates()) <= set(listed[every[listed] > 0])
+    finally:
+        r.release()

@@ -64,6 +64,7 @@ B_TILE_MASKS = 35   # h x w x 2 uvec4: which of its tile's first 256 discs hit e
 B_VIEW_SCORES = 36      # n_photos uint: each photo's score against the frame's sample points
 B_VIEW_CANDIDATES = 37  # STATUS_HEADER_WORDS uint (word 1: count), then int: the photos each pixel tests
 B_VIEW_BLEND = 38       # h x w ivec4: the 2nd-4th photo of a pixel's blend (-1 = none), the 4 weights packed
+B_VIEW_LIST = 42        # int[]: the photos the scores test, with a partial map cache (else every photo)
 # the depth-map cache (dmrt/runtime/maps.py), where a texture array cannot hold every photo
 B_MAP_SLOTS = 39        # n_photos int: photo -> slot of the depth-map and low-resolution arrays, -1 = not resident
 B_MAP_MISSING = 40      # 1 + n_photos uint: [0] any map missing this frame, [1 + j] photo j's: 1 missing, 2 read

@@ -10,7 +10,10 @@ fetch a photo, which photos see the raytraced point. Per frame, after the final 
 1. ``scores`` (``shaders/dmrt_view_scores.glsl``): about :data:`SAMPLES` pixels of the frame on a
    grid, each tested against every photo; a photo that sees a sample adds 1 / its penalty. The
    ``candidates`` best (``shaders/dmrt_photo_choice.glsl``, as the photo cache ranks its histogram)
-   are the photos every pixel tests: a bounded per-pixel cost whatever the number of photos;
+   are the photos every pixel tests: a bounded per-pixel cost whatever the number of photos. With
+   every map resident (the paper's scenes) every photo is scored; with a partial map cache the
+   renderer passes a short list (the photos nearest the camera and those the last frame used) and
+   only those are scored, so the cost follows the list and not the scene;
 2. ``choice`` (``shaders/dmrt_view_choice.glsl``): per pixel, its final label and those candidates
    ranked by penalty = the angle between the view ray and the photo's ray to the point, plus
    ``distance_weight`` per octave by which the photo's distance to the point differs from the
@@ -93,6 +96,8 @@ class ViewChoice:
     ----------
     blend_buffer : moderngl.Buffer or None
         After :meth:`run` with ``blend`` > 1: (h, w) ivec4 records of ``shaders/dmrt_view_choice.glsl``.
+    listed : np.ndarray or None
+        (m,) int32 the photos the last :meth:`run` scored; None: every photo.
     """
 
     def __init__(self, ctx: moderngl.Context, n_photos: int, candidates: int, blend: int,
@@ -106,8 +111,11 @@ class ViewChoice:
         self.scores = ctx.buffer(reserve=4 * self.n_photos)
         self.candidates = ctx.buffer(reserve=4 * (STATUS_HEADER_WORDS + max(self.n_candidates, 1)))
         self.candidates.write(np.zeros(STATUS_HEADER_WORDS, np.uint32).tobytes())  # no candidates
-        # the scores test every photo: a map not resident is no candidate, not a miss
-        self._scores = load_program(ctx, "dmrt_view_scores", {**map_defines, "MAP_FLAGS": 0} if map_defines else None)
+        # the scores test every (listed) photo: a map not resident is no candidate, not a miss
+        self._scores_defines = {**map_defines, "MAP_FLAGS": 0} if map_defines else {}
+        self._scores = load_program(ctx, "dmrt_view_scores", self._scores_defines or None)
+        self._list = ctx.buffer(reserve=4 * 64)  # B_VIEW_LIST, grown to the longest list
+        self.listed: np.ndarray | None = None
         self._rank = PhotoRanking(ctx, self.n_photos, "B_VIEW_SCORES", "B_VIEW_CANDIDATES")
         self._choice = load_program(ctx, "dmrt_view_choice", {"BLEND": self.blend, "CANDIDATES": self.n_candidates,
                                                               **(map_defines or {})})
@@ -115,15 +123,20 @@ class ViewChoice:
 
     @property
     def nbytes(self) -> int:
-        """GPU bytes held (scores, candidates, their ranking's list, the blend records of the last
-        frame size)."""
+        """GPU bytes held (scores, candidates, the photo list, their ranking's list, the blend records
+        of the last frame size)."""
         blend = self.blend_buffer.size if self.blend_buffer else 0
-        return self.scores.size + self.candidates.size + self._rank.nbytes + blend
+        return self.scores.size + self.candidates.size + self._list.size + self._rank.nbytes + blend
 
-    def run(self, timer, hits: moderngl.Buffer, photos: moderngl.Buffer, depthmaps, cam_uniforms: dict) -> None:
+    def run(self, timer, hits: moderngl.Buffer, photos: moderngl.Buffer, depthmaps, cam_uniforms: dict,
+            photo_list=None) -> None:
         """Choose the photos of every pixel of a frame whose ``Hit`` records (with final labels) are
         in ``hits``: their ``final_label`` is overwritten, and with ``blend`` > 1 :attr:`blend_buffer`
-        written. ``depthmaps``: the renderer's depth-map texture array (bound to unit 0)."""
+        written. ``depthmaps``: the renderer's depth-map texture array (bound to unit 0).
+
+        ``photo_list``: None scores every photo (n_photos workgroup rows); else (m,) int photo
+        indices without repeats, and only those are scored (m rows: the cost follows the list), the
+        others' scores left 0, so only listed photos can become candidates."""
         ctx = self.ctx
         w, h = cam_uniforms["u_size"]
         if self.blend > 1 and (self.blend_buffer is None or self.blend_buffer.size != 16 * w * h):
@@ -139,10 +152,14 @@ class ViewChoice:
                 fill_u32(ctx, self.scores, 0, self.n_photos)
                 ctx.memory_barrier(_BARRIER)
                 self.scores.bind_to_storage_buffer(abi.B_VIEW_SCORES)
-                for photo0 in range(0, self.n_photos, 65535):  # a dispatch holds 65535 rows at most
-                    set_uniforms(self._scores, u_samples=grid, u_stride=stride, u_photo0=photo0, u_depthmaps=0,
+                program, rows, self.listed = self._scores, self.n_photos, None
+                if photo_list is not None:
+                    program = load_program(ctx, "dmrt_view_scores", {**self._scores_defines, "PHOTO_LIST": 1})
+                    rows = self._upload_list(photo_list)
+                for photo0 in range(0, rows, 65535):  # a dispatch holds 65535 rows at most
+                    set_uniforms(program, u_samples=grid, u_stride=stride, u_photo0=photo0, u_depthmaps=0,
                                  **self._uniforms, **cam_uniforms)
-                    self._scores.run(groups(grid[0] * grid[1], 64), min(self.n_photos - photo0, 65535))
+                    program.run(groups(grid[0] * grid[1], 64), min(rows - photo0, 65535))
                 ctx.memory_barrier(_BARRIER)
                 self._rank.run(self.scores, self.candidates, self.n_candidates)
                 ctx.memory_barrier(_BARRIER)
@@ -154,6 +171,18 @@ class ViewChoice:
             set_uniforms(self._choice, u_depthmaps=0, u_quads=step == 2, **self._uniforms, **cam_uniforms)
             self._choice.run(groups(-(-w // step), 8), groups(-(-h // step), 8))
             ctx.memory_barrier(_BARRIER)
+
+    def _upload_list(self, photo_list) -> int:
+        """``photo_list`` into the list buffer (grown if needed), bound at ``abi.B_VIEW_LIST``, and
+        :attr:`listed`; returns its length."""
+        self.listed = np.ascontiguousarray(photo_list, np.int32)
+        if self.listed.nbytes > self._list.size:
+            self._list.release()
+            self._list = self.ctx.buffer(reserve=self.listed.nbytes)
+        if self.listed.size:
+            self._list.write(self.listed.tobytes())
+        self._list.bind_to_storage_buffer(abi.B_VIEW_LIST)
+        return int(self.listed.size)
 
     def read_candidates(self) -> np.ndarray:
         """(m,) int32 the last frame's candidates, best-scored first (waits for the GPU)."""
@@ -175,6 +204,6 @@ class ViewChoice:
         return rec[..., :3].copy(), weights
 
     def release(self) -> None:
-        for obj in (self.scores, self.candidates, self._rank, self.blend_buffer):
+        for obj in (self.scores, self.candidates, self._list, self._rank, self.blend_buffer):
             if obj is not None:
                 obj.release()
