@@ -243,7 +243,8 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="write the results here")
     ap.add_argument("--kernels", action="store_true", help="time the per-bucket kernel, before / after knn.py")
-    ap.add_argument("--query-variants", action="store_true", help="time the kd-tree query's variants (order, dtype, leafsize)")
+    ap.add_argument("--query-variants", action="store_true",
+                    help="time the kd-tree query's variants (order, dtype, leafsize)")
     ap.add_argument("--repeat", type=int, default=3, help="--kernels, --query-variants: runs of each")
     args = ap.parse_args(argv)
 
