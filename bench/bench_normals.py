@@ -26,6 +26,14 @@ their orientation toward a viewpoint and the radii from the 9th column, in runs 
 ``normals._pca_normals`` give it to the buckets. Each is run ``--repeat`` times (the minimum
 counts), and the two results are compared: the largest angle between the normals and the largest
 relative difference of the radii.
+
+    OMP_NUM_THREADS=1 taskset -c 0 python -m bench.bench_normals --query-variants --points 1000000
+
+``--query-variants`` times the kd-tree query alone (16 neighbours of every point of the same bucket,
+in runs of 65,536 rows, CPU microseconds per point, best of ``--repeat``, interleaved) under the
+variants that could make it cheaper: queries and/or tree points in Morton order (results mapped back
+to the caller's order and checked equal to the plain query's), float32 tree and queries,
+leafsizes 8 to 32, and a ``distance_upper_bound`` at the largest 16th-neighbour distance (exact).
 """
 
 from __future__ import annotations
@@ -156,6 +164,73 @@ def kernels(tree: Octree, repeat: int) -> dict:
             "opposite_normals": opposite, "max_radius_rel_diff": rel, **out}
 
 
+def morton_order(p: np.ndarray, bits: int = 10) -> np.ndarray:
+    """(n,) int64 permutation sorting ``p`` (n, 3) along a Z-order curve of 2**bits cells a side."""
+    lo = p.min(axis=0)
+    cell = ((p - lo) / max(float(np.ptp(p, axis=0).max()), 1e-30) * ((1 << bits) - 1)).astype(np.uint64)
+    key = np.zeros(len(p), np.uint64)
+    for b in range(bits):
+        for a in range(3):
+            key |= ((cell[:, a] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + a)
+    return np.argsort(key, kind="stable")
+
+
+def ordered_query(data: np.ndarray, x: np.ndarray, k: int = 16, perm=None, rows_of=None, leafsize: int = 16,
+                  rows: int = 65536, **kw) -> tuple[float, np.ndarray, np.ndarray]:
+    """pykdtree's ``k`` nearest of the rows of ``x`` among ``data`` (both (n, 3), perhaps reordered),
+    queried in runs of ``rows``, the results put back in the caller's order.
+
+    ``perm[i]`` is the caller's index of ``data[i]``, ``rows_of[r]`` the caller's row of ``x[r]``
+    (None: the caller's order). Returns the query's CPU seconds, distances (b, k) float64 and
+    indices (b, k) int64.
+    """
+    from pykdtree.kdtree import KDTree
+
+    t = KDTree(data, leafsize=leafsize)
+    d, idx = np.empty((len(x), k), np.float64), np.empty((len(x), k), np.int64)
+    c0 = time.process_time()
+    for s in range(0, len(x), rows):
+        d[s:s + rows], idx[s:s + rows] = t.query(x[s:s + rows], k=k, **kw)
+    seconds = time.process_time() - c0
+    if perm is not None:
+        idx = perm[idx]
+    if rows_of is not None:
+        d[rows_of], idx[rows_of] = d.copy(), idx.copy()
+    return seconds, d, idx
+
+
+def query_variants(tree: Octree, repeat: int) -> dict:
+    """``--query-variants``: CPU microseconds per point of the 16-neighbour query, per variant."""
+    c = tree.read_lod(tree.levels)["positions"].astype(np.float64)
+    c -= c.mean(axis=0)
+    n, order = len(c), morton_order(c)
+    c_sorted = np.ascontiguousarray(c[order])
+    d16 = ordered_query(c, c)[1][:, -1]
+    c32 = c.astype(np.float32)
+    variants = {  # name: (tree points, queries, their caller indices (perm, rows_of), options)
+        "plain": (c, c, {}),
+        "morton queries": (c, c_sorted, {"rows_of": order}),
+        "morton tree": (c_sorted, c, {"perm": order}),
+        "morton tree and queries": (c_sorted, c_sorted, {"perm": order, "rows_of": order}),
+        "float32": (c32, c32, {}),
+        **{f"leafsize {ls}": (c, c, {"leafsize": ls}) for ls in (8, 12, 24, 32)},
+        "distance_upper_bound": (c, c, {"distance_upper_bound": float(d16.max()) * (1 + 1e-9)}),
+    }
+    times = {name: [] for name in variants}
+    ref = None
+    for _ in range(repeat):  # interleaved: a neighbour's load on a shared machine hits all alike
+        for name, (data, x, kw) in variants.items():
+            s, d, idx = ordered_query(data, x, **kw)
+            ref = (d, idx) if ref is None else ref
+            if name.startswith("morton") or name == "distance_upper_bound":  # exact: the same results
+                assert np.array_equal(d, ref[0]) and np.array_equal(idx, ref[1]), name
+            times[name].append(round(s / n * 1e6, 3))
+    out = {name: {"us_per_point": min(t), "runs": t} for name, t in times.items()}
+    for name, r in out.items():
+        print(f"{name:24s}: {r['us_per_point']:.3f} us/point (runs {', '.join(map(str, r['runs']))})")
+    return {"points": n, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"), "variants": out}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--points", type=int, default=4_000_000)
@@ -168,15 +243,18 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="write the results here")
     ap.add_argument("--kernels", action="store_true", help="time the per-bucket kernel, before / after knn.py")
-    ap.add_argument("--repeat", type=int, default=3, help="--kernels: runs of each kernel")
+    ap.add_argument("--query-variants", action="store_true",
+                    help="time the kd-tree query's variants (order, dtype, leafsize)")
+    ap.add_argument("--repeat", type=int, default=3, help="--kernels, --query-variants: runs of each")
     args = ap.parse_args(argv)
 
     out = Path(args.out_dir)
     t = time.perf_counter()
     tree = build_octree(out / "octree", args.points, args.seed, args.levels)
     build_s = time.perf_counter() - t
-    if args.kernels:
-        result = {"bench": "normals-kernels", "machine": platform.node(), **kernels(tree, args.repeat)}
+    if args.kernels or args.query_variants:
+        fn, name = (kernels, "normals-kernels") if args.kernels else (query_variants, "knn-query-variants")
+        result = {"bench": name, "machine": platform.node(), **fn(tree, args.repeat)}
         if args.json:
             Path(args.json).write_text(json.dumps(result, indent=1))
         return result

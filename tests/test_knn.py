@@ -147,3 +147,23 @@ def test_estimate_normals_and_splat_radii_equal_the_scipy_path():
     assert angle_deg(got, want).max() < 1e-4
     assert np.all(np.einsum("ij,ij->i", got, want) > 0)
     np.testing.assert_allclose(splat_radii(p, k=8, scale=1.5), (d[:, 8] * 1.5 * 0.5).astype(np.float32), rtol=1e-6)
+
+
+def test_morton_ordered_query_equals_plain():
+    # bench_normals --query-variants times the query with the tree and the queries in Morton order,
+    # the results mapped back to the caller's order: they must be the plain query's, exactly
+    from bench.bench_normals import morton_order, ordered_query
+
+    p = scan_like(3000, seed=6)
+    o = morton_order(p)
+    np.testing.assert_array_equal(np.sort(o), np.arange(len(p)))
+    # a locality order: consecutive points in it are far nearer than in the (random) input order
+    step = lambda q: np.linalg.norm(np.diff(q, axis=0), axis=1).mean()  # noqa: E731
+    assert step(p[o]) < 0.2 * step(p)
+    _, d0, i0 = ordered_query(p, p, k=16, rows=700)
+    ps = np.ascontiguousarray(p[o])
+    _, d, i = ordered_query(ps, ps, k=16, perm=o, rows_of=o, rows=700)
+    np.testing.assert_array_equal(i, i0)
+    np.testing.assert_array_equal(d, d0)  # the same squared sums of the same pairs
+    _, _, wrong = ordered_query(ps, ps, k=16, rows_of=o, rows=700)  # indices not mapped back
+    assert not np.array_equal(wrong, i0)

@@ -12,7 +12,40 @@ normals and splat radii from neighbour distances.
 Per point on one core, a bucket of 1M points of bench_octree's site with k = 16
 (``python -m bench.bench_normals --kernels``, best of 3): the query 2.9 -> 1.8 us (cKDTree ->
 pykdtree), the normals 3.0 -> 0.5 us (batched eigh -> closed form), the whole kernel
-6.2 -> 2.5 us. The query is now three quarters of it.
+6.2 -> 2.5 us (again at 4b7640b, calm: 5.82 -> 2.49 us, 2.34x, the query 1.85 of it). The
+query is now three quarters of it.
+
+What stops the query there (#40 asks >= 3x, i.e. <= ~1.9 us for the kernel): the variants tried
+for it, on the same bucket (``python -m bench.bench_normals --query-variants``: CPU us per
+point of the 16-NN query, best of 3, interleaved, on one core of this 2-core machine while other
+jobs ran: load 3, two runs), and their instructions and last-level misses per query
+(cachegrind, 100k queries, an 8 MiB LL standing for one core's share of a shared L3):
+
+==============================  ===========  ===========  =============================
+variant                         run 1 (us)   run 2 (us)   cachegrind per query
+==============================  ===========  ===========  =============================
+plain (octree order, leaf 16)   2.98         2.14         11,578 instr., 22 LL misses
+Morton-ordered queries          2.51         2.13
+Morton-ordered tree             2.43         2.01
+Morton tree and queries         2.16         2.17         11,528 instr., 12 LL misses
+float32                         2.77         2.48
+leafsize 8 / 12                 2.79 / 2.92  2.31 / 2.21  8: 11,265 instr.
+leafsize 24 / 32                2.76 / 2.62  2.19 / 2.04  32: 12,889 instr.
+distance_upper_bound (max)      2.44         2.02         at the median d16: 10,635
+==============================  ===========  ===========  =============================
+
+On a calm core (load 1.4) plain and Morton-ordered tree and queries took 1.74 and 1.75 us. The
+query is bound by pykdtree's instructions, ~11,500 per query whatever the order, dtype, leaf size or
+bound: it computes ~200 distances for 16 neighbours (``calc_dist``) and spends 40 % of its
+instructions in its sorted insertion (``insert_point``). Spatial order halves the simulated cache
+misses, which could matter only where one core's share of the last-level cache is small (here the
+24 MB of points fit in a 300 MiB L3); the run-to-run noise (+-30 %) is larger than any variant's difference, and none is
+kept. Beyond this takes another search: an exact grid kNN (cells of about the 16th-neighbour
+distance, visited ring by ring with box-distance pruning) scans 32-43 candidates per query instead
+of ~200; a numba prototype gave the same neighbours and distances bit for bit, its query 15-30 %
+faster than pykdtree's in the same runs but its build (a counting sort into cells) 0.3-0.5 us per
+point slower: 10-20 % of the kernel, not enough for a new dependency without further work (or the
+GPU, #40).
 """
 
 from __future__ import annotations
@@ -52,7 +85,8 @@ class KnnTree:
     points : (m, 3) float64
         Metres, best centred near the origin (the squared distances keep their digits there).
     leafsize : int
-        Points per leaf: 16 measured fastest for k = 16 (8 and 24 slower by 5-40 %, in noisy runs).
+        Points per leaf: 8 to 32 within the timing noise for k = 16, 8 slower in a calm run; 16 is
+        within 3 % of the fewest instructions per query (module doc).
     """
 
     def __init__(self, points: np.ndarray, leafsize: int = 16):
