@@ -53,6 +53,7 @@ from scipy.spatial import cKDTree
 
 from bench.bench_octree import BLOCK, bbox_of_scene, make_chunk
 from dmrt.errors import InputError
+from dmrt.morton import morton_order
 from dmrt.preprocess import normals as nrm
 from dmrt.preprocess.normals import process_chunked
 from dmrt.preprocess.octree import Octree, OctreeConfig
@@ -162,17 +163,6 @@ def kernels(tree: Octree, repeat: int) -> dict:
     return {"points": n, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
             "cores": len(os.sched_getaffinity(0)), "speedup": round(speedup, 2), "max_angle_deg": angle,
             "opposite_normals": opposite, "max_radius_rel_diff": rel, **out}
-
-
-def morton_order(p: np.ndarray, bits: int = 10) -> np.ndarray:
-    """(n,) int64 permutation sorting ``p`` (n, 3) along a Z-order curve of 2**bits cells a side."""
-    lo = p.min(axis=0)
-    cell = ((p - lo) / max(float(np.ptp(p, axis=0).max()), 1e-30) * ((1 << bits) - 1)).astype(np.uint64)
-    key = np.zeros(len(p), np.uint64)
-    for b in range(bits):
-        for a in range(3):
-            key |= ((cell[:, a] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + a)
-    return np.argsort(key, kind="stable")
 
 
 def ordered_query(data: np.ndarray, x: np.ndarray, k: int = 16, perm=None, rows_of=None, leafsize: int = 16,

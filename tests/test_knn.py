@@ -152,7 +152,8 @@ def test_estimate_normals_and_splat_radii_equal_the_scipy_path():
 def test_morton_ordered_query_equals_plain():
     # bench_normals --query-variants times the query with the tree and the queries in Morton order,
     # the results mapped back to the caller's order: they must be the plain query's, exactly
-    from bench.bench_normals import morton_order, ordered_query
+    from bench.bench_normals import ordered_query
+    from dmrt.morton import morton_order
 
     p = scan_like(3000, seed=6)
     o = morton_order(p)
