@@ -191,7 +191,7 @@ class MapCache:
                 else:
                     self._pending[j] = self._pool.submit(self._read, j)
             excess = len(self._pending) - MAX_PENDING
-            for j in list(self._pending) if excess > 0 else []:  # least recently requested first
+            for j in list(self._pending):  # least recently requested first
                 if excess <= 0:
                     break
                 if self._pending[j].cancel() or self._pending[j].done():  # a read under way stays
@@ -236,12 +236,12 @@ class MapCache:
         ready = {j: self._pending.pop(j) for j in photos if j in self._pending}
         rest = [j for j in photos if j not in ready]
         with ThreadPoolExecutor(min(len(rest), os.cpu_count() or 2) or 1, thread_name_prefix="dmrt-maps") as pool:
-            read = dict(zip(rest, pool.map(lambda j: self._read(j, first, low), rest)))
-        for j, s in zip(photos, slots):
-            m, im = ready[j].result() if j in ready else read[j]
-            self.depthmaps.write(m.tobytes(), viewport=(0, 0, s, m.shape[1], m.shape[0], 1))
-            self.low.write(np.ascontiguousarray(im).tobytes(), viewport=(0, 0, s, im.shape[1], im.shape[0], 1))
-            self.slot_of[j], self._photo_in[s], self._last_used[s] = s, j, self._frame
+            reads = pool.map(lambda j: self._read(j, first, low), rest)  # in ``rest``'s order, each written as it comes
+            for j, s in zip(photos, slots):
+                m, im = ready[j].result() if j in ready else next(reads)
+                self.depthmaps.write(m.tobytes(), viewport=(0, 0, s, m.shape[1], m.shape[0], 1))
+                self.low.write(np.ascontiguousarray(im).tobytes(), viewport=(0, 0, s, im.shape[1], im.shape[0], 1))
+                self.slot_of[j], self._photo_in[s], self._last_used[s] = s, j, self._frame
         self.slots.write(self.slot_of.tobytes())
         self.loads += len(photos)
         return len(photos)
