@@ -49,6 +49,7 @@ from dmrt.camera import Camera
 from dmrt.gl import abi
 from dmrt.gl.abi import EMPTY_BITS, EMPTY_Z, SPLAT_FLOATS
 from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32
+from dmrt.gl.mapped import MappedBuffer
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.preprocess.buckets import progress_bar
@@ -337,7 +338,13 @@ class DepthMapRenderer:
     # -- render_many's strategies -------------------------------------------------------------
     def _render_resident(self, cameras, splats, bar):
         # Two maps alternate: camera i is splatted while camera i - 1 is read back (and handed to
-        # the caller, who may write it to disk) so that the GPU has work during both.
+        # the caller, who may write it to disk) so that the GPU has work during both. A moderngl
+        # read waits for everything queued, camera i's splats too; the compute path's maps are
+        # therefore copied on the GPU into mapped host memory, and the read waits for that copy only.
+        mapped = None
+        if self.config.method == "compute":
+            size = max(4 * w * h for w, h in (depth_map_size(c, self.config.width) for c in cameras))
+            mapped = [MappedBuffer(self.ctx, bytes(size)) for _ in range(2)]
         try:
             previous = None
             for i, camera in enumerate(cameras):
@@ -345,15 +352,21 @@ class DepthMapRenderer:
                 with self._timed("depthmap"):
                     for s in splats:
                         self._splat(s, target)
+                host = None
+                if mapped is not None:
+                    host = mapped[i % 2]
+                    with self._timed("depthmap_readback"):
+                        host.copy_from(target.depth, target.depth.size)
                 if previous is not None:
-                    yield previous[0], self._read(previous[1])
+                    yield previous[0], self._read(*previous[1:])
                     bar.update()
-                previous = (i, target)
+                previous = (i, target, host)
             if previous is not None:
-                yield previous[0], self._read(previous[1])
+                yield previous[0], self._read(*previous[1:])
                 bar.update()
         finally:
             _release(splats)
+            _release(mapped or [])
 
     def _render_grouped(self, cameras, first, group, rest, room, bar):
         """One camera group of the "grouped" mode: ``cameras`` are ``cameras[first:]`` of
@@ -489,10 +502,17 @@ class DepthMapRenderer:
                 # moderngl cannot read these back: restore its defaults
                 ctx.depth_func, ctx.blend_equation = "<", moderngl.FUNC_ADD
 
-    def _read(self, target: _Target) -> np.ndarray:
-        """Copy a finished map back: (h, w) float32 camera z, 0.0 where empty."""
+    def _read(self, target: _Target, host: MappedBuffer | None = None) -> np.ndarray:
+        """Copy a finished map back: (h, w) float32 camera z, 0.0 where empty. ``host``: the
+        mapped buffer the compute path's map was copied into (:meth:`_render_resident`)."""
         w, h = target.size
         t0 = time.perf_counter()
+        if host is not None:  # the copy was timed when issued
+            bits = np.frombuffer(host.read(4 * w * h), np.uint32).reshape(h, w).copy()
+            depth = bits.view(np.float32)
+            depth[bits == EMPTY_BITS] = 0.0
+            self._totals["readback_s"] += time.perf_counter() - t0
+            return depth
         with self._timed("depthmap_readback"):
             if self.config.method == "compute":
                 self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
