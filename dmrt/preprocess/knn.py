@@ -39,8 +39,8 @@ query is bound by pykdtree's instructions, ~11,500 per query whatever the order,
 bound: it computes ~200 distances for 16 neighbours (``calc_dist``) and spends 40 % of its
 instructions in its sorted insertion (``insert_point``). Spatial order halves the simulated cache
 misses, which could matter only where one core's share of the last-level cache is small (here the
-24 MB of points fit in a 300 MiB L3); the run-to-run noise (+-30 %) is larger than any variant's difference, and none is
-kept. Beyond this takes another search: an exact grid kNN (cells of about the 16th-neighbour
+24 MB of points fit in a 300 MiB L3); the run-to-run noise (+-30 %) is larger than any variant's
+difference, and none is kept. Beyond this takes another search: an exact grid kNN (cells of about the 16th-neighbour
 distance, visited ring by ring with box-distance pruning) scans 32-43 candidates per query instead
 of ~200; a numba prototype gave the same neighbours and distances bit for bit, its query 15-30 %
 faster than pykdtree's in the same runs but its build (a counting sort into cells) 0.3-0.5 us per
