@@ -119,7 +119,8 @@ def main(argv=None) -> None:
     p.add_argument("--write-normals", action="store_true", help="synthetic scan carries normals (skips estimation)")
     args = p.parse_args(argv)
     if args.walk_photos and args.walk_photos < 2:
-        p.error(f"--walk-photos: {args.walk_photos} photos give no path (at least 2 key cameras; 0 = all)")
+        p.exit(2, f"{p.prog}: error: --walk-photos: {args.walk_photos} photos give no path (at least 2 key "
+                  f"cameras; 0 = all)\n")
     setup = {}
     bundle = open_bundle(p, args, setup)
     args.out.mkdir(parents=True, exist_ok=True)

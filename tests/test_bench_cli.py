@@ -26,3 +26,14 @@ def test_quality_missing_scene_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert ": error: " in err and str(tmp_path / "no-scene") in err and "\n" not in err
     assert not (tmp_path / "out").exists()
+
+
+def test_render_walk_of_fewer_than_two_photos_is_one_line(tmp_path, capsys):
+    from bench.bench_render import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--bundle", str(tmp_path / "none"), "--out", str(tmp_path / "out"), "--walk-photos", "1"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert ": error: --walk-photos: 1 photos" in err and "\n" not in err
+    assert not (tmp_path / "out").exists()
