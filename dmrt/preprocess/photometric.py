@@ -324,8 +324,8 @@ def patch_colors(positions: np.ndarray, normals: np.ndarray, radii: np.ndarray, 
         cam, img = cameras[j], np.asarray(photos(j), np.uint8)
         h, w = img.shape[:2]
         # exact integer sums (at most 255 h w: 2^31 holds 8.4M pixels; larger photos take int64):
-        # a quarter of float64's bytes: the table is the phase's main cost per photo (one 1024x684
-        # photo on the 2-core sandbox, timeit: 27 against 97 ms)
+        # half float64's bytes and no conversion pass: the table is the phase's main cost per photo
+        # (one 1024x684 photo on the 2-core sandbox, timeit: 27 against 97 ms)
         sat = np.zeros((h + 1, w + 1, 3), np.int32 if 255 * h * w < 2 ** 31 else np.int64)
         np.cumsum(img, axis=0, dtype=sat.dtype, out=sat[1:, 1:])
         np.cumsum(sat[1:, 1:], axis=1, out=sat[1:, 1:])
