@@ -46,6 +46,18 @@ def bundle_path(args, setup: dict) -> Path:
     return out
 
 
+def walk_keys(cameras: list, walk_photos: int = 0) -> list:
+    """The walkthrough's 12 key cameras (``--walk-photos``): every n/12-th of ``cameras`` in their
+    order, or with ``walk_photos`` N > 0 of the first N along the scene's longer horizontal extent
+    (a stretch of it)."""
+    span = cameras
+    if walk_photos:
+        centres = np.array([c.center for c in cameras])
+        axis = int(np.argmax(np.ptp(centres[:, :2], axis=0)))
+        span = [cameras[i] for i in np.argsort(centres[:, axis], kind="stable")[:walk_photos]]
+    return span[:: max(1, len(span) // 12)]
+
+
 def open_bundle(p: argparse.ArgumentParser, args, setup: dict):
     """:func:`bundle_path` read (``args.bundle`` set to its path): a bundle that cannot be read ends the
     program with one line that names it and exit status 2, before anything is written."""
@@ -94,6 +106,9 @@ def main(argv=None) -> None:
                    help="photo choices (RenderConfig.photo_choice), each with the other options at their defaults")
     p.add_argument("--map-cache-mb", type=float, nargs="+", default=[0.0],
                    help="depth-map cache budgets (RenderConfig.map_cache_mb; 0 = one texture array's worth)")
+    p.add_argument("--cache-mb", type=float, nargs="+", default=[RenderConfig().cache_mb],
+                   help="full-resolution photo cache budgets (RenderConfig.cache_mb, MiB; default the config's): a "
+                        "walk that wants more photos than the cache holds uploads photos in every frame")
     p.add_argument("--max-steps", type=int, nargs="+", default=[100],
                    help="iterative-search steps per layer (RenderConfig.max_steps; the paper: 100). A lower cap "
                         "shortens the few searches that do not converge, which set their warps' time; it also "
@@ -125,29 +140,26 @@ def main(argv=None) -> None:
     bundle = open_bundle(p, args, setup)
     args.out.mkdir(parents=True, exist_ok=True)
     name = args.preset or bundle.root.name
-    span = bundle.cameras
-    if args.walk_photos:  # the first N along the scene's longer horizontal extent: a stretch of it
-        centres = np.array([c.center for c in bundle.cameras])
-        axis = int(np.argmax(np.ptp(centres[:, :2], axis=0)))
-        span = [bundle.cameras[i] for i in np.argsort(centres[:, axis], kind="stable")[:args.walk_photos]]
+    keys = walk_keys(bundle.cameras, args.walk_photos)
+    if args.walk_photos:
         name += f"-walk{args.walk_photos}"
-    keys = span[:: max(1, len(span) // 12)]
     runs = []
     # with several step caps, the first one's depths (statistics pass) and what the others change
     reference: dict[tuple, tuple[int, list]] = {}
     for size in args.sizes:
         w, h = (int(v) for v in size.lower().split("x"))
         path = camera_path(keys, args.frames, w, h)
-        for method, refine, check, steps, k, choice, maps_mb in itertools.product(
+        for method, refine, check, steps, k, choice, maps_mb, photos_mb in itertools.product(
                 args.methods, args.refine, args.tile_check, args.max_steps, args.layers, args.photo_choice,
-                args.map_cache_mb):
+                args.map_cache_mb, args.cache_mb):
             if check != "frame" and method != "tiles":
                 continue
             config = RenderConfig(layers=k, method=method, leveling=args.leveling, refine=refine, tile_check=check,
-                                  max_steps=steps, photo_choice=choice, map_cache_mb=maps_mb)
+                                  max_steps=steps, photo_choice=choice, map_cache_mb=maps_mb, cache_mb=photos_mb)
             depths: list[np.ndarray] = []
             keep = (lambda f: depths.append(f["depth"].copy())) if len(args.max_steps) > 1 else None
-            r = measure_walkthrough(bundle, config, path, f"{method} {choice} maps={maps_mb:g}MB k={k} {w}x{h}",
+            r = measure_walkthrough(bundle, config, path,
+                                    f"{method} {choice} maps={maps_mb:g}MB photos={photos_mb:g}MB k={k} {w}x{h}",
                                     fenced=args.fenced, passes=args.passes, on_frame=keep)
             r.pop("stage_ms_per_frame")
             if args.cpu_profile:
@@ -157,9 +169,9 @@ def main(argv=None) -> None:
                 if first is not depths:
                     r["depth_vs_first_cap"] = _depth_change(first_steps, first, depths)
             runs.append({"method": method, "refine": refine, "tile_check": check, "max_steps": steps, "layers": k,
-                         "photo_choice": choice, "map_cache_mb": maps_mb, **r})
+                         "photo_choice": choice, "map_cache_mb": maps_mb, "cache_mb": photos_mb, **r})
             stages = "  ".join(f"{s} {v:.3f}" for s, v in {**r["median_ms"], **r["median_part_ms"]}.items())
-            print(f"{w}x{h} {method:8s} {choice:6s} maps={r['map_cache']['slots']} {refine:9s} {check:6s} steps={steps:3d} k={k:2d}  {stages}"
+            print(f"{w}x{h} {method:8s} {choice:6s} maps={r['map_cache']['slots']} photos={photos_mb:g}MB {refine:9s} {check:6s} steps={steps:3d} k={k:2d}  {stages}"
                   + f"  | GPU median {r['median_total_ms']:.3f} p95 {r['p95_total_ms']:.3f} ms, wall median "
                     f"{r['median_wall_ms']:.3f} p95 {r['p95_wall_ms']:.3f} ms, sustained {r['sustained_ms']:.3f} "
                     f"ms/frame, {r['mean_iterations']:.2f} steps, status reads {r['status_reads_per_frame']:.2f}/frame, "

@@ -181,7 +181,10 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         ``map_cache`` {``slots``, ``partial``, ``loads_before_timed``, ``loads_timed``, ``rerendered_timed``,
         ``missing_per_frame_timed``, ``frames_missing_timed``} (the depth-map cache:
         :mod:`dmrt.runtime.maps`; missing maps are holes until loaded) and ``tile_stats`` (the tiles
-        path's :meth:`~dmrt.runtime.tiles.TileVisibility.stats` of the last frame, else None).
+        path's :meth:`~dmrt.runtime.tiles.TileVisibility.stats` of the last frame, else None) and
+        ``tile_lists_per_frame`` {``entries``, ``large``, ``longest``: lists of the statistics
+        pass's frames} (:meth:`~dmrt.runtime.tiles.TileVisibility.stats`: the tile raster's and
+        labeling's work, whose longest tile sets a slow frame's time; None without the tiles path).
     """
     from tqdm import tqdm
 
@@ -190,10 +193,14 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
     renderer = Renderer(bundle, config)
     renderer.timer.wait = True  # the timed pass: each frame's own times (the other passes do not read them)
     try:
-        iters, surface, wanted = [], [], {}
+        iters, surface, wanted, lists = [], [], {}, {"entries": [], "large": [], "longest": []}
         for cam in tqdm(cameras, desc=f"{desc} (statistics)", unit="frame", leave=False, disable=not progress):
             f = renderer.render(cam)
             wanted.update(dict.fromkeys(renderer.images.wanted))
+            if renderer.visibility.tiles is not None:  # the frame is read back: its list is done, no extra wait
+                stats = renderer.visibility.tiles.stats()
+                for key, values in lists.items():
+                    values.append(stats[key])
             hit = f["depth"] > 0
             surface.append(float(hit.mean()))
             iters.append(float(f["iterations"][hit].mean()) if hit.any() else 0.0)
@@ -264,7 +271,8 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
                               # async_photos), and how many frames had any
                               "missing_per_frame_timed": float(np.mean(missing)),
                               "frames_missing_timed": int(np.count_nonzero(missing))},
-                "tile_stats": tile_stats}
+                "tile_stats": tile_stats,
+                "tile_lists_per_frame": lists if lists["entries"] else None}
     finally:
         renderer.release()
 

@@ -11,9 +11,9 @@
 #    shader path on the same scene; PAPER_CACHE_MB="0" skips the second, measured once already);
 # 2. many: the `many` preset (10,240 photos) generated and preprocessed by bench/many_run.sh
 #    (phases, memory, disk), then walked through the same way (2048 of its maps resident): over the
-#    first 960 photos along the block (about 12 rooms: the paper preset's walking speed;
-#    render-bundle-walk960.json), then over all 10,240 (the whole block in 30 frames: every frame
-#    needs new maps; render-bundle.json).
+#    first 960 photos along the block (about 12 rooms: the paper preset's walking speed), with a
+#    1 GiB and a 3 GiB photo cache and the CPU profiled (render-bundle-walk960.json), then over all
+#    10,240 (the whole block in 30 frames: every frame needs new maps; render-bundle.json).
 # The environment (EGL vendor file, PYTHONPATH with the wheels, DMRT_COMMIT) is the caller's: see
 # ../shared/GPU.md. Results: OUT_DIR/results.tgz (render-paper.json, render-bundle.json,
 # many/preprocess-many.json ...), repacked after each step.
@@ -34,10 +34,14 @@ bench/many_run.sh "$out/many" >>"$out/log.txt" 2>&1
 echo "many preprocess rc=$? $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
 mkdir -p "$out/results/many" && tar xzf "$out/many/results.tgz" -C "$out/results/many" 2>/dev/null
 pack
-for walk in 960 0; do  # the paper's walking speed (12 of its 128 rooms), then the whole block in 30 frames
+# the paper's walking speed (12 of its 128 rooms) with the default photo cache (1 GiB: 383 photos, fewer
+# than the walk wants) and one that holds the walk's 960 (3 GiB), the CPU profiled; then the whole
+# block in 30 frames
+for walk in 960 0; do
+    extra=(); [ $walk = 960 ] && extra=(--cache-mb 1024 3072 --cpu-profile)
     t0=$(date +%s)
     python3 -m bench.bench_render --bundle "$out/many/work/bundle" --out "$out/results" "${render[@]}" --map-cache-mb 0 \
-        --walk-photos $walk 2>&1 | tr '\r' '\n' | grep -v 'frame/s' >>"$out/log.txt"
+        --walk-photos $walk "${extra[@]}" 2>&1 | tr '\r' '\n' | grep -v 'frame/s' >>"$out/log.txt"
     echo "many render walk=$walk rc=${PIPESTATUS[0]} $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
     pack
 done

@@ -314,6 +314,23 @@ def test_gl_errors_raise(ctx):
     check_gl(ctx, "testing")  # reading the flag clears it
 
 
+def test_allocation_beyond_gpu_memory_names_the_budget(ctx):
+    """An array that no GPU holds (2,048 RGBA8 layers of 16384^2: 2.2 TB) sets GL_OUT_OF_MEMORY;
+    check_fits turns it into a ConfigError naming the budget option, and clears the flag."""
+    from dmrt.errors import ConfigError
+    from dmrt.gl.context import check_fits
+
+    check_fits(ctx, "cache_mb", "nothing")  # a clean flag passes
+    side, layers = 16384, ctx.info["GL_MAX_ARRAY_TEXTURE_LAYERS"]
+    tex = ctx.texture_array((side, side, layers), 4)
+    try:
+        with pytest.raises(ConfigError, match="--cache-mb: a huge array: more than this GPU's memory holds"):
+            check_fits(ctx, "cache_mb", "a huge array")
+    finally:
+        tex.release()
+    check_fits(ctx, "cache_mb", "nothing")
+
+
 def test_mapped_buffer_reads_what_the_gpu_wrote(ctx):
     """A persistently mapped buffer (the status records' storage): its initial bytes, then what
     passes wrote - read after their fence, after an unfenced bind (the read fences it), after a CPU

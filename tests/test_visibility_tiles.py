@@ -162,7 +162,8 @@ def test_long_tile_lists(ctx, discs, batch):
         ref = _layers(ctx, peel, cam, 5)
         assert (ref[1][2][16:32, 16:32] != EMPTY_LABEL).mean() > 0.5  # most of the tile has 3+ layers
         _assert_equal(ref, _layers(ctx, tiles, cam, 5), 5, f"{discs} discs, batch {batch}")
-        assert tiles.stats()["entries"] == discs
+        stats = tiles.stats()
+        assert stats["entries"] == discs and stats["longest"] == discs  # every disc in the one tile
         # the labeling pass on the same lists (with 300 discs and batch 512 the first 256 through
         # the raster's hit masks, the rest tested) against the splatted one, at the first layer
         first = ref[0][0].view(np.float32) * (ref[0][0] != EMPTY_BITS)

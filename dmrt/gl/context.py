@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import moderngl
 
+from dmrt.errors import ConfigError
+
 _INSTALL_HINT = (
     "a headless OpenGL {major}.{minor} context over EGL is required. On Debian/Ubuntu install the "
     "system packages 'libegl1 libegl-mesa0 libgl1-mesa-dri' (Mesa llvmpipe, CPU) or an NVIDIA driver "
@@ -89,3 +91,24 @@ def check_gl(ctx: moderngl.Context, what: str) -> None:
     if error != "GL_NO_ERROR":
         raise RuntimeError(f"OpenGL error {error} while {what}: the GPU results are invalid "
                            "(out of GPU memory, or a lost context after a pass that ran too long?)")
+
+
+def check_fits(ctx: moderngl.Context, option: str, what: str) -> None:
+    """After allocating (and filling) ``what`` on the GPU: the driver sets GL_OUT_OF_MEMORY when it
+    does not fit, and every later frame would be invalid; say so now, naming the budget ``option``
+    that sets its size. (The flag is cleared by the read: call :func:`check_gl` before allocating,
+    so that an earlier error is not blamed on this.)
+
+    Raises
+    ------
+    ConfigError
+        Naming ``option``, on GL_OUT_OF_MEMORY.
+    RuntimeError
+        On any other GL error (:func:`check_gl`).
+    """
+    error = ctx.error
+    if error == "GL_OUT_OF_MEMORY":
+        raise ConfigError(option, f"{what}: more than this GPU's memory holds (GL_OUT_OF_MEMORY); set a "
+                                  "smaller budget")
+    if error != "GL_NO_ERROR":
+        raise RuntimeError(f"OpenGL error {error} while allocating {what}")

@@ -37,6 +37,7 @@ import numpy as np
 
 from dmrt.errors import ConfigError, InputError
 from dmrt.gl import abi
+from dmrt.gl.context import check_fits, check_gl
 from dmrt.gl.kernels import fill_u32
 from dmrt.gl.mapped import MappedBuffer
 
@@ -106,6 +107,7 @@ class MapCache:
                                               f"({slot_bytes / 2 ** 20:.2f} MiB)")
         self.partial = self.n_slots < n
         self.defines = {"MAP_SLOTS": 1} if self.partial else {}
+        check_gl(ctx, "before the depth maps' allocation")
         self.depthmaps = ctx.texture_array((*self.dims, self.n_slots), 1, dtype="f4")
         self.depthmaps.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self.low = ctx.texture_array((*self.low_dims, self.n_slots), 3)
@@ -127,6 +129,13 @@ class MapCache:
         self._records = [MappedBuffer(ctx, zeros) for _ in range(RING)] if self.partial else []
         self._load(list(range(self.n_slots)), first={0: first}, low=low)
         self.loads = 0
+        try:
+            gb = (self.nbytes["depthmaps"] + self.nbytes["images_low"]) / 1e9
+            check_fits(ctx, "map_cache_mb", f"{self.n_slots} depth maps of {self.dims[0]}x{self.dims[1]} and their "
+                                            f"low-resolution copies ({gb:.2f} GB)")
+        except Exception:
+            self.release()
+            raise
 
     @property
     def nbytes(self) -> dict:

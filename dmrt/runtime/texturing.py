@@ -37,6 +37,7 @@ import numpy as np
 from dmrt.io.bundle import Bundle
 from dmrt.errors import InputError
 from dmrt.gl import abi
+from dmrt.gl.context import check_fits, check_gl
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.runtime.view_choice import MAX_BLEND
 
@@ -95,9 +96,17 @@ class ImageCache:
         self.full_dims = (max(c.width for c in bundle.cameras), max(c.height for c in bundle.cameras))
         slot_bytes = self.full_dims[0] * self.full_dims[1] * self.SLOT_TEXEL_BYTES
         self.n_slots = int(min(n, max(0.0, cache_mb) * 2 ** 20 // slot_bytes, ctx.info["GL_MAX_ARRAY_TEXTURE_LAYERS"]))
+        check_gl(ctx, "before the photo cache's allocation")
         # a 1x1 stand-in keeps the sampler bound when the cache has no slot
         self.high = ctx.texture_array((*self.full_dims, self.n_slots) if self.n_slots else (1, 1, 1),
                                       self.SLOT_TEXEL_BYTES)
+        try:
+            check_fits(ctx, "cache_mb", f"the photo cache's {self.n_slots} photos of {self.full_dims[0]}x"
+                                        f"{self.full_dims[1]} ({self.n_slots * slot_bytes / 1e9:.2f} GB)")
+        except Exception:
+            for tex in (self.high,) if self._maps is not None else (self.low, self.high):
+                tex.release()
+            raise
         for tex in (self.low, self.high):
             tex.repeat_x = tex.repeat_y = False
         self.slot_of = np.full(n, -1, np.int32)

@@ -365,13 +365,18 @@ class TileVisibility:
         dict
             ``entries`` (list length: disc-tile overlaps), ``capacity`` (entries the buffer held),
             ``dropped`` (bool: the list outgrew the buffer, entries past it were lost), ``large``
-            (discs over more than ``max_thread_tiles`` tiles, binned by a workgroup each).
+            (discs over more than ``max_thread_tiles`` tiles, binned by a workgroup each),
+            ``longest`` (the longest tile's entries: one workgroup runs through them alone, so a
+            frame whose discs pile up in a few tiles waits for those).
         """
         if self.status.frame not in self._capacity_of:
-            return {"entries": 0, "capacity": self.capacity, "dropped": False, "large": 0}
+            return {"entries": 0, "capacity": self.capacity, "dropped": False, "large": 0, "longest": 0}
         entries, capacity = self.status.read(0)[0], self._capacity_of[self.status.frame]
         large = int(np.frombuffer(self.large.read(16), np.uint32)[3])  # the list's header: groups x, y, z, length
-        return {"entries": entries, "capacity": capacity, "dropped": entries > capacity, "large": large}
+        tiles = self._grid[0] * self._grid[1]
+        offsets = np.frombuffer(self.offsets.read(4 * (tiles + 1)), np.uint32)  # exclusive prefix sum + total
+        return {"entries": entries, "capacity": capacity, "dropped": entries > capacity, "large": large,
+                "longest": int(np.diff(offsets).max()) if tiles else 0}
 
     def read_overflow(self) -> int:
         """Pixels of the last frame that may differ from peeling: every pixel if the frame's list
