@@ -171,7 +171,8 @@ def main(argv=None) -> None:
             runs.append({"method": method, "refine": refine, "tile_check": check, "max_steps": steps, "layers": k,
                          "photo_choice": choice, "map_cache_mb": maps_mb, "cache_mb": photos_mb, **r})
             stages = "  ".join(f"{s} {v:.3f}" for s, v in {**r["median_ms"], **r["median_part_ms"]}.items())
-            print(f"{w}x{h} {method:8s} {choice:6s} maps={r['map_cache']['slots']} photos={photos_mb:g}MB {refine:9s} {check:6s} steps={steps:3d} k={k:2d}  {stages}"
+            print(f"{w}x{h} {method:8s} {choice:6s} maps={r['map_cache']['slots']} photos={photos_mb:g}MB "
+                  f"{refine:9s} {check:6s} steps={steps:3d} k={k:2d}  {stages}"
                   + f"  | GPU median {r['median_total_ms']:.3f} p95 {r['p95_total_ms']:.3f} ms, wall median "
                     f"{r['median_wall_ms']:.3f} p95 {r['p95_wall_ms']:.3f} ms, sustained {r['sustained_ms']:.3f} "
                     f"ms/frame, {r['mean_iterations']:.2f} steps, status reads {r['status_reads_per_frame']:.2f}/frame, "

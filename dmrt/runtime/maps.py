@@ -127,15 +127,17 @@ class MapCache:
         zeros = np.zeros(n + 1, np.uint32).tobytes()  # [0]: any map missing; [1 + j]: photo j's flag
         self.flags = ctx.buffer(zeros)
         self._records = [MappedBuffer(ctx, zeros) for _ in range(RING)] if self.partial else []
-        self._load(list(range(self.n_slots)), first={0: first}, low=low)
-        self.loads = 0
+        gb = (self.nbytes["depthmaps"] + self.nbytes["images_low"]) / 1e9
+        what = (f"{self.n_slots} depth maps of {self.dims[0]}x{self.dims[1]} and their low-resolution copies "
+                f"({gb:.2f} GB)")
         try:
-            gb = (self.nbytes["depthmaps"] + self.nbytes["images_low"]) / 1e9
-            check_fits(ctx, "map_cache_mb", f"{self.n_slots} depth maps of {self.dims[0]}x{self.dims[1]} and their "
-                                            f"low-resolution copies ({gb:.2f} GB)")
+            check_fits(ctx, "map_cache_mb", what)  # before reading thousands of maps for nothing
+            self._load(list(range(self.n_slots)), first={0: first}, low=low)
+            check_fits(ctx, "map_cache_mb", what)  # a driver may allocate on the first write
         except Exception:
             self.release()
             raise
+        self.loads = 0
 
     @property
     def nbytes(self) -> dict:
