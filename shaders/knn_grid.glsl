@@ -1,13 +1,15 @@
 // Exact k nearest neighbours of every point of a bucket among the bucket's points, over a uniform
 // grid that dmrt/preprocess/gpu_knn.py (GridKnn) builds on the CPU: one invocation per query point
-// visits the cells in cubic rings of growing Chebyshev radius around its own, keeps its K best
-// (squared distance, point) sorted by insertion, skips cells whose box is farther than its K-th
-// best, and stops once the ring's boundary is farther than its K-th best (nothing outside can be
-// nearer). The query point is its own first neighbour (distance 0), as KnnTree.query gives it.
+// visits the grid's (x, y) columns in square rings of growing radius around its own, scanning each
+// along z; it keeps its K best (squared distance, point) sorted by insertion, skips columns and
+// cells whose box is farther than its K-th best, and stops once the ring's sides are farther than
+// its K-th best (nothing outside can be nearer). The query point is its own first neighbour
+// (distance 0), as KnnTree.query gives it. Mesa llvmpipe ends a shader's loops after 65,535
+// iterations in all (LP_MAX_TGSI_LOOP_ITERATIONS), silently: tests keep the rings few.
 //
 // Buffers (binding points in dmrt/gl/abi.py):
-//   B_KNN_POINTS    n vec4: xyz float32 metres from the bucket's centre, sorted by cell (column
-//                   major, then z); w: the point's index in the caller's order, as float bits
+//   B_KNN_POINTS    n Point: float32 metres from the bucket's centre, sorted by cell (by column,
+//                   then z), and the point's index in the caller's order
 //   B_KNN_COLUMNS   nx * ny + 1 uint: where column (x, y) = y * nx + x starts in B_KNN_CELLS
 //   B_KNN_CELLS     cells + 1 uvec2: the cell's z index and its first point in B_KNN_POINTS; the
 //                   last is (0xFFFFFFFF, n), so cells[c + 1].y always ends cell c's points
@@ -18,7 +20,9 @@
 
 layout(local_size_x = 64) in;
 
-layout(std430, binding = B_KNN_POINTS) readonly buffer Points { vec4 points[]; };
+// 16 bytes; the index is no float's bits: a denormal may be flushed to zero on its way
+struct Point { float x, y, z; uint id; };
+layout(std430, binding = B_KNN_POINTS) readonly buffer Points { Point points[]; };
 layout(std430, binding = B_KNN_COLUMNS) readonly buffer Columns { uint columns[]; };
 layout(std430, binding = B_KNN_CELLS) readonly buffer Cells { uvec2 cells[]; };
 layout(std430, binding = B_KNN_INDICES) writeonly buffer Indices { uint out_idx[]; };
@@ -40,11 +44,10 @@ uint found;
 
 void consider(float d2, uint j) {
     if (found == K && d2 >= best_d[K - 1]) return;
-    int s = int(min(found, uint(K - 1)));  // the slot freed: past the end, or the K-th best dropped
-    if (found < K) found++;
-    for (; s > 0 && best_d[s - 1] > d2; s--) {  // strict: among equals the first found stays first
-        best_d[s] = best_d[s - 1];
-        best_i[s] = best_i[s - 1];
+    uint s = found < uint(K) ? found++ : uint(K - 1);  // the slot freed: past the end, or the K-th best dropped
+    for (; s > 0u && best_d[s - 1u] > d2; s--) {  // strict: among equals the first found stays first
+        best_d[s] = best_d[s - 1u];
+        best_i[s] = best_i[s - 1u];
     }
     best_d[s] = d2;
     best_i[s] = j;
@@ -75,59 +78,64 @@ void scan(vec3 q, uint self, int col, int z0, int z1, float dxy2) {
         uint end = cells[c + 1].y;
         for (uint p = cell.y; p < end; p++) {
             if (p == self) continue;
-            vec3 d = points[p].xyz - q;
+            Point o = points[p];
+            vec3 d = vec3(o.x, o.y, o.z) - q;
             consider(dot(d, d), p);
         }
     }
 }
 
+// the column (x, y): its cells that may hold a point nearer than the K-th best (all of them until
+// K points are known)
+void column(vec3 q, uint self, int x, int y) {
+    float xlo = u_origin.x + float(x) * u_cell, ylo = u_origin.y + float(y) * u_cell;
+    float gx = pruned(max(max(xlo - q.x, q.x - xlo - u_cell), 0.0));
+    float gy = pruned(max(max(ylo - q.y, q.y - ylo - u_cell), 0.0));
+    float dxy2 = gx * gx + gy * gy;
+    int z0 = -1, z1 = u_dims.z;
+    if (found == K) {
+        if (dxy2 > best_d[K - 1]) return;
+        // one cell more each way: the cells' faces are float32 here and float64 in the binning
+        float w = sqrt(best_d[K - 1] - dxy2) + u_slack;
+        z0 = int(floor((q.z - w - u_origin.z) / u_cell)) - 1;
+        z1 = int(floor((q.z + w - u_origin.z) / u_cell)) + 1;
+    }
+    scan(q, self, y * u_dims.x + x, z0, z1, dxy2);
+}
+
 void main() {
     if (gl_GlobalInvocationID.x >= u_count) return;
     uint self = u_first + gl_GlobalInvocationID.x;
-    vec4 pq = points[self];
-    vec3 q = pq.xyz;
-    ivec3 c = clamp(ivec3(floor((q - u_origin) / u_cell)), ivec3(0), u_dims - 1);
+    Point pq = points[self];
+    vec3 q = vec3(pq.x, pq.y, pq.z);
+    ivec2 c = clamp(ivec2(floor((q.xy - u_origin.xy) / u_cell)), ivec2(0), u_dims.xy - 1);
     best_d[0] = 0.0;
     best_i[0] = self;
     found = 1u;
-    ivec3 far = max(c, u_dims - 1 - c);
-    int rmax = max(far.x, max(far.y, far.z));  // the ring that covers the whole grid
+    ivec2 far = max(c, u_dims.xy - 1 - c);
+    int rmax = max(far.x, far.y);  // the ring that covers the whole grid
+    // square rings of columns, each scanned along z: a ring costs its 8 r columns (cubic shells
+    // would cost ~24 r^2 cells, most of them empty around a surface)
     for (int r = 0; r <= rmax; r++) {
-        for (int dy = -r; dy <= r; dy++) {
-            int y = c.y + dy;
-            if (y < 0 || y >= u_dims.y) continue;
-            float ylo = u_origin.y + float(y) * u_cell;
-            float gy = pruned(max(max(ylo - q.y, q.y - ylo - u_cell), 0.0));
-            for (int dx = -r; dx <= r; dx++) {
-                int x = c.x + dx;
-                if (x < 0 || x >= u_dims.x) continue;
-                float xlo = u_origin.x + float(x) * u_cell;
-                float gx = pruned(max(max(xlo - q.x, q.x - xlo - u_cell), 0.0));
-                float dxy2 = gx * gx + gy * gy;
-                if (found == K && dxy2 > best_d[K - 1]) continue;
-                int col = y * u_dims.x + x;
-                if (max(abs(dx), abs(dy)) == r) {  // a column on the ring's side: all its ring's cells
-                    scan(q, self, col, c.z - r, c.z + r, dxy2);
-                } else {  // inside the ring: its top and bottom cells only
-                    scan(q, self, col, c.z - r, c.z - r, dxy2);
-                    scan(q, self, col, c.z + r, c.z + r, dxy2);
-                }
-            }
-        }
-        // nothing unvisited is nearer than the block's faces that have cells beyond them
+        int x0 = max(c.x - r, 0), x1 = min(c.x + r, u_dims.x - 1);
+        int y0 = max(c.y - r + 1, 0), y1 = min(c.y + r - 1, u_dims.y - 1);
+        if (c.y - r >= 0) for (int x = x0; x <= x1; x++) column(q, self, x, c.y - r);
+        if (r > 0 && c.y + r < u_dims.y) for (int x = x0; x <= x1; x++) column(q, self, x, c.y + r);
+        if (r > 0 && c.x - r >= 0) for (int y = y0; y <= y1; y++) column(q, self, c.x - r, y);
+        if (r > 0 && c.x + r < u_dims.x) for (int y = y0; y <= y1; y++) column(q, self, c.x + r, y);
+        // nothing unvisited is nearer than the ring's sides that have columns beyond them
         float bound = 3.0e38;
-        vec3 lo = u_origin + vec3(c - r) * u_cell, hi = u_origin + vec3(c + r + 1) * u_cell;
-        for (int a = 0; a < 3; a++) {
+        vec2 lo = u_origin.xy + vec2(c - r) * u_cell, hi = u_origin.xy + vec2(c + r + 1) * u_cell;
+        for (int a = 0; a < 2; a++) {
             if (c[a] - r > 0) bound = min(bound, q[a] - lo[a]);
             if (c[a] + r < u_dims[a] - 1) bound = min(bound, hi[a] - q[a]);
         }
         bound = pruned(bound);
         if (found == K && best_d[K - 1] <= bound * bound) break;
     }
-    uint row = floatBitsToUint(pq.w);
     for (int s = 0; s < K; s++) {
-        out_idx[row * uint(K) + uint(s)] = floatBitsToUint(points[best_i[s]].w);
-        out_dist[row * uint(K) + uint(s)] = sqrt(best_d[s]);
+        out_idx[pq.id * uint(K) + uint(s)] = points[best_i[s]].id;
+        out_dist[pq.id * uint(K) + uint(s)] = sqrt(best_d[s]);
     }
 }
 

@@ -131,9 +131,9 @@ class GridKnn:
         cells[-1] = (0xFFFFFFFF, self.n)
         columns = np.zeros(dims[0] * dims[1] + 1, np.uint32)
         np.cumsum(np.bincount(cell_key // dims[2], minlength=dims[0] * dims[1]), out=columns[1:])
-        pts = np.empty((self.n, 4), np.float32)
-        pts[:, :3] = c32[order]
-        pts[:, 3] = order.astype(np.uint32).view(np.float32)
+        pts = np.empty(self.n, [("xyz", "<f4", 3), ("id", "<u4")])  # struct Point
+        pts["xyz"] = c32[order]
+        pts["id"] = order
         self.cell, self.dims, self.n_cells = float(h), dims, len(first)
         self._origin = tuple(float(x) for x in lo.astype(np.float32))
         self._buffers = {abi.B_KNN_POINTS: self.ctx.buffer(pts.tobytes()),
