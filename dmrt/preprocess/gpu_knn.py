@@ -38,22 +38,40 @@ _SLICE = 1 << 20
 _SAMPLE = 1 << 16
 
 
-def _occupancy(p: np.ndarray, lo: np.ndarray, h: float) -> float:
-    """Mean points per occupied cell of edge ``h`` for points ``p`` (m, 3) float64."""
-    ijk = np.floor((p - lo) / h).astype(np.int64)
-    ijk -= ijk.min(axis=0)
-    dims = ijk.max(axis=0) + 1
-    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-    return len(p) / len(np.unique(key))
+def _bounds(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The lower and upper corners (3,) float64 of points ``p`` (n, 3); column by column, ten
+    times faster than numpy's reduction along axis 0 of an (n, 3) array."""
+    return (np.array([p[:, a].min() for a in range(3)], np.float64),
+            np.array([p[:, a].max() for a in range(3)], np.float64))
 
 
-def cell_edge(p: np.ndarray, cell_points: float) -> float:
+def _cell_keys(p: np.ndarray, lo: np.ndarray, h: float, dims) -> np.ndarray:
+    """(n,) int64 cell of each point of ``p`` (n, 3) in the grid of corner ``lo``, edge ``h`` and
+    ``dims`` cells: ``(y * nx + x) * nz + z``, i.e. by (x, y) column, then z."""
+    key = np.zeros(len(p), np.int64)
+    for a, scale in ((1, dims[0]), (0, dims[2]), (2, 1)):
+        i = np.floor((p[:, a] - lo[a]) / h).astype(np.int64)
+        np.minimum(i, dims[a] - 1, out=i)
+        key += i
+        key *= scale
+    return key
+
+
+def _occupancy(p: np.ndarray, lo: np.ndarray, h: float, ext: np.ndarray) -> float:
+    """Mean points per occupied cell of edge ``h`` for points ``p`` (m, 3) float64 within the box
+    of corner ``lo`` and extent ``ext``."""
+    return len(p) / len(np.unique(_cell_keys(p, lo, h, np.floor(ext / h).astype(np.int64) + 1)))
+
+
+def cell_edge(p: np.ndarray, cell_points: float, lo: np.ndarray, ext: np.ndarray) -> float:
     """A grid cell edge whose occupied cells hold about ``cell_points`` of the points ``p``.
 
     Parameters
     ----------
-    p : (n, 3) float64 metres
+    p : (n, 3) float metres
     cell_points : float
+    lo, ext : (3,) float64
+        The points' lower corner and extent, metres.
 
     Returns
     -------
@@ -62,16 +80,16 @@ def cell_edge(p: np.ndarray, cell_points: float) -> float:
     edge to the whole cloud's density.
     """
     n = len(p)
-    lo, ext = p.min(axis=0), np.ptp(p, axis=0)
     size = float(ext.max())
     if n < 2 or size == 0.0:
         return 1.0
     m = min(n, _SAMPLE)
     s = p[np.random.default_rng(0).choice(n, m, replace=False)] if m < n else p
+    s = s.astype(np.float64)
     # volume-filling start (too large on surfaces: those then show a larger occupancy)
     vol = float(np.prod(np.maximum(ext, size * 1e-3)))
     h1 = (vol * cell_points / m) ** (1.0 / 3.0)
-    p1, p2 = _occupancy(s, lo, h1), _occupancy(s, lo, h1 / 2)
+    p1, p2 = _occupancy(s, lo, h1, ext), _occupancy(s, lo, h1 / 2, ext)
     e = float(np.clip(np.log2(p1 / p2), 1.0, 3.0)) if p2 > 0 else 3.0
     h = h1 / 2 * (cell_points * m / (n * p2)) ** (1.0 / e)
     return max(h, size * 1e-6)
@@ -109,18 +127,14 @@ class GridKnn:
         self.ctx = ctx or get_context()
         if self.n == 0:
             return
-        centre = (p.min(axis=0) + p.max(axis=0)) / 2
-        c32 = (p - centre).astype(np.float32)
-        c = c32.astype(np.float64)  # what the GPU sees: binned as such
-        lo = c.min(axis=0)
-        h = cell_edge(c, cell_points)
-        ext = np.ptp(c, axis=0)
+        c32 = (p - sum(_bounds(p)) / 2).astype(np.float32)  # what the GPU sees: binned as such
+        lo, hi = _bounds(c32)
+        ext = hi - lo
+        h = cell_edge(c32, cell_points, lo, ext)
         # the dense column table (nx * ny uints) stays within a few times the points
         h = max(h, math.sqrt(ext[0] * ext[1] / (4.0 * self.n + 4096)), float(ext.max()) / 32767)
         dims = np.floor(ext / h).astype(np.int64) + 1
-        ijk = np.minimum(np.floor((c - lo) / h).astype(np.int64), dims - 1)
-        col = ijk[:, 1] * dims[0] + ijk[:, 0]
-        key = col * dims[2] + ijk[:, 2]
+        key = _cell_keys(c32, lo, h, dims)
         order = np.argsort(key)
         key = key[order]
         first = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
@@ -131,9 +145,9 @@ class GridKnn:
         cells[-1] = (0xFFFFFFFF, self.n)
         columns = np.zeros(dims[0] * dims[1] + 1, np.uint32)
         np.cumsum(np.bincount(cell_key // dims[2], minlength=dims[0] * dims[1]), out=columns[1:])
-        pts = np.empty(self.n, [("xyz", "<f4", 3), ("id", "<u4")])  # struct Point
-        pts["xyz"] = c32[order]
-        pts["id"] = order
+        pts = np.empty((self.n, 4), np.float32)  # struct Point: x, y, z, then the uint index
+        np.take(c32, order, axis=0, out=pts[:, :3])
+        pts.view(np.uint32)[:, 3] = order
         self.cell, self.dims, self.n_cells = float(h), dims, len(first)
         self._origin = tuple(float(x) for x in lo.astype(np.float32))
         self._buffers = {abi.B_KNN_POINTS: self.ctx.buffer(pts.tobytes()),
