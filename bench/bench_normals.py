@@ -27,6 +27,15 @@ their orientation toward a viewpoint and the radii from the 9th column, in runs 
 counts), and the two results are compared: the largest angle between the normals and the largest
 relative difference of the radii.
 
+    OMP_NUM_THREADS=1 taskset -c 0 python -m bench.bench_normals --kernels --gpu --points 1000000
+
+``--gpu`` adds ``gpu``: the same bucket's kernel with the kNN on the GPU (:mod:`dmrt.preprocess.gpu_knn`,
+a grid sorted on the CPU, then one 16-NN query of every point), in wall microseconds per point (the
+GPU's time is no CPU time of this process): ``build`` sorts the points by cell and uploads them,
+``query`` runs the dispatches, waits for them (``ctx.finish()``) and reads the neighbours back; the
+normals, orientation and radii as ``after``'s. Its results are compared with ``after``'s as above
+(on Mesa llvmpipe it runs, but its timings are no GPU's).
+
     OMP_NUM_THREADS=1 taskset -c 0 python -m bench.bench_normals --query-variants --points 1000000
 
 ``--query-variants`` times the kd-tree query alone (16 neighbours of every point of the same bucket,
@@ -134,14 +143,44 @@ def time_kernel(name: str, pos: np.ndarray, viewpoint, rows: int = 65536) -> tup
     return t, normals, radii
 
 
-def kernels(tree: Octree, repeat: int) -> dict:
-    """``--kernels``: before / after, stage by stage, in CPU microseconds per point (best of ``repeat``)."""
+def time_gpu_kernel(pos: np.ndarray, viewpoint) -> tuple[dict, np.ndarray, np.ndarray]:
+    """``time_kernel`` with the kNN on the GPU: wall seconds per stage (``--gpu``)."""
+    from dmrt.preprocess.gpu_knn import GridKnn
+
+    t = {}
+    w0 = time.perf_counter()
+    c = pos - pos.mean(axis=0)
+    grid = GridKnn(c)
+    w1 = time.perf_counter()
+    d, idx = grid.query(16)
+    grid.ctx.finish()
+    w2 = time.perf_counter()
+    grid.release()
+    v = nrm._pca_normals(c, idx)
+    w3 = time.perf_counter()
+    normals = nrm.orient_normals(v, pos, viewpoint, per_point=False).astype(np.float32)
+    w4 = time.perf_counter()
+    radii = (d[:, 8] * nrm.radius_factor(8)).astype(np.float32)
+    w5 = time.perf_counter()
+    for k, a, b in (("build", w0, w1), ("query", w1, w2), ("normals", w2, w3), ("orient", w3, w4),
+                    ("radii", w4, w5)):
+        t[k] = b - a
+    return t, normals, radii
+
+
+def kernels(tree: Octree, repeat: int, gpu: bool = False) -> dict:
+    """``--kernels``: before / after (and ``gpu``), stage by stage, in microseconds per point (best
+    of ``repeat``)."""
     pos = tree.read_lod(tree.levels)["positions"].astype(np.float64)
     n, viewpoint = len(pos), [[60.0, 40.0, 30.0]]
-    runs = {name: [] for name in KERNELS}
+    timed = {name: (lambda p, v, name=name: time_kernel(name, p, v)) for name in KERNELS}
+    if gpu:
+        time_gpu_kernel(pos[:1000], viewpoint)  # the program's compilation is not timed
+        timed["gpu"] = time_gpu_kernel
+    runs = {name: [] for name in timed}
     for _ in range(repeat):  # interleaved: a neighbour's load on a shared machine hits both alike
-        for name in KERNELS:
-            t, normals, radii = time_kernel(name, pos, viewpoint)
+        for name, fn in timed.items():
+            t, normals, radii = fn(pos, viewpoint)
             runs[name].append(({k: round(v / n * 1e6, 3) for k, v in t.items()}, normals, radii))
     out = {}
     for name, rs in runs.items():
@@ -151,18 +190,42 @@ def kernels(tree: Octree, repeat: int) -> dict:
                      "totals": [round(x, 3) for x in total], "normals": best[1], "radii": best[2]}
         print(f"{name:6s}: {min(total):.3f} us/point (runs {', '.join(f'{x:.3f}' for x in total)}): {best[0]}")
     b, a = out["before"], out["after"]
-    cross = np.linalg.norm(np.cross(a["normals"].astype(np.float64), b["normals"]), axis=1)
-    angle = float(np.degrees(np.arcsin(np.clip(cross.max(), 0, 1))))
-    opposite = int(np.count_nonzero(np.einsum("ij,ij->i", a["normals"], b["normals"]) < 0))
-    rel = float(np.max(np.abs(a["radii"] / b["radii"] - 1)))
-    speedup = b["total_us_per_point"] / a["total_us_per_point"]
+    speedup, angle, opposite, rel = _compare(b, a)
     print(f"speed-up {speedup:.2f}x; normals: largest angle {angle:.2e} degrees, {opposite} opposite; "
           f"radii: largest relative difference {rel:.1e}")
-    for r in (a, b):
+    result = {"points": n, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+              "cores": len(os.sched_getaffinity(0)), "speedup": round(speedup, 2), "max_angle_deg": angle,
+              "opposite_normals": opposite, "max_radius_rel_diff": rel}
+    if gpu:
+        from dmrt.gl import get_context, renderer_info
+
+        g = out["gpu"]
+        g["renderer"] = renderer_info(get_context())["renderer"]
+        g_speedup, g_angle, _, g_rel = _compare(a, g)
+        # normals of a neighbourhood that differs by a tie at the 16th neighbour may tilt
+        tilted = int(np.count_nonzero(_angles(a["normals"], g["normals"]) > 1e-3))
+        print(f"gpu vs after: {g_speedup:.2f}x ({g['renderer']}); normals: largest angle {g_angle:.2e} degrees, "
+              f"{tilted} above 1e-3; radii: largest relative difference {g_rel:.1e}")
+        result["gpu_vs_after"] = {"speedup": round(g_speedup, 2), "max_angle_deg": g_angle,
+                                  "normals_above_1e-3_deg": tilted, "max_radius_rel_diff": g_rel}
+    for r in out.values():
         del r["normals"], r["radii"]
-    return {"points": n, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
-            "cores": len(os.sched_getaffinity(0)), "speedup": round(speedup, 2), "max_angle_deg": angle,
-            "opposite_normals": opposite, "max_radius_rel_diff": rel, **out}
+    return {**result, **out}
+
+
+def _angles(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(n,) unoriented angles between the rows of ``u`` and ``v`` (n, 3), degrees."""
+    cross = np.linalg.norm(np.cross(u.astype(np.float64), v), axis=1)
+    return np.degrees(np.arcsin(np.clip(cross, 0, 1)))
+
+
+def _compare(b: dict, a: dict) -> tuple[float, float, int, float]:
+    """Kernel ``a`` against ``b``: speed-up, largest angle between normals (degrees), opposite
+    normals, largest relative difference of the radii."""
+    angle = float(_angles(a["normals"], b["normals"]).max())
+    opposite = int(np.count_nonzero(np.einsum("ij,ij->i", a["normals"], b["normals"]) < 0))
+    rel = float(np.max(np.abs(a["radii"] / b["radii"] - 1)))
+    return b["total_us_per_point"] / a["total_us_per_point"], angle, opposite, rel
 
 
 def ordered_query(data: np.ndarray, x: np.ndarray, k: int = 16, perm=None, rows_of=None, leafsize: int = 16,
@@ -233,6 +296,7 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="write the results here")
     ap.add_argument("--kernels", action="store_true", help="time the per-bucket kernel, before / after knn.py")
+    ap.add_argument("--gpu", action="store_true", help="--kernels: also the kernel with the kNN on the GPU")
     ap.add_argument("--query-variants", action="store_true",
                     help="time the kd-tree query's variants (order, dtype, leafsize)")
     ap.add_argument("--repeat", type=int, default=3, help="--kernels, --query-variants: runs of each")
@@ -243,8 +307,11 @@ def main(argv=None):
     tree = build_octree(out / "octree", args.points, args.seed, args.levels)
     build_s = time.perf_counter() - t
     if args.kernels or args.query_variants:
-        fn, name = (kernels, "normals-kernels") if args.kernels else (query_variants, "knn-query-variants")
-        result = {"bench": name, "machine": platform.node(), **fn(tree, args.repeat)}
+        if args.kernels:
+            name, res = "normals-kernels", kernels(tree, args.repeat, gpu=args.gpu)
+        else:
+            name, res = "knn-query-variants", query_variants(tree, args.repeat)
+        result = {"bench": name, "machine": platform.node(), **res}
         if args.json:
             Path(args.json).write_text(json.dumps(result, indent=1))
         return result

@@ -73,6 +73,12 @@ B_MAP_MISSING = 40      # 1 + n_photos uint: [0] any map missing this frame, [1 
 B_PHOTO_LIST = 41
 # the synthetic scenes' OpenGL photographer (bench/scenes/glphoto.py): the photographed mesh's faces
 B_SYNTH_FACES = 43
+# the exact grid kNN (dmrt/preprocess/gpu_knn.py, shaders/knn_grid.glsl)
+B_KNN_POINTS = 44     # n x (float x, y, z; uint index): positions sorted by cell, the caller's index
+B_KNN_COLUMNS = 45    # nx * ny + 1 uint: each (x, y) column's first cell
+B_KNN_CELLS = 46      # cells + 1 uvec2: a cell's z index and first point
+B_KNN_INDICES = 47    # n x k uint: the neighbours found, nearest first
+B_KNN_DISTANCES = 48  # n x k float: their distances, metres
 
 # -- sentinels ---------------------------------------------------------------------------------
 EMPTY_BITS = 0xFFFFFFFF  # an empty depth (above every positive float's bits: atomicMin keeps the nearest)
