@@ -43,7 +43,7 @@ def small_blocks(monkeypatch):
     # blocks, runs and query chunks of a few hundred rows, so that a few thousand points cross
     # every boundary of the kernels' loops
     monkeypatch.setattr(knn, "_BLOCK", 64)
-    monkeypatch.setattr(knn, "_RUN", 256)
+    monkeypatch.setattr(knn, "PCA_RUN", 256)
     monkeypatch.setattr(knn, "_CHUNK", 700)
 
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from dmrt.gl import abi, get_context, load_program, set_uniforms
 from dmrt.gl.kernels import max_groups
-from dmrt.preprocess.knn import _on_threads, _RUN, pca_normals
+from dmrt.preprocess.knn import PCA_RUN, on_threads, pca_normals
 
 __all__ = ["GridKnn", "grid_neighbourhoods", "MAX_K"]
 
@@ -240,5 +240,5 @@ def grid_neighbourhoods(c: np.ndarray, k_normals: int | None = None, k_radius: i
         def work(s, e):
             normals[s:e] = pca_normals(c, idx[s:e, :k_normals])
 
-        _on_threads(n, _RUN, work)
+        on_threads(n, PCA_RUN, work)
     return normals, d_k

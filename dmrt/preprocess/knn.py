@@ -57,7 +57,8 @@ from pykdtree.kdtree import KDTree
 
 from dmrt.preprocess.parallel import default_workers
 
-__all__ = ["KnnTree", "pca_normals", "smallest_eigenvectors", "radius_factor", "neighbourhoods", "kernel"]
+__all__ = ["KnnTree", "pca_normals", "smallest_eigenvectors", "radius_factor", "neighbourhoods", "on_threads", "PCA_RUN",
+           "kernel"]
 
 
 def kernel() -> str:
@@ -71,7 +72,7 @@ def kernel() -> str:
 # element-wise passes then streaming from memory. The eigenvectors are solved per run of blocks, as
 # their ~80 numpy calls cost ~0.1 us per row in Python overhead on a block alone.
 _BLOCK = 2048
-_RUN = 16 * _BLOCK
+PCA_RUN = 16 * _BLOCK  # rows a thread of pca_normals solves at once (on_threads' run)
 # rows per kNN query: OpenMP threads share one query; this bounds its (rows, k) results
 # (16 neighbours: 192 MiB of distances and indices)
 _CHUNK = 1 << 20
@@ -202,12 +203,12 @@ def pca_normals(data: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """
     b, k = idx.shape
     out = np.empty((b, 3), np.float64)
-    cov = np.empty((6, min(b, _RUN)), np.float64)  # xx, yy, zz, xy, xz, yz of a run of rows
+    cov = np.empty((6, min(b, PCA_RUN)), np.float64)  # xx, yy, zz, xy, xz, yz of a run of rows
     # the blocks' arrays, allocated once: fresh ones of this size come from mmap, and their page
     # faults cost as much as the arithmetic
     buf, rot = np.empty(k * _BLOCK * 3), np.empty(k * _BLOCK * 3)
-    for r in range(0, b, _RUN):
-        e = min(b, r + _RUN)
+    for r in range(0, b, PCA_RUN):
+        e = min(b, r + PCA_RUN)
         for s in range(r, e, _BLOCK):
             t = min(e, s + _BLOCK)
             shape = (k, t - s, 3)
@@ -241,7 +242,7 @@ def radius_factor(k: int) -> float:
     return 0.5 * math.sqrt(8.0 / k)
 
 
-def _on_threads(n: int, rows: int, work) -> None:
+def on_threads(n: int, rows: int, work) -> None:
     """``work(start, stop)`` over ``range(n)`` in runs of ``rows``, on one thread per core (numpy
     releases the GIL in its loops). Each call writes its own rows of the caller's output."""
     from concurrent.futures import ThreadPoolExecutor
@@ -288,5 +289,5 @@ def neighbourhoods(tree: KnnTree, c: np.ndarray, k_normals: int | None = None,
             def work(s, e):
                 normals[a + s:a + e] = pca_normals(c, idx[s:e, :k_normals])
 
-            _on_threads(b - a, _RUN, work)
+            on_threads(b - a, PCA_RUN, work)
     return normals, d_k
