@@ -112,8 +112,11 @@ class ViewChoice:
         self.candidates = ctx.buffer(reserve=4 * (STATUS_HEADER_WORDS + max(self.n_candidates, 1)))
         self.candidates.write(np.zeros(STATUS_HEADER_WORDS, np.uint32).tobytes())  # no candidates
         # the scores test every (listed) photo: a map not resident is no candidate, not a miss
-        self._scores_defines = {**map_defines, "MAP_FLAGS": 0} if map_defines else {}
-        self._scores = load_program(ctx, "dmrt_view_scores", self._scores_defines or None)
+        scores_defines = {**map_defines, "MAP_FLAGS": 0} if map_defines else {}
+        self._scores = load_program(ctx, "dmrt_view_scores", scores_defines or None)
+        # a partial map cache's renderer passes a short list every frame (run's photo_list)
+        self._scores_listed = (load_program(ctx, "dmrt_view_scores", {**scores_defines, "PHOTO_LIST": 1})
+                               if map_defines else None)
         self._list = ctx.buffer(reserve=4 * 64)  # B_VIEW_LIST, grown to the longest list
         self.listed: np.ndarray | None = None
         self._rank = PhotoRanking(ctx, self.n_photos, "B_VIEW_SCORES", "B_VIEW_CANDIDATES")
@@ -154,7 +157,7 @@ class ViewChoice:
                 self.scores.bind_to_storage_buffer(abi.B_VIEW_SCORES)
                 program, rows, self.listed = self._scores, self.n_photos, None
                 if photo_list is not None:
-                    program = load_program(ctx, "dmrt_view_scores", {**self._scores_defines, "PHOTO_LIST": 1})
+                    program = self._scores_listed or load_program(ctx, "dmrt_view_scores", {"PHOTO_LIST": 1})
                     rows = self._upload_list(photo_list)
                 for photo0 in range(0, rows, 65535):  # a dispatch holds 65535 rows at most
                     set_uniforms(program, u_samples=grid, u_stride=stride, u_photo0=photo0, u_depthmaps=0,
