@@ -340,22 +340,26 @@ def _not_run(rs: ResultSet, s: Section, name: str) -> bool:
 # Sections
 # ----------------------------------------------------------------------------------------------
 def section_table1(rs: ResultSet, out: Path, key: str = "table1",
-                   title: str = "Table 1: scene characteristics and preprocessing") -> Section:
+                   title: str = "Table 1: scene characteristics and preprocessing",
+                   paper_scene: str = "Scene 2") -> Section:
+    """Table 1 of ``rs`` beside the paper's ``paper_scene`` (a key of ``paper.TABLE1``: the paper
+    gives Scene 3's points and photos only, so its other rows stay empty)."""
     s = Section(key, title)
     if _not_run(rs, s, "table1"):
         return s
     m = _meas(rs, "table1")
-    c, p2 = m["counts"], paper.TABLE1["Scene 2"]
+    c, p2, col = m["counts"], paper.TABLE1[paper_scene], f"paper ({paper_scene})"
     sub = c["points"] / max(c["proxies"], 1)
-    rows = [{"quantity": q, "ours": c[q], "paper (Scene 2)": p2[q], "ours / paper": _ratio(c[q], p2[q])}
+    size = p2.get("depthmap_size")
+    rows = [{"quantity": q, "ours": c[q], col: p2.get(q), "ours / paper": _ratio(c[q], p2.get(q))}
             for q in ("points", "photos", "proxies")]
     rows += [
-        {"quantity": "sub-sampling factor", "ours": sub, "paper (Scene 2)": p2["subsampling_factor"],
-         "ours / paper": _ratio(sub, p2["subsampling_factor"])},
-        {"quantity": "proxy levels (LOD k)", "ours": c["proxy_levels"], "paper (Scene 2)": None, "ours / paper": None},
+        {"quantity": "sub-sampling factor", "ours": sub, col: p2.get("subsampling_factor"),
+         "ours / paper": _ratio(sub, p2.get("subsampling_factor"))},
+        {"quantity": "proxy levels (LOD k)", "ours": c["proxy_levels"], col: None, "ours / paper": None},
         {"quantity": "depth-map size", "ours": "x".join(map(str, m["depthmap_size"])),
-         "paper (Scene 2)": "x".join(map(str, p2["depthmap_size"])), "ours / paper": None},
-        {"quantity": "photo size", "ours": "x".join(map(str, m["photo_size"])), "paper (Scene 2)": None,
+         col: size and "x".join(map(str, size)), "ours / paper": None},
+        {"quantity": "photo size", "ours": "x".join(map(str, m["photo_size"])), col: None,
          "ours / paper": None},
     ]
     s.table(f"{key}_scene", "Scene characteristics (paper Table 1)", rows)
@@ -1001,7 +1005,13 @@ def _real_views_figure(s: Section, out: Path, m: dict, maps: dict) -> None:
     s.figure(_save(fig, out, MAP_FIGURES["real_views"]), REAL_VIEWS_CAPTION)
 
 
-FULL_PRESET = "paper-full"
+# Table 1 at the paper's own scene sizes, each a preset of its own (bench/scale_run.sh,
+# bench/scene3_run.sh): preset -> (section key, title, the paper's scene)
+FULL_PRESETS = {
+    "paper-full": ("table1_full", "Table 1 at Scene 2's size", "Scene 2"),
+    "paper-full-scan": ("table1_full_scan", "Table 1 at Scene 2's size, radii from the scan's grid", "Scene 2"),
+    "paper-scene3": ("table1_scene3", "Table 1 at Scene 3's size", "Scene 3"),
+}
 BUILDERS = {"table1": section_table1, "table2": section_table2, "table3_fig12": section_table3,
             "fig7": section_fig7, "fig8": section_fig8, "fig9_10": section_fig9, "fig13": section_fig13,
             "memory": section_memory, "real_views": section_real_views}
@@ -1133,13 +1143,16 @@ def build_report(results_dir, out, preset: str | None = None, machine: str | Non
                 sections[-1].blocks.insert(0, f"**Carried**: `{key}` was not run at commit `{rs.commit}`; this "
                                               f"section shows the result of commit `{src.commit}` "
                                               f"({rs.experiments[key].get('date') or src.date}, `{src.dir.name}`).")
-        # Table 1 at the paper's own Scene 2 size is a preset of its own (bench/scale_run.sh): its
-        # newest result on this machine stands beside this preset's
-        full = [f for f in sets if f.machine == rs.machine and f.preset == FULL_PRESET and "table1" in f.experiments]
-        if full and rs.preset != FULL_PRESET and scene is None:
-            sections.insert(1, section_table1(full[-1], tmp, "table1_full", f"Table 1 at Scene 2's size: the "
-                                              f"`{FULL_PRESET}` preset (commit {full[-1].commit}, {full[-1].date})"))
-            shutil.copy2(full[-1].dir / "table1.json", tmp / "results" / f"{FULL_PRESET}-table1.json")
+        # Table 1 at the paper's own scene sizes: each preset's newest result on this machine
+        # stands beside this preset's
+        at = 1
+        for preset, (key, title, paper_scene) in FULL_PRESETS.items():
+            full = [f for f in sets if f.machine == rs.machine and f.preset == preset and "table1" in f.experiments]
+            if full and rs.preset not in FULL_PRESETS and scene is None:
+                sections.insert(at, section_table1(full[-1], tmp, key, f"{title}: the `{preset}` preset (commit "
+                                                   f"{full[-1].commit}, {full[-1].date})", paper_scene))
+                shutil.copy2(full[-1].dir / "table1.json", tmp / "results" / f"{preset}-table1.json")
+                at += 1
         hist = section_history(history, tmp)
         if hist is not None:
             sections.append(hist)

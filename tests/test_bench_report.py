@@ -455,14 +455,21 @@ def test_table1_at_scene2_size_stands_beside_the_presets(tmp_path):
     full["measurements"].update(cpu_s_per_phase={"octree_s": 7.0, "labeling_s": 1.0}, cores=16,
                                 peak_anon_mb={"octree_s": 512.0, "labeling_s": 64.0})
     _write_set(root, "0123456789ab", preset="paper-full", table1=full)
-    assert sorted((s.commit, s.preset) for s in load_results(root)) == [("0123456789ab", "paper-full"),
-                                                                        ("abcdef123456", "ci")]
+    scene3 = _table1_payload()
+    scene3["measurements"]["counts"] = dict(scene3["measurements"]["counts"], points=1_091_990_160)
+    _write_set(root, "0123456789ab", preset="paper-scene3", table1=scene3)
+    assert sorted((s.commit, s.preset) for s in load_results(root)) == [
+        ("0123456789ab", "paper-full"), ("0123456789ab", "paper-scene3"), ("abcdef123456", "ci")]
     build_report(root, tmp_path / "report", preset="ci")
     md = (tmp_path / "report" / "REPORT.md").read_text()
     assert "## Table 1 at Scene 2's size: the `paper-full` preset (commit 0123456789ab" in md
     assert "| points | 682922688 | 682000000 |" in md
     assert "| octree | 0.5 | 7 | 14 | 512 |" in md  # wall s, CPU s, cores busy, peak MiB
     assert (tmp_path / "report" / "results" / "paper-full-table1.json").is_file()
+    # Scene 3 beside the paper's Scene 3, which gives points and photos only
+    assert "## Table 1 at Scene 3's size: the `paper-scene3` preset (commit 0123456789ab" in md
+    assert md.index("Scene 2's size") < md.index("Scene 3's size")
+    assert "| points | 1091990160 | 1.091e+09 | 1.001 |" in md  # a column with empty cells prints as floats
     own = build_report(root, tmp_path / "own", preset="paper-full")
     assert own.result_set.preset == "paper-full"
     assert "Scene 2's size" not in (tmp_path / "own" / "REPORT.md").read_text()
