@@ -102,6 +102,9 @@ def main(argv=None) -> None:
     p.add_argument("--methods", nargs="+", default=["compute", "raster"])
     p.add_argument("--refine", nargs="+", default=["illinois"], help="hit refinements (RenderConfig.refine)")
     p.add_argument("--tile-check", nargs="+", default=["frame"], help="tiles list checks (RenderConfig.tile_check)")
+    p.add_argument("--tile-split", type=int, nargs="+", default=[RenderConfig().tile_split],
+                   help="tiles: lists longer than this split over workgroups (RenderConfig.tile_split; 0 = never): "
+                        "0 and the default side by side show what the split saves on a walk whose discs pile up")
     p.add_argument("--photo-choice", nargs="+", default=["labels"], choices=["labels", "view"],
                    help="photo choices (RenderConfig.photo_choice), each with the other options at their defaults")
     p.add_argument("--map-cache-mb", type=float, nargs="+", default=[0.0],
@@ -149,13 +152,14 @@ def main(argv=None) -> None:
     for size in args.sizes:
         w, h = (int(v) for v in size.lower().split("x"))
         path = camera_path(keys, args.frames, w, h)
-        for method, refine, check, steps, k, choice, maps_mb, photos_mb in itertools.product(
-                args.methods, args.refine, args.tile_check, args.max_steps, args.layers, args.photo_choice,
-                args.map_cache_mb, args.cache_mb):
-            if check != "frame" and method != "tiles":
+        for method, refine, check, split, steps, k, choice, maps_mb, photos_mb in itertools.product(
+                args.methods, args.refine, args.tile_check, args.tile_split, args.max_steps, args.layers,
+                args.photo_choice, args.map_cache_mb, args.cache_mb):
+            if (check != "frame" or split != args.tile_split[0]) and method != "tiles":
                 continue
             config = RenderConfig(layers=k, method=method, leveling=args.leveling, refine=refine, tile_check=check,
-                                  max_steps=steps, photo_choice=choice, map_cache_mb=maps_mb, cache_mb=photos_mb)
+                                  tile_split=split, max_steps=steps, photo_choice=choice, map_cache_mb=maps_mb,
+                                  cache_mb=photos_mb)
             depths: list[np.ndarray] = []
             keep = (lambda f: depths.append(f["depth"].copy())) if len(args.max_steps) > 1 else None
             r = measure_walkthrough(bundle, config, path,
@@ -165,13 +169,14 @@ def main(argv=None) -> None:
             if args.cpu_profile:
                 r["cpu_profile"] = profile_walkthrough(bundle, config, path)
             if keep is not None:
-                first_steps, first = reference.setdefault((w, h, method, refine, check, k, choice), (steps, depths))
+                first_steps, first = reference.setdefault((w, h, method, refine, check, split, k, choice), (steps, depths))
                 if first is not depths:
                     r["depth_vs_first_cap"] = _depth_change(first_steps, first, depths)
-            runs.append({"method": method, "refine": refine, "tile_check": check, "max_steps": steps, "layers": k,
+            runs.append({"method": method, "refine": refine, "tile_check": check, "tile_split": split,
+                         "max_steps": steps, "layers": k,
                          "photo_choice": choice, "map_cache_mb": maps_mb, "cache_mb": photos_mb, **r})
             stages = "  ".join(f"{s} {v:.3f}" for s, v in {**r["median_ms"], **r["median_part_ms"]}.items())
-            print(f"{w}x{h} {method:8s} {choice:6s} maps={r['map_cache']['slots']} photos={photos_mb:g}MB "
+            print(f"{w}x{h} {method:8s} {choice:6s} split={split} maps={r['map_cache']['slots']} photos={photos_mb:g}MB "
                   f"{refine:9s} {check:6s} steps={steps:3d} k={k:2d}  {stages}"
                   + f"  | GPU median {r['median_total_ms']:.3f} p95 {r['p95_total_ms']:.3f} ms, wall median "
                     f"{r['median_wall_ms']:.3f} p95 {r['p95_wall_ms']:.3f} ms, sustained {r['sustained_ms']:.3f} "

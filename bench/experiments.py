@@ -182,9 +182,10 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         ``missing_per_frame_timed``, ``frames_missing_timed``} (the depth-map cache:
         :mod:`dmrt.runtime.maps`; missing maps are holes until loaded) and ``tile_stats`` (the tiles
         path's :meth:`~dmrt.runtime.tiles.TileVisibility.stats` of the last frame, else None) and
-        ``tile_lists_per_frame`` {``entries``, ``large``, ``longest``: lists of the statistics
-        pass's frames} (:meth:`~dmrt.runtime.tiles.TileVisibility.stats`: the tile raster's and
-        labeling's work, whose longest tile sets a slow frame's time; None without the tiles path).
+        ``tile_lists_per_frame`` {``entries``, ``large``, ``longest``, ``split_tiles``,
+        ``split_slices``: lists of the statistics pass's frames}
+        (:meth:`~dmrt.runtime.tiles.TileVisibility.stats`: the tile raster's and labeling's work,
+        whose longest tile sets a slow frame's time unless it was split; None without the tiles path).
     """
     from tqdm import tqdm
 
@@ -193,7 +194,8 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
     renderer = Renderer(bundle, config)
     renderer.timer.wait = True  # the timed pass: each frame's own times (the other passes do not read them)
     try:
-        iters, surface, wanted, lists = [], [], {}, {"entries": [], "large": [], "longest": []}
+        iters, surface, wanted, lists = [], [], {}, {k: [] for k in ("entries", "large", "longest", "split_tiles",
+                                                                   "split_slices")}
         for cam in tqdm(cameras, desc=f"{desc} (statistics)", unit="frame", leave=False, disable=not progress):
             f = renderer.render(cam)
             wanted.update(dict.fromkeys(renderer.images.wanted))

@@ -71,3 +71,71 @@ bool in_box(uint pixel, uint box) {
 // Binding points (B_PROXIES, B_LARGE, B_LAYER_DEPTH, B_LAYER_LABEL, B_TILE_*) and the sentinels
 // EMPTY_BITS, EMPTY_LABEL come from dmrt/gl/abi.py, injected as #defines by the loader.
 uniform ivec2 u_tiles;  // tiles per row, tile rows
+
+// -- long lists split over workgroups (TileVisibility's split_min) ------------------------------
+// The raster (SPLIT 1) hands a tile whose list is longer than u_split_min to the split passes in
+// slices of BATCH discs, one workgroup a slice (dmrt_tiles_split.glsl, and the labeling pass's
+// SPLIT_PASS): each writes its slice's result per pixel, the last of the tile's slices to finish
+// merges them. The buffer's layout is dmrt/gl/abi.py's B_TILE_SPLIT.
+#ifndef SPLIT_BUFFER
+#define SPLIT_BUFFER 0
+#endif
+#if SPLIT_BUFFER
+// coherent: the last slice reads the others' partials, written by other workgroups
+layout(std430, binding = B_TILE_SPLIT) coherent buffer Split { uint split[]; };
+uniform uint u_slots;  // slices the buffer holds
+
+struct SplitSlice {
+    uint tile;   // the tile (ty * tiles per row + tx)
+    uint first;  // the tile's first slice
+    uint count;  // the tile's slices
+    uint index;  // this slice's index among them: discs [index * BATCH, (index + 1) * BATCH) of the list
+};
+
+uint split_tiles_at() { return 4u + 4u * u_slots; }
+uint split_done_at() { return split_tiles_at() + uint(u_tiles.x * u_tiles.y); }
+uint split_partial_at(uint slot) { return split_done_at() + u_slots + 2u * uint(TILE * TILE) * slot; }
+
+SplitSlice split_slice(uint slot) {
+    uint o = 4u + 4u * slot;
+    return SplitSlice(split[o], split[o + 1u], split[o + 2u], split[o + 3u]);
+}
+
+ivec2 split_tile_origin(uint tile) {
+    return ivec2(int(tile % uint(u_tiles.x)), int(tile / uint(u_tiles.x))) * TILE;
+}
+
+// Whether the raster handed the tile's list to the split passes this frame.
+bool split_handed_over(uint tile) {
+    return split[split_tiles_at() + tile] != EMPTY_BITS;
+}
+
+#if defined COMPUTE_SHADER
+shared bool s_split_last;
+
+// Write this slice's result of the invocation's pixel (`mine`: a key, smaller is better: (depth or
+// distance bits, label)); false in every workgroup of the tile but the last to finish, which gets
+// the smallest of all its slices' in `best` (and resets the tile's counter for the next pass).
+// Call it from uniform control flow: it holds barriers.
+bool split_merge(SplitSlice slice, uint lid, uvec2 mine, out uvec2 best) {
+    uint at = split_partial_at(slice.first + slice.index) + 2u * lid;
+    split[at] = mine.x;
+    split[at + 1u] = mine.y;
+    memoryBarrierBuffer();  // the partials before the count that says they are there
+    barrier();
+    if (lid == 0u) s_split_last = atomicAdd(split[split_done_at() + slice.first], 1u) == slice.count - 1u;
+    memoryBarrierShared();
+    barrier();
+    best = mine;
+    if (!s_split_last) return false;
+    memoryBarrierBuffer();
+    for (uint q = slice.first; q < slice.first + slice.count; ++q) {
+        uint a = split_partial_at(q) + 2u * lid;
+        uvec2 v = uvec2(split[a], split[a + 1u]);
+        if (v.x < best.x || (v.x == best.x && v.y < best.y)) best = v;
+    }
+    if (lid == 0u) split[split_done_at() + slice.first] = 0u;
+    return true;
+}
+#endif
+#endif

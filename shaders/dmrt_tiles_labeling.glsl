@@ -11,10 +11,22 @@
 // test made here; the first batch then visits only those discs (a few of the tile's tens to
 // hundreds), and only discs past the 256th are tested.
 //
+// Long lists (TileVisibility's split_min): with SPLIT 1 the workgroup of a tile whose list the raster
+// handed to the split passes (dmrt_tiles_common.glsl) does nothing; SPLIT_PASS 1 is the pass that
+// labels those tiles, a workgroup per slice of BATCH discs, the last of a tile's slices to finish
+// taking the nearest of all the slices' and writing the output (split_merge).
+//
 // Output: FINALIZE 1 -> each pixel's final label in its Hit record (dmrt_final_label.glsl: the pass
 // of dmrt_label_finalize.glsl done here, without writing the labels and reading them back); else
 // as dmrt_label_finalize.glsl reads it: PACKED_LABELS 1 -> Key uvec2 (label, distance bits), else
 // Key uint distance bits and Label int label; EMPTY_BITS / EMPTY_LABEL where no disc covers.
+#ifndef SPLIT
+#define SPLIT 0
+#endif
+#ifndef SPLIT_PASS
+#define SPLIT_PASS 0
+#endif
+#define SPLIT_BUFFER (SPLIT || SPLIT_PASS)
 #include "dmrt_tiles_common.glsl"
 #include "dmrt_frame.glsl"
 #ifndef FINALIZE
@@ -84,10 +96,20 @@ void visit(uint word, uint base) {
 }
 
 void main() {
+#if SPLIT_PASS
+    SplitSlice slice = split_slice(gl_WorkGroupID.x);
+    uint tile = slice.tile;
+    ivec2 origin = split_tile_origin(tile);
+#else
     uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
+#if SPLIT
+    if (split_handed_over(tile)) return;  // the whole workgroup: SPLIT_PASS labels it
+#endif
+    ivec2 origin = ivec2(gl_WorkGroupID.xy) * TILE;
+#endif
     uint lid = gl_LocalInvocationIndex;
     ivec2 local = tile_local_pixel();
-    ivec2 px = ivec2(gl_WorkGroupID.xy) * TILE + local;
+    ivec2 px = origin + local;
     uint bits = pixel_bits(local);
     bool inside = px.x < u_size.x && px.y < u_size.y;
     uint pix = uint(px.y * u_size.x + px.x);
@@ -103,6 +125,11 @@ void main() {
     // the raster's condition for holding the list in shared memory, on the same (cut) length
     uint count = min(end, u_capacity) - min(start, u_capacity);
     bool masked = bool(HIT_MASKS) && count <= uint(BATCH);
+#if SPLIT_PASS
+    masked = false;  // the raster wrote no masks for a tile it handed over
+    start += slice.index * uint(BATCH);
+    end = min(end, start + uint(BATCH));
+#endif
     for (uint base = start; base < end; base += uint(THREADS)) {
         bool by_masks = masked && base == start;  // the same for the whole workgroup
         if (base + lid < end) {
@@ -137,6 +164,12 @@ void main() {
         }
         barrier();
     }
+#if SPLIT_PASS
+    uvec2 best;
+    if (!split_merge(slice, lid, uvec2(g_best, uint(g_best_label)), best)) return;
+    g_best = best.x;
+    g_best_label = int(best.y);
+#endif
     if (!inside) return;
 #if FINALIZE
     hits[pix].final_label = final_label(hits[pix], g_best_label, px);

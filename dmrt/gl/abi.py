@@ -79,6 +79,11 @@ B_KNN_COLUMNS = 45    # nx * ny + 1 uint: each (x, y) column's first cell
 B_KNN_CELLS = 46      # cells + 1 uvec2: a cell's z index and first point
 B_KNN_INDICES = 47    # n x k uint: the neighbours found, nearest first
 B_KNN_DISTANCES = 48  # n x k float: their distances, metres
+# the tiles path's long lists split over workgroups (dmrt/runtime/tiles.py, shaders/dmrt_tiles_split.glsl):
+# uint words: a dispatch-indirect header (slices x, 1, 1, slices reserved), a uvec4 per slice (tile,
+# its first slice, its slices, this slice), per tile its first slice or EMPTY_BITS, per slice a
+# counter of the tile's slices done, per slice and pixel of a tile its partial result (2 words)
+B_TILE_SPLIT = 49
 
 # -- sentinels ---------------------------------------------------------------------------------
 EMPTY_BITS = 0xFFFFFFFF  # an empty depth (above every positive float's bits: atomicMin keeps the nearest)
@@ -86,8 +91,9 @@ EMPTY_LABEL = 0x7FFFFFFF  # an empty label layer entry
 EMPTY_Z = float(np.finfo(np.float32).max)  # raster targets' clear value (MIN blending keeps the nearest)
 
 # -- record layouts ----------------------------------------------------------------------------
-# FrameStatus (dmrt/runtime/status.py): uint tile_total (the tile list's length), uint n_wanted, two
-# spare words, then int wanted[] (photos for the full-resolution cache, most frequent first)
+# FrameStatus (dmrt/runtime/status.py): uint tile_total (the tile list's length), uint n_wanted, uint
+# tile_longest (the longest tile's list), a spare word, then int wanted[] (photos for the
+# full-resolution cache, most frequent first)
 STATUS_HEADER_WORDS = 4
 # struct Hit (shaders/dmrt_frame.glsl): one per pixel, written by every DMRT/DMT pass; 16 bytes
 HIT_DTYPE = np.dtype([("depth", "<f4"), ("label", "<i4"), ("final_label", "<i4"), ("layer_iters", "<u4")])

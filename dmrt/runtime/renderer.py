@@ -57,7 +57,7 @@ from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.runtime.maps import MapCache
 from dmrt.runtime.shading import FrameShading, camera_uniforms, hit_depth_at
-from dmrt.runtime.tiles import DEFAULT_BATCH, DEFAULT_TOP, SPARSE_MIN
+from dmrt.runtime.tiles import DEFAULT_BATCH, DEFAULT_TOP, SPARSE_MIN, SPLIT_MIN
 from dmrt.runtime.view_choice import MAX_BLEND, ViewChoice
 from dmrt.runtime.visibility import ProxySplats, VisibilityStage
 
@@ -132,6 +132,11 @@ class RenderConfig:
                 "tested: fastest for short lists), sparse (only the discs whose box holds the pixel: for long "
                 f"ones) or auto (sparse for a frame whose tiles held more than {SPARSE_MIN} discs on average the "
                 "last time the list length was read); the same layers")
+    tile_split: int = option(SPLIT_MIN, "tiles: a tile whose list holds more discs than this is walked by one "
+                                        "workgroup per tile_batch discs, their results merged, on a frame after "
+                                        "one with such a tile (distant discs piling up at a vanishing point keep "
+                                        "one workgroup busy for the whole frame otherwise); 0 = never; the same "
+                                        "layers", minimum=0)
     kbuffer_slots: int = option(0, "k-buffer fragments kept per pixel; 0 = 6 per layer + 2 (>= 99.9 % of the "
                                    "peeled layers' pixels); a pixel with more fragments in front of its k-th layer "
                                    "loses its deepest layers", minimum=0)
@@ -273,7 +278,8 @@ class Renderer:
                                           self.config.kbuffer_slots or 6 * self.config.layers + 2, n,
                                           self.config.tile_check, self.shading.status, hit_masks=self.config.labeling,
                                           tile_batch=self.config.tile_batch, tile_top=self.config.tile_hits,
-                                          tile_walk=self.config.tile_walk, map_defines=map_defines)
+                                          tile_walk=self.config.tile_walk, tile_split=self.config.tile_split,
+                                          map_defines=map_defines)
         defines = {"QUAD_TEST": int(self.config.discontinuity_test == "quad"),
                    "SECANT": int(self.config.search == "secant"), "RAYTRACE": int(self.config.raytrace),
                    "STATISTICS": int(self.config.statistics), "ILLINOIS": int(self.config.refine == "illinois"),

@@ -21,6 +21,12 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
    (a bit mask). The ray-disc test is the other paths' (``splat_depth_at``), so every
    layer equals compute peeling's to the bit; no order among the discs is needed and nothing is
    approximated.
+5. ``dmrt_tiles_split``, on a frame whose tiles may hold long lists (``split_min``): the raster hands
+   a tile whose list is longer than ``split_min`` to this pass in slices of ``batch`` discs, one
+   workgroup a slice, a dispatch per layer; each layer is the smallest of the slices' (the last of a
+   tile's slices to finish merges them), so the layers are again peeling's. A tile is one
+   workgroup: where distant discs pile up in a few tiles (a street receding to its vanishing
+   point: thousands of discs a tile), the frame otherwise waits for those tiles alone.
 
 The list's length is only known on the GPU: the scan writes it into the frame's status record
 (:mod:`dmrt.runtime.status`), the frame's one read-back. By default (``check="frame"``) every
@@ -59,6 +65,17 @@ DEFAULT_TOP = 12
 # last known list held more discs than this a tile on average (dmrt_tiles_raster.glsl, SPARSE_WALK:
 # H200, ~180 discs a tile sparse 0.35 ms against 0.50, ~63 a tile 1.78 against 1.72)
 SPARSE_MIN = 100
+
+
+# Lists longer than this are split over workgroups (split_min); a frame splits when the last list
+# length read held such a tile (frames without one run the raster alone, as if there were no split).
+# Four batches: a guess between a tile's usual ~63-180 discs and the thousands where a frame waits
+# for one tile (reports/many-photos); not yet timed.
+SPLIT_MIN = 4 * DEFAULT_BATCH
+# Slices the split buffer holds at most (2 KB of partial results each at 16 x 16 pixels: 32 MB); a
+# tile whose slices do not fit is walked by the raster alone, as without the split.
+SPLIT_SLOTS_MAX = 16384
+SPLIT_LAYOUT_WORDS = 4  # the split buffer's dispatch-indirect header (x, y, z, slices reserved)
 
 
 SCAN_THREADS, SCAN_ROUNDS = 1024, 8  # dmrt_tiles_scan.glsl: its workgroup, the most quads a thread holds
@@ -112,10 +129,14 @@ class TileVisibility:
         instead of two rows (``tile_local_pixel`` in ``dmrt_tiles_common.glsl``; tile a multiple
         of 8; H100: raster 8 % faster at 1280x720, 4 % at 3840x2160); the layers are the same
         either way.
+    split_min : int
+        A tile whose list holds more discs than this is walked by a workgroup per ``batch`` discs
+        (module doc, step 5), on a frame after one whose list held such a tile (the status record's
+        ``tile_longest``); 0: never. The layers are the same either way.
 
     Attributes
     ----------
-    tile, batch, top, check, walk : the parameters above
+    tile, batch, top, check, walk, split_min : the parameters above
     capacity : int
         Entries the list buffer holds.
     dropped_frames : int
@@ -124,7 +145,8 @@ class TileVisibility:
 
     def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = DEFAULT_BATCH, top: int = DEFAULT_TOP,
                  max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None,
-                 hit_masks: bool = True, warp_blocks: bool = True, walk: str = "auto", map_defines: dict | None = None):
+                 hit_masks: bool = True, warp_blocks: bool = True, walk: str = "auto", split_min: int = SPLIT_MIN,
+                 map_defines: dict | None = None):
         if not 1 <= tile <= 32:
             raise ValueError(f"tile must be 1..32 (tile^2 invocations per workgroup), not {tile}")
         if batch < 1:
@@ -135,6 +157,8 @@ class TileVisibility:
             raise ValueError(f"check must be 'frame' or 'lagged', not {check!r}")
         if walk not in ("auto", "linear", "sparse"):
             raise ValueError(f"walk must be 'auto', 'linear' or 'sparse', not {walk!r}")
+        if split_min < 0:
+            raise ValueError(f"split_min must be >= 0 (0: never), not {split_min}")
         self.ctx, self.splats = ctx, splats
         self.tile, self.check, self.batch, self.top = int(tile), check, int(batch), int(top)
         self.hit_masks = bool(hit_masks) and self.tile * self.tile == MASK_DISCS
@@ -144,11 +168,18 @@ class TileVisibility:
                                                                             "LARGE": large,
                                                                             "MAX_THREAD_TILES": max_thread_tiles})
                      for scatter in (0, 1) for large in (0, 1)}
-        self.walk = walk
-        self._rasters = {sparse: load_program(ctx, "dmrt_tiles_raster", {**self._defines, "TOP": int(top),
-                                                                          "SPARSE_WALK": int(sparse)})
-                         for sparse in (0, 1) if walk == "auto" or sparse == (walk == "sparse")}
+        self.walk, self.split_min = walk, int(split_min)
+        self._rasters = {(sparse, split): load_program(ctx, "dmrt_tiles_raster",
+                                                       {**self._defines, "TOP": int(top), "SPARSE_WALK": int(sparse),
+                                                        "SPLIT": split})
+                         for sparse in (0, 1) if walk == "auto" or sparse == (walk == "sparse")
+                         for split in ((0, 1) if self.split_min else (0,))}
+        self._split_layers = load_program(ctx, "dmrt_tiles_split", self._defines) if self.split_min else None
         self._last_total = 0  # the last list length read back (walk="auto" decides by it)
+        self._last_longest = 0  # the longest tile's list in the same record (split_min decides by it)
+        self.split: moderngl.Buffer | None = None  # the slices and their partials, once a frame splits
+        self._slots = 0  # slices it holds
+        self._split_now = False  # whether this frame's raster handed long lists to the split passes
         n = max(splats.n, 1)
         # large-disc list: dispatch-indirect header (groups x, y, z), its length, proxy indices
         self.large = ctx.buffer(reserve=16 + 4 * n)
@@ -192,7 +223,7 @@ class TileVisibility:
         points = {"proxies": abi.B_PROXIES, "layer_depth": abi.B_LAYER_DEPTH, "layer_label": abi.B_LAYER_LABEL,
                   "large": abi.B_LARGE, "entries": abi.B_TILE_ENTRIES,
                   "counts": abi.B_TILE_COUNTS, "offsets": abi.B_TILE_OFFSETS, "masks": abi.B_TILE_MASKS,
-                  "status": abi.B_FRAME_STATUS}
+                  "status": abi.B_FRAME_STATUS, "split": abi.B_TILE_SPLIT}
         for name, buf in buffers.items():
             if buf is not None:  # no hit masks without the labeling pass or with tiles other than 16 x 16
                 buf.bind_to_storage_buffer(points[name])
@@ -233,7 +264,7 @@ class TileVisibility:
         if self.check == "lagged" and frame - LAG in self._capacity_of:
             # the GPU has finished the frame two back by now (or the read waits for it, not for this one)
             total = self.status.read(LAG)[0]
-            self._last_total = total
+            self._last_total, self._last_longest = total, self.status.longest(LAG)
             self.dropped_frames += total > self._capacity_of[frame - LAG]
             self._fit(total)
         status = self.status.record(0)
@@ -259,13 +290,34 @@ class TileVisibility:
         grown: the renderer must render the frame again (its discs past the end were lost)."""
         if self.check != "frame" or self._own_status:
             return False
-        return self._outgrown(self.status.total())
+        total = self.status.total()
+        self._last_longest = self.status.longest()
+        return self._outgrown(total)
 
     def _sparse(self) -> bool:
         """Whether this frame's raster walks sparsely (``walk``)."""
         if self.walk != "auto":
             return self.walk == "sparse"
         return self._grid is not None and self._last_total > SPARSE_MIN * self._grid[0] * self._grid[1]
+
+    def _split(self) -> bool:
+        """Whether this frame's raster hands long lists to the split passes (``split_min``)."""
+        return bool(self.split_min) and self._last_longest > self.split_min
+
+    def _allocate_split(self) -> None:
+        """The split buffer, (re)made when the list or the grid outgrew it: room for the slices of
+        every tile longer than ``split_min`` in a full list (each at most ``count / batch + 1``),
+        at most ``SPLIT_SLOTS_MAX``; zeros: the slices' counters start at 0 (the last slice of a
+        tile resets its own)."""
+        tiles = self._grid[0] * self._grid[1]
+        slots = min(SPLIT_SLOTS_MAX, self.capacity // self.batch + self.capacity // self.split_min + 1)
+        words = SPLIT_LAYOUT_WORDS + 4 * slots + tiles + slots + 2 * self.tile * self.tile * slots
+        if self.split is not None and self.split.size == 4 * words:
+            return
+        if self.split is not None:
+            self.split.release()
+        self.split = self.ctx.buffer(np.zeros(words, np.uint32).tobytes())
+        self._slots = slots
 
     def _outgrown(self, total: int) -> bool:
         """Whether a list of ``total`` entries outgrew the buffer; if so the buffer is grown now,
@@ -283,7 +335,11 @@ class TileVisibility:
         """Wait for the frame's list length and build the list again, larger, if it outgrew its
         buffer. The wait is outside any timed section: a section open while the CPU waits would
         count the idle GPU."""
-        while self._outgrown(self.status.read(0)[0]):
+        while True:
+            total = self.status.read(0)[0]
+            self._last_longest = self.status.longest()
+            if not self._outgrown(total):
+                break
             with timed(timer, "visibility:redo"):
                 self._build_list(tile_uniforms, status)
                 self._raster_pass(*raster)
@@ -319,12 +375,23 @@ class TileVisibility:
                 self.ctx.memory_barrier(_BARRIER)
 
     def _raster_pass(self, tile_uniforms: dict, layers: int, layer_depth, layer_label) -> None:
+        split = self._split_now = self._split()
+        if split:
+            self._allocate_split()
+            self.split.write(EMPTY_DISPATCH)  # no slices yet
         self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label,
-                   entries=self.entries, offsets=self.offsets, masks=self.masks)
-        program = self._rasters[int(self._sparse())]
-        set_uniforms(program, u_capacity=self.capacity, u_layers=int(layers), **tile_uniforms)
+                   entries=self.entries, offsets=self.offsets, masks=self.masks, split=self.split if split else None)
+        program = self._rasters[int(self._sparse()), int(split)]
+        split_uniforms = {"u_split_min": self.split_min, "u_slots": self._slots} if split else {}
+        set_uniforms(program, u_capacity=self.capacity, u_layers=int(layers), **split_uniforms, **tile_uniforms)
         program.run(*self._grid)
         self.ctx.memory_barrier(_BARRIER)
+        if split:  # the long lists' layers, one pass each: layer i reads layer i - 1
+            for i in range(int(layers)):
+                set_uniforms(self._split_layers, u_capacity=self.capacity, u_layer=i, **split_uniforms,
+                             **tile_uniforms)
+                self._split_layers.run_indirect(self.split)
+                self.ctx.memory_barrier(_BARRIER)
 
     def label_pass(self, uniforms: dict, hits, key=None, vlabel=None, packed: bool = False,
                    finalize: dict | None = None) -> None:
@@ -344,17 +411,26 @@ class TileVisibility:
             ``dmrt_label_finalize.glsl`` would from ``key`` (not written), with the photos and the
             depth maps bound by the caller.
         """
-        program = load_program(self.ctx, "dmrt_tiles_labeling", {**self._defines, "PACKED_LABELS": int(packed),
-                                                                 "FINALIZE": int(finalize is not None)})
-        self._bind(proxies=self.splats.buffer, entries=self.entries, offsets=self.offsets, masks=self.masks)
+        defines = {**self._defines, "PACKED_LABELS": int(packed), "FINALIZE": int(finalize is not None)}
+        split = self._split_now  # the raster handed long lists over: their tiles are labelled by slices
+        program = load_program(self.ctx, "dmrt_tiles_labeling", {**defines, "SPLIT": int(split)})
+        self._bind(proxies=self.splats.buffer, entries=self.entries, offsets=self.offsets, masks=self.masks,
+                   split=self.split if split else None)
         hits.bind_to_storage_buffer(abi.B_HITS)
         if finalize is None:
             key.bind_to_storage_buffer(abi.B_KEY)
             if not packed:
                 vlabel.bind_to_storage_buffer(abi.B_VLABEL)
-        set_uniforms(program, u_capacity=self.capacity, u_tiles=self._grid, **uniforms, **(finalize or {}))
+        values = {"u_capacity": self.capacity, "u_tiles": self._grid, "u_slots": self._slots, **uniforms,
+                  **(finalize or {})}
+        set_uniforms(program, **values)
         program.run(*self._grid)
         self.ctx.memory_barrier(_BARRIER)
+        if split:
+            slices = load_program(self.ctx, "dmrt_tiles_labeling", {**defines, "SPLIT_PASS": 1})
+            set_uniforms(slices, **values)
+            slices.run_indirect(self.split)
+            self.ctx.memory_barrier(_BARRIER)
 
     # -- diagnostics ------------------------------------------------------------------------
     def stats(self) -> dict:
@@ -367,16 +443,25 @@ class TileVisibility:
             ``dropped`` (bool: the list outgrew the buffer, entries past it were lost), ``large``
             (discs over more than ``max_thread_tiles`` tiles, binned by a workgroup each),
             ``longest`` (the longest tile's entries: one workgroup runs through them alone, so a
-            frame whose discs pile up in a few tiles waits for those).
+            frame whose discs pile up in a few tiles waits for those, unless they are split),
+            ``split_tiles`` and ``split_slices`` (the tiles whose lists the split passes walked,
+            their slices: workgroups of ``batch`` discs; 0 on a frame without them).
         """
         if self.status.frame not in self._capacity_of:
-            return {"entries": 0, "capacity": self.capacity, "dropped": False, "large": 0, "longest": 0}
+            return {"entries": 0, "capacity": self.capacity, "dropped": False, "large": 0, "longest": 0,
+                    "split_tiles": 0, "split_slices": 0}
         entries, capacity = self.status.read(0)[0], self._capacity_of[self.status.frame]
         large = int(np.frombuffer(self.large.read(16), np.uint32)[3])  # the list's header: groups x, y, z, length
         tiles = self._grid[0] * self._grid[1]
         offsets = np.frombuffer(self.offsets.read(4 * (tiles + 1)), np.uint32)  # exclusive prefix sum + total
+        split_tiles = split_slices = 0
+        if self._split_now:
+            split_slices = int(np.frombuffer(self.split.read(4), np.uint32)[0])
+            at = 4 * (SPLIT_LAYOUT_WORDS + 4 * self._slots)  # each tile's first slice (abi.B_TILE_SPLIT)
+            split_tiles = int((np.frombuffer(self.split.read(4 * tiles, offset=at), np.uint32) != abi.EMPTY_BITS).sum())
         return {"entries": entries, "capacity": capacity, "dropped": entries > capacity, "large": large,
-                "longest": int(np.diff(offsets).max()) if tiles else 0}
+                "longest": int(np.diff(offsets).max()) if tiles else 0,
+                "split_tiles": split_tiles, "split_slices": split_slices}
 
     def read_overflow(self) -> int:
         """Pixels of the last frame that may differ from peeling: every pixel if the frame's list
@@ -387,13 +472,13 @@ class TileVisibility:
 
     @property
     def nbytes(self) -> int:
-        """GPU bytes of the path's own buffers (list, tile counts and offsets, large list, status
-        records if its own)."""
-        bufs = [self.entries, self.large, self.counts, self.offsets, self.masks]
+        """GPU bytes of the path's own buffers (list, tile counts and offsets, large list, hit masks,
+        split slices, status records if its own)."""
+        bufs = [self.entries, self.large, self.counts, self.offsets, self.masks, self.split]
         return sum(b.size for b in bufs if b is not None) + (self.status.nbytes if self._own_status else 0)
 
     def release(self) -> None:
-        for name in ("entries", "large", "counts", "offsets", "masks"):
+        for name in ("entries", "large", "counts", "offsets", "masks", "split"):
             buf = getattr(self, name)
             if buf is not None:
                 buf.release()

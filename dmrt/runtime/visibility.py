@@ -47,7 +47,7 @@ from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import timed
 from dmrt.morton import morton_order
-from dmrt.runtime.tiles import DEFAULT_BATCH, DEFAULT_TOP, TileVisibility
+from dmrt.runtime.tiles import DEFAULT_BATCH, DEFAULT_TOP, SPLIT_MIN, TileVisibility
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 
@@ -145,14 +145,14 @@ class VisibilityStage:
     status : dmrt.runtime.status.FrameStatus, optional
         The renderer's status records, which the tiles path writes its list length into and reads
         (the caller begins each frame's); None: the tiles path keeps its own.
-    hit_masks, tile_batch, tile_top, tile_walk : the tiles path's ``hit_masks``, ``batch``, ``top`` and
-        ``walk`` (:class:`TileVisibility`)
+    hit_masks, tile_batch, tile_top, tile_walk, tile_split : the tiles path's ``hit_masks``, ``batch``,
+        ``top``, ``walk`` and ``split_min`` (:class:`TileVisibility`)
     """
 
     def __init__(self, ctx: moderngl.Context, splats: ProxySplats, method: str = "compute", int64: bool = False,
                  slots: int = 16, n_labels: int = 256, tile_check: str = "frame", status=None,
                  hit_masks: bool = True, tile_batch: int = DEFAULT_BATCH, tile_top: int = DEFAULT_TOP,
-                 tile_walk: str = "auto", map_defines: dict | None = None):
+                 tile_walk: str = "auto", tile_split: int = SPLIT_MIN, map_defines: dict | None = None):
         if method not in ("compute", "raster", "kbuffer", "tiles"):
             raise ValueError(f"RenderConfig.method must be 'compute', 'kbuffer', 'tiles' or 'raster', not {method!r}")
         self.ctx, self.splats, self.method = ctx, splats, method
@@ -160,7 +160,8 @@ class VisibilityStage:
         self._size = None
         self._packed = None
         self.tiles = (TileVisibility(ctx, splats, batch=tile_batch, top=tile_top, check=tile_check, status=status,
-                                     hit_masks=hit_masks, walk=tile_walk, map_defines=map_defines)
+                                     hit_masks=hit_masks, walk=tile_walk, split_min=tile_split,
+                                     map_defines=map_defines)
                       if method == "tiles" else None)
         if method == "kbuffer":
             label_bits = max(1, int(n_labels - 1).bit_length())
