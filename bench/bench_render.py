@@ -104,7 +104,9 @@ def main(argv=None) -> None:
     p.add_argument("--tile-check", nargs="+", default=["frame"], help="tiles list checks (RenderConfig.tile_check)")
     p.add_argument("--tile-split", type=int, nargs="+", default=[RenderConfig().tile_split],
                    help="tiles: lists longer than this split over workgroups (RenderConfig.tile_split; 0 = never): "
-                        "0 and the default side by side show what the split saves on a walk whose discs pile up")
+                        "0 and the default side by side show what the split saves on a walk whose discs pile up; "
+                        "each value after the first records its statistics pass's frames against the first's "
+                        "(frames_vs_first_split: frames whose depth or label differs anywhere, 0 expected)")
     p.add_argument("--photo-choice", nargs="+", default=["labels"], choices=["labels", "view"],
                    help="photo choices (RenderConfig.photo_choice), each with the other options at their defaults")
     p.add_argument("--map-cache-mb", type=float, nargs="+", default=[0.0],
@@ -149,6 +151,7 @@ def main(argv=None) -> None:
     runs = []
     # with several step caps, the first one's depths (statistics pass) and what the others change
     reference: dict[tuple, tuple[int, list]] = {}
+    split_reference: dict[tuple, tuple[int, list, list]] = {}  # the first --tile-split's frames
     for size in args.sizes:
         w, h = (int(v) for v in size.lower().split("x"))
         path = camera_path(keys, args.frames, w, h)
@@ -161,17 +164,31 @@ def main(argv=None) -> None:
                                   tile_split=split, max_steps=steps, photo_choice=choice, map_cache_mb=maps_mb,
                                   cache_mb=photos_mb)
             depths: list[np.ndarray] = []
-            keep = (lambda f: depths.append(f["depth"].copy())) if len(args.max_steps) > 1 else None
+            labels: list[np.ndarray] = []
+
+            def keep(f):
+                depths.append(f["depth"].copy())
+                labels.append(f["label"].copy())
+            if len(args.max_steps) == 1 and len(args.tile_split) == 1:
+                keep = None
             r = measure_walkthrough(bundle, config, path,
                                     f"{method} {choice} maps={maps_mb:g}MB photos={photos_mb:g}MB k={k} {w}x{h}",
                                     fenced=args.fenced, passes=args.passes, on_frame=keep)
             r.pop("stage_ms_per_frame")
             if args.cpu_profile:
                 r["cpu_profile"] = profile_walkthrough(bundle, config, path)
-            if keep is not None:
+            if len(args.max_steps) > 1:
                 first_steps, first = reference.setdefault((w, h, method, refine, check, split, k, choice), (steps, depths))
                 if first is not depths:
                     r["depth_vs_first_cap"] = _depth_change(first_steps, first, depths)
+            if len(args.tile_split) > 1:  # the split changes no frame: counted on this GPU
+                first_split, first_d, first_l = split_reference.setdefault(
+                    (w, h, method, refine, check, steps, k, choice, maps_mb, photos_mb), (split, depths, labels))
+                if first_d is not depths:
+                    r["frames_vs_first_split"] = {
+                        "tile_split": first_split, "frames": len(depths),
+                        "frames_differing": sum(not (np.array_equal(a, b) and np.array_equal(c, d))
+                                                for a, b, c, d in zip(first_d, depths, first_l, labels))}
             runs.append({"method": method, "refine": refine, "tile_check": check, "tile_split": split,
                          "max_steps": steps, "layers": k,
                          "photo_choice": choice, "map_cache_mb": maps_mb, "cache_mb": photos_mb, **r})
