@@ -105,24 +105,33 @@ class Buckets:
         map's: :meth:`Camera.scaled`). ``lines`` : splats tested against each pixel's whole line
         (the depth-map shaders' grazing rule), not only its ray.
         """
-        if not len(self):
-            return np.zeros(0, bool)
+        return self.visible_to([camera], lines)[0]
+
+    def visible_to(self, cameras, lines: bool = False) -> np.ndarray:
+        """(c, b) bool: :meth:`visible` of each of ``cameras`` (a sequence of c), in one pass over
+        the boxes (a batch of points culled for 192 photos at once: ~1 ms instead of 192 x 0.1)."""
+        if not len(self) or not len(cameras):
+            return np.zeros((len(cameras), len(self)), bool)
         m = MARGIN_PX
-        # camera-space planes n . x >= 0 bounding the frustum: near, left, right, top, bottom
-        planes = np.array([[0.0, 0.0, 1.0],
-                           [camera.fx, 0.0, camera.cx + m],
-                           [-camera.fx, 0.0, camera.width + m - camera.cx],
-                           [0.0, camera.fy, camera.cy + m],
-                           [0.0, -camera.fy, camera.height + m - camera.cy]])
-        normals, offsets = planes @ camera.R, planes @ camera.t  # n . (R p + t), p in the points' frame
+        # camera-space planes n . x >= 0 bounding each frustum: near, left, right, top, bottom
+        planes = np.array([[[0.0, 0.0, 1.0],
+                            [c.fx, 0.0, c.cx + m],
+                            [-c.fx, 0.0, c.width + m - c.cx],
+                            [0.0, c.fy, c.cy + m],
+                            [0.0, -c.fy, c.height + m - c.cy]] for c in cameras])
+        R = np.stack([c.R for c in cameras])
+        t = np.stack([c.t for c in cameras])
+        # n . (R p + t), p in the points' frame: (c * 5, 3) normals and (c * 5,) offsets
+        normals, offsets = (planes @ R).reshape(-1, 3), np.einsum("ckj,cj->ck", planes, t).reshape(-1)
         centre, half = (self.lo + self.hi) / 2, (self.hi - self.lo) / 2
-        mid = centre @ normals.T + offsets    # (b, 5) plane value at each box's centre
-        reach = half @ np.abs(normals).T      # (b, 5) its largest change over the box
+        shape = (len(self), len(cameras), 5)
+        mid = (centre @ normals.T + offsets).reshape(shape)    # plane value at each box's centre
+        reach = (half @ np.abs(normals).T).reshape(shape)      # its largest change over the box
         # a box with a NaN (a NaN point) compares False everywhere: kept, as are infinite ones
-        keep = ~np.isfinite(mid + reach).all(axis=1) | (mid + reach >= 0).all(axis=1)
+        keep = ~np.isfinite(mid + reach).all(axis=2) | (mid + reach >= 0).all(axis=2)
         if lines:
-            keep |= (mid - reach <= 0).all(axis=1) & (mid[:, 0] + reach[:, 0] > 0)
-        return keep
+            keep |= (mid - reach <= 0).all(axis=2) & (mid[:, :, 0] + reach[:, :, 0] > 0)
+        return keep.T
 
     def runs(self, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The selected buckets as maximal runs of consecutive points.
