@@ -165,7 +165,7 @@ def stage_costs(ctx, chunks, chunk_points: int, cameras, width: int, feed_thread
             pass
 
     def upload():
-        buffers = [ctx.buffer(rows) for rows, _ in batches]
+        buffers = [ctx.buffer(rows) for rows, _, _ in batches]
         ctx.finish()
         for b in buffers:
             b.release()

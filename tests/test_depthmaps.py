@@ -327,6 +327,11 @@ def test_render_many_equals_render(ctx, many_scene, method, mode):
         np.testing.assert_array_equal(next(first)[1], expected[0])
         first.close()
         assert threading.active_count() == threads  # no batch producer left behind
+        # a bad chunk fails the call, and leaves no feed thread behind either
+        p, n, r = chunks[0]
+        with pytest.raises(ValueError, match="depth-map chunk"):
+            list(renderer.render_many(cams, lambda: iter([*chunks, (p, n, r[:-1])]), resident_mb=budget / 2**20))
+        assert threading.active_count() == threads
         # no points at all: empty maps
         empty = list(renderer.render_many(cams, lambda: iter([])))
         assert all((d == 0).all() for _, d in empty)

@@ -20,14 +20,17 @@ Two GPU paths produce the same maps (``DepthMapConfig.method``):
 
 Neither path cuts large discs: a disc close to the camera covers all of its pixels.
 For many photos of one cloud (preprocessing renders one map per photo), use
-``DepthMapRenderer.render_many``: it uploads the cloud once and splats it for every camera (or, when
-the cloud exceeds its GPU budget, uploads it in parts, each splatted into every camera's map of a
+``DepthMapRenderer.render_many``: it keeps every camera's map on the GPU and splats each batch of
+the cloud into all of them as soon as it is uploaded, while threads read, pack and cull the next
+batches, so that feeding the GPU and splatting overlap (or, when the maps do not fit its GPU
+budget, uploads the cloud once whole or in parts, each splatted into every camera's map of a
 group of cameras whose maps fit).
 
 Each camera splats only what its frustum can reach (``DepthMapConfig.cull_points``): every batch is
 cut into buckets of consecutive points (never across two input chunks: the octree's levels come
 as separate chunks), each with the box of its discs (:class:`~dmrt.preprocess.frustum.Buckets`),
-and a camera splats the runs of buckets whose box meets its frustum. The culling is conservative
+and a camera splats the runs of buckets whose box meets its frustum (found for every camera at
+once, on the threads that pack the batch: :class:`_Runs`). The culling is conservative
 and nearest-wins is order-free, so the maps are bit-identical to splatting everything; what it
 saves is in ``last_stats`` (``splats`` against ``splats_all``). Given the octree's order (Morton
 order within each level), a photo that sees one room of a long gallery splats about that room.
@@ -52,7 +55,7 @@ from dmrt.camera import Camera
 from dmrt.gl import abi
 from dmrt.gl.abi import EMPTY_BITS, EMPTY_Z, SPLAT_FLOATS
 from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32
-from dmrt.gl.mapped import MappedBuffer
+from dmrt.gl.mapped import MappedBuffer, entry_points
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.preprocess.buckets import progress_bar
@@ -418,6 +421,9 @@ class DepthMapRenderer:
                         self._splat(splats, target, i)
                 splats.release()
                 fences[k % IN_FLIGHT].written()
+                # sent to the GPU now: else they may wait in the driver's queue while the CPU
+                # waits for the feed, until the next fence wait flushes them
+                _gl_flush()
                 t0 = time.perf_counter()
             self._totals["upload_s"] += time.perf_counter() - t0  # the wait for the feed's end
             for i, target in enumerate(targets):
@@ -425,6 +431,7 @@ class DepthMapRenderer:
                 target.release()  # the maps' memory goes as they go
                 bar.update()
         finally:
+            batches.close()  # the feed's threads end here, not when the generator is collected
             _release(targets)
             _release(fences)
 
@@ -622,6 +629,16 @@ class DepthMapRenderer:
                 depth[depth >= EMPTY_Z] = 0.0
         self._totals["readback_s"] += time.perf_counter() - t0
         return depth
+
+
+def _gl_flush() -> None:
+    """``glFlush`` (moderngl has none): the GL commands issued so far start on the GPU."""
+    _gl().glFlush()
+
+
+@functools.lru_cache(maxsize=None)  # once a process: glvnd's entry points dispatch to the current context
+def _gl():
+    return entry_points({"glFlush": (None, [])}, "glFlush")
 
 
 def _release(objects) -> None:
