@@ -2,7 +2,8 @@
 cloud, with :meth:`dmrt.preprocess.depthmaps.DepthMapRenderer.render_many` (the cloud uploaded once).
 
     python -m bench.bench_depthmaps --points 30000000 --photos 192 --width 1024 \\
-        --method compute|raster|both [--resident-mb 4096 1024] [--out FILE.json] [--stages]
+        --method compute|raster|both [--resident-mb 4096 1024] [--overlap on|off|both] \\
+        [--feed-threads N] [--out FILE.json] [--stages]
 
 The cloud is synthetic but shaped like an indoor scan: points spread uniformly over the floor and
 the four walls of a 40 x 30 x 3 m box building, normals facing in, radii equal to the mean point
@@ -14,10 +15,15 @@ warm-up, with GL timer queries (upload, splatting, read-back: GPU milliseconds) 
 ``splats/s = points x photos / splatting GPU seconds``; ``splats/s (wall)`` divides by the whole
 loop's wall time instead (uploads and read-backs included). The first map is checked to be equal,
 bit for bit, to :meth:`~dmrt.preprocess.depthmaps.DepthMapRenderer.render` of the same camera.
+``--overlap both`` runs each budget twice: with every map kept on the GPU and each batch splatted
+into all of them as it is uploaded (mode ``overlapped``), and without (``resident`` where the cloud
+fits: uploaded whole, then splatted camera by camera), so that the two shapes of the same splats can
+be compared on the GPU.
 
 ``--stages`` also times, one by one, the CPU stages around the GPU that the preprocessing runs per
-point (packing the chunks into GPU batches with their culling boxes; the copy to the GPU) and per
-map (writing its EXR), as us/point and ms/map, the best of three.
+point (packing the chunks into GPU batches with their culling boxes, on one thread; culling each
+batch for every photo, on one thread; the whole feed, those two, on ``--feed-threads`` threads; the
+copy to the GPU) and per map (writing its EXR), as us/point and ms/map, the best of three.
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ import numpy as np
 
 from dmrt.camera import Camera
 from dmrt.io.exr import write_depth_exr
-from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer, _batches, depth_map_size
+from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer, _batches, _Runs, depth_map_size
 from dmrt.gl import GpuTimer, get_context, renderer_info
 
 BENCH_VERSION = 1
@@ -90,10 +96,11 @@ def make_cameras(n_photos: int, width: int, seed: int = 0, fov_x: float = 60.0):
 
 
 def run_one(ctx, method: str, chunks, cameras, width: int, resident_mb: float, check: bool,
-            chunk_points: int) -> dict:
+            chunk_points: int, overlap: bool = True, feed_threads: int = DepthMapConfig().feed_threads) -> dict:
     """Time one render_many over every camera; returns the measurements."""
     timer = GpuTimer(ctx)
-    config = DepthMapConfig(width=width, method=method, chunk_points=chunk_points)
+    config = DepthMapConfig(width=width, method=method, chunk_points=chunk_points, overlap=overlap,
+                            feed_threads=feed_threads)
     renderer = DepthMapRenderer(ctx, config, timer=timer)
     points = sum(len(c[0]) for c in chunks)
     try:
@@ -121,7 +128,8 @@ def run_one(ctx, method: str, chunks, cameras, width: int, resident_mb: float, c
     splat_s = gpu.get("depthmap", 0.0) / 1e3
     n = len(cameras)
     return {
-        "method": method, "resident_mb": resident_mb, "mode": stats["mode"], "groups": stats["groups"],
+        "method": method, "resident_mb": resident_mb, "overlap": overlap, "feed_threads": feed_threads,
+        "mode": stats["mode"], "groups": stats["groups"], "splat_wait_s": stats["splat_wait_s"],
         "points": points, "photos": n,
         "upload_gpu_ms": gpu.get("depthmap_upload", 0.0), "upload_wall_s": stats["upload_s"],
         "splat_gpu_ms": gpu.get("depthmap", 0.0), "splat_gpu_ms_per_photo": gpu.get("depthmap", 0.0) / n,
@@ -136,18 +144,28 @@ def run_one(ctx, method: str, chunks, cameras, width: int, resident_mb: float, c
     }
 
 
-def stage_costs(ctx, chunks, chunk_points: int, depth: np.ndarray, folder) -> dict:
+def stage_costs(ctx, chunks, chunk_points: int, cameras, width: int, feed_threads: int, depth: np.ndarray,
+                folder) -> dict:
     """Best-of-three wall time of each CPU stage of the depth-map phase around the GPU: ``pack_us``
-    (chunks to float32 batches with their culling buckets, us/point), ``upload_us`` (the batches'
-    copy into GPU buffers, finished, us/point) and ``exr_ms`` (writing ``depth`` as an EXR, ms/map)."""
+    (chunks to float32 batches with their culling buckets, one thread, us/point), ``cull_us`` (the
+    runs of each batch that each of ``cameras`` splats, one thread, us/point), ``feed_us`` (both,
+    as render_many's feed runs them on ``feed_threads`` threads, us/point), ``upload_us`` (the
+    batches' copy into GPU buffers, finished, us/point) and ``exr_ms`` (writing ``depth`` as an
+    EXR, ms/map)."""
     points = sum(len(c[0]) for c in chunks)
+    cull = DepthMapConfig().cull_points
+    maps = [c.scaled(*depth_map_size(c, width)) for c in cameras]
     batches = []
 
     def pack():
-        batches[:] = list(_batches(iter(chunks), chunk_points, DepthMapConfig().cull_points))
+        batches[:] = list(_batches(iter(chunks), chunk_points, cull))
+
+    def feed():
+        for _ in _batches(iter(chunks), chunk_points, cull, maps, feed_threads):
+            pass
 
     def upload():
-        buffers = [ctx.buffer(rows) for rows, _ in batches]
+        buffers = [ctx.buffer(rows) for rows, _, _ in batches]
         ctx.finish()
         for b in buffers:
             b.release()
@@ -160,7 +178,9 @@ def stage_costs(ctx, chunks, chunk_points: int, depth: np.ndarray, folder) -> di
             times.append(time.perf_counter() - t0)
         return min(times)
 
-    return {"pack_us": 1e6 * best(pack) / points, "upload_us": 1e6 * best(upload) / points,
+    return {"pack_us": 1e6 * best(pack) / points,
+            "cull_us": 1e6 * best(lambda: [_Runs.of(b, len(rows), maps) for rows, b, _ in batches]) / points,
+            "feed_us": 1e6 * best(feed) / points, "upload_us": 1e6 * best(upload) / points,
             "exr_ms": 1e3 * best(lambda: write_depth_exr(os.path.join(folder, "stage.exr"), depth))}
 
 
@@ -174,6 +194,11 @@ def main(argv=None):
                     help="GPU budgets to run (a small one forces the grouped mode)")
     ap.add_argument("--chunk-points", type=int, default=DepthMapConfig().chunk_points,
                     help="points per GPU batch (DepthMapConfig.chunk_points)")
+    ap.add_argument("--overlap", choices=["on", "off", "both"], default="on",
+                    help="render_many's overlapped mode where the maps fit (DepthMapConfig.overlap); both: "
+                         "each budget with and without")
+    ap.add_argument("--feed-threads", type=int, default=DepthMapConfig().feed_threads,
+                    help="threads that pack and cull the batches (DepthMapConfig.feed_threads)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-check", action="store_true", help="skip the bit-identity check against render()")
     ap.add_argument("--out", help="write the results as JSON here")
@@ -201,7 +226,8 @@ def main(argv=None):
         "parameters": {"points": args.points, "photos": args.photos, "width": w, "height": h,
                        "methods": methods, "resident_mb": args.resident_mb, "seed": args.seed,
                        "box_m": BOX.tolist(), "point_spacing_m": spacing, "generate_s": gen_s,
-                       "chunk_points": args.chunk_points},
+                       "chunk_points": args.chunk_points, "overlap": args.overlap,
+                       "feed_threads": args.feed_threads},
         "results": [],
     }
     results = out["results"]
@@ -214,23 +240,27 @@ def main(argv=None):
         finally:
             renderer.release()
         with tempfile.TemporaryDirectory() as folder:
-            out["stages"] = stage_costs(ctx, chunks, args.chunk_points, depth, folder)
+            out["stages"] = stage_costs(ctx, chunks, args.chunk_points, cameras, args.width, args.feed_threads,
+                                        depth, folder)
         print("  stages: " + ", ".join(f"{k} {v:.4f}" for k, v in out["stages"].items()), flush=True)
+    overlaps = {"on": [True], "off": [False], "both": [True, False]}[args.overlap]
     for method in methods:
         for budget in args.resident_mb:
-            r = run_one(ctx, method, chunks, cameras, args.width, budget, not args.no_check, args.chunk_points)
-            results.append(r)
-            print(f"  {method} {budget:g} MB: {r['mode']}, {r['total_wall_s']:.2f} s, "
-                  f"{r['splats_per_s'] or 0:.3g} splats/s", flush=True)
-            if args.out:  # after every run: a later one may not finish
-                with open(args.out, "w") as f:
-                    json.dump(out, f, indent=1)
+            for overlap in overlaps:
+                r = run_one(ctx, method, chunks, cameras, args.width, budget, not args.no_check, args.chunk_points,
+                            overlap, args.feed_threads)
+                results.append(r)
+                print(f"  {method} {budget:g} MB: {r['mode']}, {r['total_wall_s']:.2f} s, "
+                      f"{r['splats_per_s'] or 0:.3g} splats/s", flush=True)
+                if args.out:  # after every run: a later one may not finish
+                    with open(args.out, "w") as f:
+                        json.dump(out, f, indent=1)
 
-    head = ["method", "budget MB", "mode", "groups", "upload GPU ms", "upload wall s", "splat GPU ms",
+    head = ["method", "budget MB", "mode", "groups", "upload GPU ms", "upload wall s", "wait s", "splat GPU ms",
             "splat ms/photo", "readback GPU ms", "readback wall s", "total wall s", "wall ms/photo",
             "splats/s", "splats/s wall", "coverage", "== render"]
     rows = [[r["method"], f"{r['resident_mb']:g}", r["mode"], r["groups"], f"{r['upload_gpu_ms']:.1f}",
-             f"{r['upload_wall_s']:.2f}", f"{r['splat_gpu_ms']:.1f}", f"{r['splat_gpu_ms_per_photo']:.3f}",
+             f"{r['upload_wall_s']:.2f}", f"{r['splat_wait_s']:.2f}", f"{r['splat_gpu_ms']:.1f}", f"{r['splat_gpu_ms_per_photo']:.3f}",
              f"{r['readback_gpu_ms']:.1f}", f"{r['readback_wall_s']:.2f}", f"{r['total_wall_s']:.2f}",
              f"{r['wall_ms_per_photo']:.2f}", f"{r['splats_per_s'] or 0:.3g}", f"{r['splats_per_s_wall']:.3g}",
              f"{r['coverage_mean']:.2f}", r["equal_to_render"]] for r in results]

@@ -15,7 +15,6 @@ from dmrt.io.exr import read_depth_exr, write_depth_exr
 from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer, depth_map_size
 from dmrt.errors import InputError
 from dmrt.gl import GpuTimer
-from dmrt.preprocess.pipeline import _read_ahead
 from reference.twins import splat_depth_map
 
 W, H = 96, 64  # depth-map size used throughout: small enough for llvmpipe and the numpy reference
@@ -263,29 +262,31 @@ def many_scene():
     return cams, chunks
 
 
-# "ahead": the GPU batches packed and bucketed on a thread (the preprocessing's), which every mode
-# drops half read at some point (the first upload that exceeds the budget, an early stop)
-@pytest.mark.parametrize("method", ["compute", "raster", "ahead"])
-@pytest.mark.parametrize("mode", ["resident", "grouped", "camera-groups", "streamed"])
+# "threads": the GPU batches packed, bucketed and culled on three feed threads (compute and
+# raster: on one), which every mode drops half read at some point (the first upload that exceeds
+# the budget, an early stop)
+@pytest.mark.parametrize("method", ["compute", "raster", "threads"])
+@pytest.mark.parametrize("mode", ["overlapped", "resident", "grouped", "camera-groups", "streamed"])
 def test_render_many_equals_render(ctx, many_scene, method, mode):
     cams, chunks = many_scene
     chunk_points = 256
     timer = GpuTimer(ctx)
     threads = threading.active_count()
-    renderer = DepthMapRenderer(ctx, DepthMapConfig(width=W, method=method.replace("ahead", "compute"),
-                                                    chunk_points=chunk_points),
-                                timer=timer, ahead=_read_ahead if method == "ahead" else None)
+    config = DepthMapConfig(width=W, method=method.replace("threads", "compute"), chunk_points=chunk_points,
+                            feed_threads=3 if method == "threads" else 1, overlap=mode == "overlapped")
+    renderer = DepthMapRenderer(ctx, config, timer=timer)
     try:
         expected = [renderer.render(c, iter(chunks)) for c in cams]
         maps = sum(renderer.map_bytes(c) for c in cams)
         assert maps == W * (H + 72) * (8 if method == "raster" else 4)
         batch = chunk_points * 7 * 4
         cloud = sum(len(c[0]) for c in chunks) * 7 * 4
-        # resident: the whole cloud; grouped: the maps and three batches; camera-groups: one map and
-        # three batches (a group per camera); streamed: not even one map and a batch
+        # overlapped: the maps and two batches; resident: the whole cloud; grouped: the maps and
+        # three batches; camera-groups: one map and three batches (a group per camera); streamed:
+        # not even one map and a batch
         one = max(renderer.map_bytes(c) for c in cams)
-        budget = {"resident": cloud, "grouped": maps + 3 * batch, "camera-groups": one + 3 * batch,
-                  "streamed": one + batch - 1}[mode]
+        budget = {"overlapped": maps + 2 * batch, "resident": cloud, "grouped": maps + 3 * batch,
+                  "camera-groups": one + 3 * batch, "streamed": one + batch - 1}[mode]
         assert budget < cloud or mode == "resident"
         calls = []
 
@@ -301,7 +302,10 @@ def test_render_many_equals_render(ctx, many_scene, method, mode):
         for (_, depth), want in zip(got, expected):
             assert depth.dtype == np.float32 and depth.shape == want.shape
             np.testing.assert_array_equal(depth, want)  # nearest-wins in any order: bit-identical
-        if mode == "resident":
+        if mode == "overlapped":  # one upload and one timed section of every camera's splats per batch
+            assert len(calls) == 1 and stats["groups"] == -(-cloud // batch) and stats["camera_groups"] == 1
+            assert timer.counts["depthmap"] == timer.counts["depthmap_upload"] == stats["groups"]
+        elif mode == "resident":
             assert len(calls) == 1 and stats["groups"] == 1
             assert timer.counts["depthmap"] == len(cams)  # one section per camera
             assert timer.counts["depthmap_upload"] == -(-cloud // batch)  # every batch once
@@ -323,9 +327,15 @@ def test_render_many_equals_render(ctx, many_scene, method, mode):
         np.testing.assert_array_equal(next(first)[1], expected[0])
         first.close()
         assert threading.active_count() == threads  # no batch producer left behind
+        # a bad chunk fails the call, and leaves no feed thread behind either
+        p, n, r = chunks[0]
+        with pytest.raises(ValueError, match="depth-map chunk"):
+            list(renderer.render_many(cams, lambda: iter([*chunks, (p, n, r[:-1])]), resident_mb=budget / 2**20))
+        assert threading.active_count() == threads
         # no points at all: empty maps
         empty = list(renderer.render_many(cams, lambda: iter([])))
-        assert all((d == 0).all() for _, d in empty) and renderer.last_stats["mode"] == "resident"
+        assert all((d == 0).all() for _, d in empty)
+        assert renderer.last_stats["mode"] == ("overlapped" if config.overlap else "resident")
     finally:
         renderer.release()
         renderer.release()  # twice is fine
@@ -398,7 +408,7 @@ def test_culled_depth_maps_of_the_tiny_scene_equal_the_whole_ones(tiny_scene, tm
         assert (whole > 0).mean() > 0.9
         np.testing.assert_array_equal(culled, whole)
     whole, culled = walls["whole"], walls["culled"]
-    assert whole["mode"] == "resident" and whole["splats"] == whole["splats_all"] == 4 * octree.n_points
+    assert whole["mode"] == "overlapped" and whole["splats"] == whole["splats_all"] == 4 * octree.n_points
     assert culled["mode"] == "grouped" and culled["camera_groups"] == 2
     # each photo sees about one of the two rooms; buckets of 1024 points (a level's Morton order)
     # keep a margin around that: 62 % of the splats were sent
@@ -408,7 +418,8 @@ def test_culled_depth_maps_of_the_tiny_scene_equal_the_whole_ones(tiny_scene, tm
 def test_batch_buckets_equal_those_of_the_whole_batch():
     """Batches hold the chunks' values as float32 rows, and their culling buckets, reduced chunk
     piece by chunk piece (over the chunks' own arrays where they are float32), are Buckets.of the
-    batch's rows cut where a chunk begins."""
+    batch's rows cut where a chunk begins; packed on several threads, the same batches in order,
+    with each camera's runs those of its visible buckets."""
     from dmrt.preprocess.depthmaps import _batches
     from dmrt.preprocess.frustum import Buckets
 
@@ -418,14 +429,29 @@ def test_batch_buckets_equal_those_of_the_whole_batch():
                rng.random(m).astype(np.float32 if k % 3 else np.float64)) for k, m in enumerate(sizes)]
     chunks[2][0][7] = np.nan  # a NaN point spoils nothing but its box
     starts = np.cumsum([0] + sizes)[:-1]
+    # two cameras looking at the points, one looking away from them all
+    cams = [Camera.look_at(f"c{k}", eye=eye, target=target, width=W, height=H)
+            for k, (eye, target) in enumerate([((0, -3, 0.5), (0, 0, 0)), ((0, 0, 10), (0, 10, 14)),
+                                                ((2.5, 0, 0.2), (0, 0, 0))])]
     batches = list(_batches(iter(chunks), 500, cull=64))
-    assert [len(rows) for rows, _ in batches] == [500] * 4 + [sum(sizes) - 2000]
+    threaded = list(_batches(iter(chunks), 500, cull=64, cameras=cams, threads=3))
+    assert [len(rows) for rows, _, _ in batches] == [500] * 4 + [sum(sizes) - 2000]
     # the rows: each value cast to float32 (float64 chunks) or copied bit for bit (float32 ones)
     want = np.concatenate([np.column_stack(c).astype(np.float32) for c in chunks if len(c[0])])
-    np.testing.assert_array_equal(np.concatenate([rows for rows, _ in batches]).view(np.uint32), want.view(np.uint32))
-    for b, (rows, got) in enumerate(batches):
+    np.testing.assert_array_equal(np.concatenate([rows for rows, _, _ in batches]).view(np.uint32),
+                                  want.view(np.uint32))
+    sent = np.zeros(len(cams), np.int64)
+    for b, ((rows, got, _), (rows3, got3, runs)) in enumerate(zip(batches, threaded, strict=True)):
+        np.testing.assert_array_equal(rows3.view(np.uint32), rows.view(np.uint32))
         breaks = [s - 500 * b for s, m in zip(starts, sizes) if m and 0 < s - 500 * b < len(rows)]
         want = Buckets.of(rows[:, 0:3], rows[:, 6], 64, breaks)
         for k in ("starts", "counts", "lo", "hi"):
             np.testing.assert_array_equal(getattr(got, k), getattr(want, k))
-    assert all(buckets is None for _, buckets in _batches(iter(chunks), 500))
+            np.testing.assert_array_equal(getattr(got3, k), getattr(want, k))
+        for i, cam in enumerate(cams):  # all cameras culled at once as each one alone
+            for x, y in zip(runs[i], want.runs(want.visible(cam, lines=True)), strict=True):
+                np.testing.assert_array_equal(x, y)
+            sent[i] += runs[i][1].sum()
+    # the camera looking away splats only the bucket of the NaN point (kept by every camera)
+    assert sent[0] > 1000 and sent[2] > 1000 and sent[1] <= 64
+    assert all(buckets is None and runs is None for _, buckets, runs in _batches(iter(chunks), 500))

@@ -105,23 +105,33 @@ class Buckets:
         map's: :meth:`Camera.scaled`). ``lines`` : splats tested against each pixel's whole line
         (the depth-map shaders' grazing rule), not only its ray.
         """
-        if not len(self):
-            return np.zeros(0, bool)
+        return self.visible_to([camera], lines)[0]
+
+    def visible_to(self, cameras, lines: bool = False) -> np.ndarray:
+        """(c, b) bool: :meth:`visible` of each of ``cameras`` (a sequence of c), in one pass over
+        the boxes (a batch of points culled for 192 photos at once: ~1 ms instead of 192 x 0.1)."""
+        if not len(self) or not len(cameras):
+            return np.zeros((len(cameras), len(self)), bool)
         m = MARGIN_PX
-        # camera-space planes n . x >= 0 bounding the frustum: near, left, right, top, bottom
-        planes = np.array([[0.0, 0.0, 1.0],
-                           [camera.fx, 0.0, camera.cx + m],
-                           [-camera.fx, 0.0, camera.width + m - camera.cx],
-                           [0.0, camera.fy, camera.cy + m],
-                           [0.0, -camera.fy, camera.height + m - camera.cy]])
-        normals, offsets = planes @ camera.R, planes @ camera.t  # n . (R p + t), p in the points' frame
+        # camera-space planes n . x >= 0 bounding each frustum: near, left, right, top, bottom
+        planes = np.array([[[0.0, 0.0, 1.0],
+                            [c.fx, 0.0, c.cx + m],
+                            [-c.fx, 0.0, c.width + m - c.cx],
+                            [0.0, c.fy, c.cy + m],
+                            [0.0, -c.fy, c.height + m - c.cy]] for c in cameras])
+        R = np.stack([c.R for c in cameras])
+        t = np.stack([c.t for c in cameras])
+        # n . (R p + t), p in the points' frame: (c * 5, 3) normals and (c * 5,) offsets
+        normals, offsets = (planes @ R).reshape(-1, 3), np.einsum("ckj,cj->ck", planes, t).reshape(-1)
         centre, half = (self.lo + self.hi) / 2, (self.hi - self.lo) / 2
-        mid = centre @ normals.T + offsets    # (b, 5) plane value at each box's centre
-        reach = half @ np.abs(normals).T      # (b, 5) its largest change over the box
+        shape = (len(cameras), 5, len(self))
+        mid = (_dot(normals, centre) + offsets[:, None]).reshape(shape)  # plane value at each box's centre
+        reach = _dot(np.abs(normals), half).reshape(shape)               # its largest change over the box
+        top = mid + reach
         # a box with a NaN (a NaN point) compares False everywhere: kept, as are infinite ones
-        keep = ~np.isfinite(mid + reach).all(axis=1) | (mid + reach >= 0).all(axis=1)
+        keep = ~np.isfinite(top).all(axis=1) | (top >= 0).all(axis=1)
         if lines:
-            keep |= (mid - reach <= 0).all(axis=1) & (mid[:, 0] + reach[:, 0] > 0)
+            keep |= (mid - reach <= 0).all(axis=1) & (top[:, 0] > 0)
         return keep
 
     def runs(self, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -140,3 +150,10 @@ class Buckets:
         first, count = self.runs(mask)
         skip = first - np.concatenate([[0], np.cumsum(count)[:-1]])  # rows left out before each run
         return np.repeat(skip, count) + np.arange(count.sum(), dtype=np.int64)
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(m, n): ``a @ b.T`` of (m, 3) and (n, 3) float64, summed term by term: a BLAS product this
+    thin took 2-10 ms for (960, 3) x (3, 249) where OpenBLAS's threads had to wake (0.1 ms in a
+    tight loop), and several threads cull at once (:mod:`dmrt.preprocess.depthmaps`)."""
+    return a[:, 0:1] * b[:, 0] + a[:, 1:2] * b[:, 1] + a[:, 2:3] * b[:, 2]

@@ -147,8 +147,9 @@ def _depth_renderer(work, ranges, has_normals: bool, config: PreprocessConfig):
     list of :class:`~dmrt.preprocess.octree.OctreeRange`, read in turn) with their normals and
     radii: the octree's own where it carries them (the scan path: :func:`normals_radii_phase`),
     else ``work/attrs``'s; each call of the source reads its chunks two ahead of the consumer
-    (:func:`_read_ahead`), and the renderer packs and buckets its GPU batches two ahead of its
-    uploads on another thread, so that reading, packing and uploading overlap."""
+    (:func:`_read_ahead`), and the renderer packs, buckets and culls its GPU batches on its feed
+    threads ahead of its uploads, so that reading, packing and uploading (and, in its overlapped
+    mode, splatting) overlap."""
     from dmrt.gl import GpuTimer, get_context
     from dmrt.preprocess.depthmaps import DepthMapConfig, DepthMapRenderer
 
@@ -178,8 +179,7 @@ def _depth_renderer(work, ranges, has_normals: bool, config: PreprocessConfig):
     # GPU batches of one read chunk: on a CPU renderer (llvmpipe) GPU buffers are host memory
     renderer = DepthMapRenderer(ctx, DepthMapConfig(width=config.depthmap_width, method=config.depthmap_method,
                                                     chunk_points=config.chunk_points,
-                                                    cull_points=config.cull_points), timer=timer,
-                                ahead=_read_ahead)  # packing and bucketing a batch on a thread too
+                                                    cull_points=config.cull_points), timer=timer)
     return renderer, hd_chunks, timer
 
 
@@ -223,13 +223,15 @@ def render_depth_maps(cameras, names, work, out_dir, has_normals: bool, config: 
 
 
 def _wall_seconds(renderer, render_s: float) -> dict:
-    """Where a render_many loop's ``render_s`` wall seconds went: ``upload_s`` (reading, packing
-    and uploading the cloud), ``readback_s`` (waiting for and copying back the maps), the rest being
-    splatting and the caller's work between maps; with ``mode``, ``camera_groups`` and the frustum
-    culling's ``splats`` sent of ``splats_all`` (:attr:`DepthMapRenderer.last_stats`)."""
+    """Where a render_many loop's ``render_s`` wall seconds went: ``upload_s`` (waiting for the
+    cloud's batches, read, packed and culled on other threads, and uploading them), ``splat_wait_s``
+    (the overlapped mode's waits for the GPU's splats of an earlier batch), ``readback_s`` (waiting
+    for and copying back the maps), the rest being splatting and the caller's work between maps;
+    with ``mode``, ``camera_groups`` and the frustum culling's ``splats`` sent of ``splats_all``
+    (:attr:`DepthMapRenderer.last_stats`)."""
     stats = renderer.last_stats
     return {"mode": stats.get("mode"), "camera_groups": stats.get("camera_groups"), "render_s": round(render_s, 3),
-            **{k: round(stats.get(k, 0.0), 3) for k in ("upload_s", "readback_s")},
+            **{k: round(stats.get(k, 0.0), 3) for k in ("upload_s", "splat_wait_s", "readback_s")},
             **{k: int(stats.get(k, 0)) for k in ("splats", "splats_all")}}
 
 
