@@ -74,15 +74,16 @@ uniform ivec2 u_tiles;  // tiles per row, tile rows
 
 // -- long lists split over workgroups (TileVisibility's split_min) ------------------------------
 // The raster (SPLIT 1) hands a tile whose list is longer than u_split_min to the split passes in
-// slices of BATCH discs, one workgroup a slice (dmrt_tiles_split.glsl, and the labeling pass's
-// SPLIT_PASS): each writes its slice's result per pixel, the last of the tile's slices to finish
-// merges them. The buffer's layout is dmrt/gl/abi.py's B_TILE_SPLIT.
+// slices of BATCH discs: a pass with a workgroup per slice writes each pixel's result over the
+// slice (its partial), then a pass with a workgroup per split tile takes the smallest of its slices'
+// (dmrt_tiles_split.glsl; the labeling pass's SPLIT_PASS 1 and 2). Two dispatches, so the merge
+// reads the partials with plain loads after a memory barrier. The buffer's layout is
+// dmrt/gl/abi.py's B_TILE_SPLIT.
 #ifndef SPLIT_BUFFER
 #define SPLIT_BUFFER 0
 #endif
 #if SPLIT_BUFFER
-// coherent: the last slice reads the others' partials, written by other workgroups
-layout(std430, binding = B_TILE_SPLIT) coherent buffer Split { uint split[]; };
+layout(std430, binding = B_TILE_SPLIT) buffer Split { uint split[]; };
 uniform uint u_slots;  // slices the buffer holds
 
 struct SplitSlice {
@@ -92,13 +93,22 @@ struct SplitSlice {
     uint index;  // this slice's index among them: discs [index * BATCH, (index + 1) * BATCH) of the list
 };
 
-uint split_tiles_at() { return 4u + 4u * u_slots; }
-uint split_done_at() { return split_tiles_at() + uint(u_tiles.x * u_tiles.y); }
-uint split_partial_at(uint slot) { return split_done_at() + u_slots + 2u * uint(TILE * TILE) * slot; }
+uint split_tile_items_at() { return 8u + 4u * u_slots; }
+uint split_tiles_at() { return 8u + 8u * u_slots; }
+uint split_partial_at(uint slot) {
+    return split_tiles_at() + uint(u_tiles.x * u_tiles.y) + 2u * uint(TILE * TILE) * slot;
+}
 
+// Slice `slot` of the slice pass's dispatch.
 SplitSlice split_slice(uint slot) {
-    uint o = 4u + 4u * slot;
+    uint o = 8u + 4u * slot;
     return SplitSlice(split[o], split[o + 1u], split[o + 2u], split[o + 3u]);
+}
+
+// Split tile `i` of the merge pass's dispatch (index 0).
+SplitSlice split_tile(uint i) {
+    uint o = split_tile_items_at() + 4u * i;
+    return SplitSlice(split[o], split[o + 1u], split[o + 2u], 0u);
 }
 
 ivec2 split_tile_origin(uint tile) {
@@ -110,32 +120,22 @@ bool split_handed_over(uint tile) {
     return split[split_tiles_at() + tile] != EMPTY_BITS;
 }
 
-#if defined COMPUTE_SHADER
-shared bool s_split_last;
-
-// Write this slice's result of the invocation's pixel (`mine`: a key, smaller is better: (depth or
-// distance bits, label)); false in every workgroup of the tile but the last to finish, which gets
-// the smallest of all its slices' in `best` (and resets the tile's counter for the next pass).
-// Call it from uniform control flow: it holds barriers.
-bool split_merge(SplitSlice slice, uint lid, uvec2 mine, out uvec2 best) {
+// The slice pass: the slice's result for pixel `lid` of its tile (a key, smaller is better:
+// (depth or distance bits, label)).
+void split_write_partial(SplitSlice slice, uint lid, uvec2 key) {
     uint at = split_partial_at(slice.first + slice.index) + 2u * lid;
-    split[at] = mine.x;
-    split[at + 1u] = mine.y;
-    memoryBarrierBuffer();  // the partials before the count that says they are there
-    barrier();
-    if (lid == 0u) s_split_last = atomicAdd(split[split_done_at() + slice.first], 1u) == slice.count - 1u;
-    memoryBarrierShared();
-    barrier();
-    best = mine;
-    if (!s_split_last) return false;
-    memoryBarrierBuffer();
-    for (uint q = slice.first; q < slice.first + slice.count; ++q) {
+    split[at] = key.x;
+    split[at + 1u] = key.y;
+}
+
+// The merge pass: the smallest of the tile's slices' results for pixel `lid`.
+uvec2 split_merged(SplitSlice tile, uint lid) {
+    uvec2 best = uvec2(EMPTY_BITS);
+    for (uint q = tile.first; q < tile.first + tile.count; ++q) {
         uint a = split_partial_at(q) + 2u * lid;
         uvec2 v = uvec2(split[a], split[a + 1u]);
         if (v.x < best.x || (v.x == best.x && v.y < best.y)) best = v;
     }
-    if (lid == 0u) split[split_done_at() + slice.first] = 0u;
-    return true;
+    return best;
 }
-#endif
 #endif

@@ -12,9 +12,9 @@
 // hundreds), and only discs past the 256th are tested.
 //
 // Long lists (TileVisibility's split_min): with SPLIT 1 the workgroup of a tile whose list the raster
-// handed to the split passes (dmrt_tiles_common.glsl) does nothing; SPLIT_PASS 1 is the pass that
-// labels those tiles, a workgroup per slice of BATCH discs, the last of a tile's slices to finish
-// taking the nearest of all the slices' and writing the output (split_merge).
+// handed to the split passes (dmrt_tiles_common.glsl) does nothing; those tiles are labelled by
+// SPLIT_PASS 1, a workgroup per slice of BATCH discs writing its nearest per pixel, then SPLIT_PASS
+// 2, a workgroup per split tile taking the nearest of its slices' and writing the output.
 //
 // Output: FINALIZE 1 -> each pixel's final label in its Hit record (dmrt_final_label.glsl: the pass
 // of dmrt_label_finalize.glsl done here, without writing the labels and reading them back); else
@@ -97,7 +97,7 @@ void visit(uint word, uint base) {
 
 void main() {
 #if SPLIT_PASS
-    SplitSlice slice = split_slice(gl_WorkGroupID.x);
+    SplitSlice slice = SPLIT_PASS == 1 ? split_slice(gl_WorkGroupID.x) : split_tile(gl_WorkGroupID.x);
     uint tile = slice.tile;
     ivec2 origin = split_tile_origin(tile);
 #else
@@ -125,10 +125,12 @@ void main() {
     // the raster's condition for holding the list in shared memory, on the same (cut) length
     uint count = min(end, u_capacity) - min(start, u_capacity);
     bool masked = bool(HIT_MASKS) && count <= uint(BATCH);
-#if SPLIT_PASS
+#if SPLIT_PASS == 1
     masked = false;  // the raster wrote no masks for a tile it handed over
     start += slice.index * uint(BATCH);
     end = min(end, start + uint(BATCH));
+#elif SPLIT_PASS == 2
+    end = start;  // no walk: the slices' nearest
 #endif
     for (uint base = start; base < end; base += uint(THREADS)) {
         bool by_masks = masked && base == start;  // the same for the whole workgroup
@@ -164,11 +166,13 @@ void main() {
         }
         barrier();
     }
-#if SPLIT_PASS
-    uvec2 best;
-    if (!split_merge(slice, lid, uvec2(g_best, uint(g_best_label)), best)) return;
+#if SPLIT_PASS == 1
+    split_write_partial(slice, lid, uvec2(g_best, uint(g_best_label)));
+    return;
+#elif SPLIT_PASS == 2
+    uvec2 best = split_merged(slice, lid);
     g_best = best.x;
-    g_best_label = int(best.y);
+    g_best_label = best.x == EMPTY_BITS ? EMPTY_LABEL : int(best.y);
 #endif
     if (!inside) return;
 #if FINALIZE

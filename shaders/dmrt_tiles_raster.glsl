@@ -374,7 +374,11 @@ void main() {
             uint at = atomicAdd(split[3], n);  // slices reserved: once past the room, every later one is too
             if (at + n <= u_slots) {
                 first = at;
-                atomicMax(split[0], at + n);  // the split passes' workgroups
+                atomicMax(split[0], at + n);  // the slice pass's workgroups
+                uint o = split_tile_items_at() + 4u * atomicAdd(split[4], 1u);  // the merge pass's
+                split[o] = tile;
+                split[o + 1u] = at;
+                split[o + 2u] = n;
             }
         }
         split[split_tiles_at() + tile] = first;
@@ -385,7 +389,7 @@ void main() {
     if (s_split_first != EMPTY_BITS) {  // the same for the whole workgroup
         uint n = (count + uint(BATCH) - 1u) / uint(BATCH);
         for (uint s = lid; s < n; s += uint(THREADS)) {
-            uint o = 4u + 4u * (s_split_first + s);
+            uint o = 8u + 4u * (s_split_first + s);
             split[o] = tile;
             split[o + 1u] = s_split_first;
             split[o + 2u] = n;

@@ -1,22 +1,24 @@
 // Tile-binned visibility stage, a long list split over workgroups (dmrt/runtime/tiles.py, split_min):
-// one label layer of the tiles whose lists the raster (dmrt_tiles_raster.glsl, SPLIT 1) handed over,
-// one workgroup per slice of BATCH discs. A tile holds one workgroup, so a tile with thousands of
-// discs (distant sub-pixel discs piling up where a street or a block recedes to its vanishing point)
-// kept the whole frame waiting while the other tiles were long done: split into slices it runs
-// on as many SMs as it has slices.
+// one label layer of the tiles whose lists the raster (dmrt_tiles_raster.glsl, SPLIT 1) handed over.
+// A tile holds one workgroup, so a tile with thousands of discs (distant sub-pixel discs piling up
+// where a street or a block recedes to its vanishing point) kept the whole frame waiting while the
+// other tiles were long done: split into slices it runs on as many SMs as it has slices.
 //
 // Layer i (u_layer) of a pixel is the smallest (depth bits, label) among its hits behind layer i - 1
 // with another label (dmrt_tiles_raster.glsl's rule), so it is the smallest of the slices' own
-// smallest: each workgroup writes its slice's per pixel (its partial), and the last of the tile's
-// workgroups to finish (a counter per tile) takes the smallest of the partials and writes the layer,
-// EMPTY_BITS / EMPTY_LABEL where no hit passes (every layer of every pixel is written once). The
-// test is compute peeling's (splat_depth_ray on splat_ray, as splat_depth_at), so the layers equal
-// peeling's to the bit. The stage runs this program once per layer, each after the last.
+// smallest. MERGE 0: a workgroup per slice of BATCH discs writes its slice's per pixel (its
+// partial); MERGE 1, the next dispatch: a workgroup per split tile takes the smallest of its
+// slices' partials and writes the layer, EMPTY_BITS / EMPTY_LABEL where no hit passes (every layer
+// of every pixel is written once). The test is compute peeling's (splat_depth_ray on splat_ray, as
+// splat_depth_at), so the layers equal peeling's to the bit. The stage runs both once per layer.
 //
 // Buffers (binding: layout):
 //   B_LAYER_DEPTH, B_LAYER_LABEL  as dmrt_tiles_raster.glsl's (layer i - 1 read, layer i written)
 //   B_TILE_ENTRIES, B_TILE_OFFSETS  the tile lists (dmrt_tiles_bin.glsl, dmrt_tiles_scan.glsl)
-//   B_TILE_SPLIT  the slices and their partials (dmrt_tiles_common.glsl, dmrt/gl/abi.py)
+//   B_TILE_SPLIT  the slices, the split tiles and the partials (dmrt_tiles_common.glsl, dmrt/gl/abi.py)
+#ifndef MERGE
+#define MERGE 0
+#endif
 #define SPLIT_BUFFER 1
 #include "dmrt_tiles_common.glsl"
 
@@ -42,9 +44,18 @@ shared uint s_box[BATCH]; // pixel box in the tile (box_bits)
 shared uint s_live;       // some pixel of the tile still has layers to find
 
 void main() {
-    SplitSlice slice = split_slice(gl_WorkGroupID.x);
     uint lid = gl_LocalInvocationIndex;
     ivec2 local = tile_local_pixel();
+#if MERGE
+    SplitSlice tile = split_tile(gl_WorkGroupID.x);
+    ivec2 p = split_tile_origin(tile.tile) + local;
+    if (p.x >= u_size.x || p.y >= u_size.y) return;
+    uvec2 best = split_merged(tile, lid);
+    uint at = uint(u_layer) * uint(u_size.x * u_size.y) + uint(p.y * u_size.x + p.x);
+    layer_depth[at] = best.x;
+    layer_label[at] = best.x == EMPTY_BITS ? EMPTY_LABEL : int(best.y);
+#else
+    SplitSlice slice = split_slice(gl_WorkGroupID.x);
     ivec2 p = split_tile_origin(slice.tile) + local;
     bool inside = p.x < u_size.x && p.y < u_size.y;
     uint pix = inside ? uint(p.y * u_size.x + p.x) : 0u;
@@ -97,14 +108,8 @@ void main() {
             }
         }
     }
-
-    uvec2 best;
-    if (!split_merge(slice, lid, uvec2(best_d, best_l), best)) return;
-    if (inside) {
-        uint at = uint(u_layer) * plane + pix;
-        layer_depth[at] = best.x;
-        layer_label[at] = best.x == EMPTY_BITS ? EMPTY_LABEL : int(best.y);
-    }
+    split_write_partial(slice, lid, uvec2(best_d, best_l));
+#endif
 }
 
 #endif

@@ -80,9 +80,10 @@ B_KNN_CELLS = 46      # cells + 1 uvec2: a cell's z index and first point
 B_KNN_INDICES = 47    # n x k uint: the neighbours found, nearest first
 B_KNN_DISTANCES = 48  # n x k float: their distances, metres
 # the tiles path's long lists split over workgroups (dmrt/runtime/tiles.py, shaders/dmrt_tiles_split.glsl):
-# uint words: a dispatch-indirect header (slices x, 1, 1, slices reserved), a uvec4 per slice (tile,
-# its first slice, its slices, this slice), per tile its first slice or EMPTY_BITS, per slice a
-# counter of the tile's slices done, per slice and pixel of a tile its partial result (2 words)
+# uint words: two dispatch-indirect headers (slices x, 1, 1, slices reserved; split tiles x, 1, 1,
+# unused), a uvec4 per slice (tile, its first slice, its slices, this slice), a uvec4 per split tile
+# (tile, first slice, slices, unused), per tile its first slice or EMPTY_BITS, per slice and pixel of a
+# tile its partial result (2 words)
 B_TILE_SPLIT = 49
 
 # -- sentinels ---------------------------------------------------------------------------------

@@ -22,9 +22,9 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
    layer equals compute peeling's to the bit; no order among the discs is needed and nothing is
    approximated.
 5. ``dmrt_tiles_split``, on a frame whose tiles may hold long lists (``split_min``): the raster hands
-   a tile whose list is longer than ``split_min`` to this pass in slices of ``batch`` discs, one
-   workgroup a slice, a dispatch per layer; each layer is the smallest of the slices' (the last of a
-   tile's slices to finish merges them), so the layers are again peeling's. A tile is one
+   a tile whose list is longer than ``split_min`` to these passes in slices of ``batch`` discs; per
+   layer, a workgroup per slice finds each pixel's smallest over its slice, then a workgroup per
+   split tile takes the smallest of its slices', so the layers are again peeling's. A tile is one
    workgroup: where distant discs pile up in a few tiles (a street receding to its vanishing
    point: thousands of discs a tile), the frame otherwise waits for those tiles alone.
 
@@ -75,7 +75,9 @@ SPLIT_MIN = 4 * DEFAULT_BATCH
 # Slices the split buffer holds at most (2 KB of partial results each at 16 x 16 pixels: 32 MB); a
 # tile whose slices do not fit is walked by the raster alone, as without the split.
 SPLIT_SLOTS_MAX = 16384
-SPLIT_LAYOUT_WORDS = 4  # the split buffer's dispatch-indirect header (x, y, z, slices reserved)
+# the split buffer's two dispatch-indirect headers: slices (x, y, z, slices reserved), split tiles
+# (x, y, z, unused)
+SPLIT_HEADER = EMPTY_DISPATCH + EMPTY_DISPATCH
 
 
 SCAN_THREADS, SCAN_ROUNDS = 1024, 8  # dmrt_tiles_scan.glsl: its workgroup, the most quads a thread holds
@@ -174,7 +176,8 @@ class TileVisibility:
                                                         "SPLIT": split})
                          for sparse in (0, 1) if walk == "auto" or sparse == (walk == "sparse")
                          for split in ((0, 1) if self.split_min else (0,))}
-        self._split_layers = load_program(ctx, "dmrt_tiles_split", self._defines) if self.split_min else None
+        self._split_layers = [load_program(ctx, "dmrt_tiles_split", {**self._defines, "MERGE": merge})
+                              for merge in (0, 1)] if self.split_min else None
         self._last_total = 0  # the last list length read back (walk="auto" decides by it)
         self._last_longest = 0  # the longest tile's list in the same record (split_min decides by it)
         self.split: moderngl.Buffer | None = None  # the slices and their partials, once a frame splits
@@ -232,7 +235,8 @@ class TileVisibility:
     def run(self, uniforms: dict, size: tuple[int, int], layers: int, layer_depth, layer_label,
             timer=None) -> None:
         """Fill ``layers`` label layers for the camera in ``uniforms``; with ``timer``, timed as the
-        parts ``visibility:tile_lists`` (bin, scan, scatter), ``visibility:tile_raster`` and
+        parts ``visibility:tile_lists`` (bin, scan, scatter), ``visibility:tile_raster``,
+        ``visibility:tile_split`` (the split passes, on a frame that has them) and
         ``visibility:redo`` (what a frame that outgrew the list did again).
 
         Parameters
@@ -276,6 +280,9 @@ class TileVisibility:
             self._build_list(tile_uniforms, status, passes)
         with timed(timer, "visibility:tile_raster"):
             self._raster_pass(*raster)
+        if self._split_now:
+            with timed(timer, "visibility:tile_split"):
+                self._split_passes(*raster)
         if (self.check == "frame" and self._own_status) or first:
             # wait for the stage (its GPU time is not stretched: nothing is issued after it) and redo
             # the list if it outgrew its buffer; a renderer's frames are checked by end_frame but on
@@ -305,18 +312,17 @@ class TileVisibility:
         return bool(self.split_min) and self._last_longest > self.split_min
 
     def _allocate_split(self) -> None:
-        """The split buffer, (re)made when the list or the grid outgrew it: room for the slices of
-        every tile longer than ``split_min`` in a full list (each at most ``count / batch + 1``),
-        at most ``SPLIT_SLOTS_MAX``; zeros: the slices' counters start at 0 (the last slice of a
-        tile resets its own)."""
+        """The split buffer (abi.B_TILE_SPLIT), (re)made when the list or the grid outgrew it: room
+        for the slices of every tile longer than ``split_min`` in a full list (each at most
+        ``count / batch + 1``), at most ``SPLIT_SLOTS_MAX``."""
         tiles = self._grid[0] * self._grid[1]
         slots = min(SPLIT_SLOTS_MAX, self.capacity // self.batch + self.capacity // self.split_min + 1)
-        words = SPLIT_LAYOUT_WORDS + 4 * slots + tiles + slots + 2 * self.tile * self.tile * slots
+        words = len(SPLIT_HEADER) // 4 + 8 * slots + tiles + 2 * self.tile * self.tile * slots
         if self.split is not None and self.split.size == 4 * words:
             return
         if self.split is not None:
             self.split.release()
-        self.split = self.ctx.buffer(np.zeros(words, np.uint32).tobytes())
+        self.split = self.ctx.buffer(reserve=4 * words)
         self._slots = slots
 
     def _outgrown(self, total: int) -> bool:
@@ -343,6 +349,8 @@ class TileVisibility:
             with timed(timer, "visibility:redo"):
                 self._build_list(tile_uniforms, status)
                 self._raster_pass(*raster)
+                if self._split_now:
+                    self._split_passes(*raster)
 
     def _build_list(self, tile_uniforms: dict, status, timer=None) -> None:
         """Bin (count), scan, bin (scatter): each tile's slice of the list, unsorted. With ``timer``,
@@ -378,7 +386,7 @@ class TileVisibility:
         split = self._split_now = self._split()
         if split:
             self._allocate_split()
-            self.split.write(EMPTY_DISPATCH)  # no slices yet
+            self.split.write(SPLIT_HEADER)  # no slices yet
         self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label,
                    entries=self.entries, offsets=self.offsets, masks=self.masks, split=self.split if split else None)
         program = self._rasters[int(self._sparse()), int(split)]
@@ -386,11 +394,16 @@ class TileVisibility:
         set_uniforms(program, u_capacity=self.capacity, u_layers=int(layers), **split_uniforms, **tile_uniforms)
         program.run(*self._grid)
         self.ctx.memory_barrier(_BARRIER)
-        if split:  # the long lists' layers, one pass each: layer i reads layer i - 1
-            for i in range(int(layers)):
-                set_uniforms(self._split_layers, u_capacity=self.capacity, u_layer=i, **split_uniforms,
-                             **tile_uniforms)
-                self._split_layers.run_indirect(self.split)
+
+    def _split_passes(self, tile_uniforms: dict, layers: int, layer_depth, layer_label) -> None:
+        """The layers of the tiles the raster handed over (module doc, step 5): per layer (each
+        reads the one before) the slices, then the merge of each tile's slices."""
+        self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label,
+                   entries=self.entries, offsets=self.offsets, split=self.split)
+        for i in range(int(layers)):
+            for merge, program in enumerate(self._split_layers):
+                set_uniforms(program, u_capacity=self.capacity, u_layer=i, u_slots=self._slots, **tile_uniforms)
+                program.run_indirect(self.split, offset=16 * merge)  # the slices' header, then the tiles'
                 self.ctx.memory_barrier(_BARRIER)
 
     def label_pass(self, uniforms: dict, hits, key=None, vlabel=None, packed: bool = False,
@@ -426,10 +439,10 @@ class TileVisibility:
         set_uniforms(program, **values)
         program.run(*self._grid)
         self.ctx.memory_barrier(_BARRIER)
-        if split:
-            slices = load_program(self.ctx, "dmrt_tiles_labeling", {**defines, "SPLIT_PASS": 1})
-            set_uniforms(slices, **values)
-            slices.run_indirect(self.split)
+        for split_pass in (1, 2) if split else ():  # the slices, then each split tile's merge
+            program = load_program(self.ctx, "dmrt_tiles_labeling", {**defines, "SPLIT_PASS": split_pass})
+            set_uniforms(program, **values)
+            program.run_indirect(self.split, offset=16 * (split_pass - 1))
             self.ctx.memory_barrier(_BARRIER)
 
     # -- diagnostics ------------------------------------------------------------------------
@@ -455,10 +468,8 @@ class TileVisibility:
         tiles = self._grid[0] * self._grid[1]
         offsets = np.frombuffer(self.offsets.read(4 * (tiles + 1)), np.uint32)  # exclusive prefix sum + total
         split_tiles = split_slices = 0
-        if self._split_now:
-            split_slices = int(np.frombuffer(self.split.read(4), np.uint32)[0])
-            at = 4 * (SPLIT_LAYOUT_WORDS + 4 * self._slots)  # each tile's first slice (abi.B_TILE_SPLIT)
-            split_tiles = int((np.frombuffer(self.split.read(4 * tiles, offset=at), np.uint32) != abi.EMPTY_BITS).sum())
+        if self._split_now:  # the two dispatch headers' workgroups (abi.B_TILE_SPLIT)
+            split_slices, _, _, _, split_tiles = (int(v) for v in np.frombuffer(self.split.read(20), np.uint32))
         return {"entries": entries, "capacity": capacity, "dropped": entries > capacity, "large": large,
                 "longest": int(np.diff(offsets).max()) if tiles else 0,
                 "split_tiles": split_tiles, "split_slices": split_slices}
