@@ -102,9 +102,7 @@ void main() {
     ivec2 origin = split_tile_origin(tile);
 #else
     uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
-#if SPLIT
-    if (split_handed_over(tile)) return;  // the whole workgroup: SPLIT_PASS labels it
-#endif
+
     ivec2 origin = ivec2(gl_WorkGroupID.xy) * TILE;
 #endif
     uint lid = gl_LocalInvocationIndex;
@@ -125,6 +123,11 @@ void main() {
     // the raster's condition for holding the list in shared memory, on the same (cut) length
     uint count = min(end, u_capacity) - min(start, u_capacity);
     bool masked = bool(HIT_MASKS) && count <= uint(BATCH);
+#if SPLIT
+    // a tile handed to the split passes: no walk here (its output, written below, is overwritten by
+    // SPLIT_PASS 2; no return before the barriers: see dmrt_tiles_raster.glsl)
+    if (split_handed_over(tile)) end = start;
+#endif
 #if SPLIT_PASS == 1
     masked = false;  // the raster wrote no masks for a tile it handed over
     start += slice.index * uint(BATCH);

@@ -395,7 +395,13 @@ void main() {
             split[o + 2u] = n;
             split[o + 3u] = s;
         }
-        return;
+        // walked here as an empty list (empty layers, which the split passes overwrite) rather
+        // than left by a return before the barriers below: the rest of the pass keeps the control
+        // flow of the raster without SPLIT. (With a return there, H200 c097bd9, a frame with the
+        // SPLIT raster and labeling took 4.5 ms more at 1280x720 even with no list to split; which
+        // of the changes cost it is not yet measured.)
+        count = 0u;
+        g_count = 0u;
     }
 #endif
     bool cached = count <= uint(BATCH);

@@ -67,10 +67,10 @@ DEFAULT_TOP = 12
 SPARSE_MIN = 100
 
 
-# Lists longer than this are split over workgroups (split_min); a frame splits when the last list
-# length read held such a tile (frames without one run the raster alone, as if there were no split).
-# Four batches: a guess between a tile's usual ~63-180 discs and the thousands where a frame waits
-# for one tile (reports/many-photos); not yet timed.
+# The split_min that bench/split_run.sh tries (four batches: between a tile's usual ~63-180 discs and
+# the thousands where a frame waits for one tile). Off by default: on an H200 (reports/many-photos,
+# split-*.json) frames with the split passes on were slower, not faster, even those with no list to
+# split, for a cause not yet isolated.
 SPLIT_MIN = 4 * DEFAULT_BATCH
 # Slices the split buffer holds at most (2 KB of partial results each at 16 x 16 pixels: 32 MB); a
 # tile whose slices do not fit is walked by the raster alone, as without the split.
@@ -134,7 +134,8 @@ class TileVisibility:
     split_min : int
         A tile whose list holds more discs than this is walked by a workgroup per ``batch`` discs
         (module doc, step 5), on a frame after one whose list held such a tile (the status record's
-        ``tile_longest``); 0: never. The layers are the same either way.
+        ``tile_longest``); 0: never (the default: see ``SPLIT_MIN``). The layers are the same
+        either way.
 
     Attributes
     ----------
@@ -147,7 +148,7 @@ class TileVisibility:
 
     def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = DEFAULT_BATCH, top: int = DEFAULT_TOP,
                  max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None,
-                 hit_masks: bool = True, warp_blocks: bool = True, walk: str = "auto", split_min: int = SPLIT_MIN,
+                 hit_masks: bool = True, warp_blocks: bool = True, walk: str = "auto", split_min: int = 0,
                  map_defines: dict | None = None):
         if not 1 <= tile <= 32:
             raise ValueError(f"tile must be 1..32 (tile^2 invocations per workgroup), not {tile}")

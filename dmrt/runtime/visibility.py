@@ -47,7 +47,7 @@ from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import timed
 from dmrt.morton import morton_order
-from dmrt.runtime.tiles import DEFAULT_BATCH, DEFAULT_TOP, SPLIT_MIN, TileVisibility
+from dmrt.runtime.tiles import DEFAULT_BATCH, DEFAULT_TOP, TileVisibility
 
 _BARRIER = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
 
@@ -152,7 +152,7 @@ class VisibilityStage:
     def __init__(self, ctx: moderngl.Context, splats: ProxySplats, method: str = "compute", int64: bool = False,
                  slots: int = 16, n_labels: int = 256, tile_check: str = "frame", status=None,
                  hit_masks: bool = True, tile_batch: int = DEFAULT_BATCH, tile_top: int = DEFAULT_TOP,
-                 tile_walk: str = "auto", tile_split: int = SPLIT_MIN, map_defines: dict | None = None):
+                 tile_walk: str = "auto", tile_split: int = 0, map_defines: dict | None = None):
         if method not in ("compute", "raster", "kbuffer", "tiles"):
             raise ValueError(f"RenderConfig.method must be 'compute', 'kbuffer', 'tiles' or 'raster', not {method!r}")
         self.ctx, self.splats, self.method = ctx, splats, method
