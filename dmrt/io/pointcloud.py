@@ -341,6 +341,20 @@ def count_points(path) -> int:
         raise InputError(path, f"cannot read LAS/LAZ header: {e}") from None
 
 
+def exact_count(path) -> int | None:
+    """The number of points of a binary PLY from its header, its body's size checked against it
+    (``InputError`` if truncated); None for other formats, whose count takes a pass over the
+    points (E57 readers drop records flagged invalid; ascii lines are counted as read)."""
+    path = Path(path)
+    if _kind(path) != "ply":
+        return None
+    h = _read_ply_header(path)
+    if h.fmt == "ascii":
+        return None
+    _check_body_size(path, h)
+    return h.n
+
+
 def iter_point_chunks(path, chunk_size: int = 1_000_000) -> Iterator[PointCloud]:
     """Stream a cloud in chunks of at most ``chunk_size`` points, validating each chunk.
 

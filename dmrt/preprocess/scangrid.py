@@ -117,6 +117,9 @@ class ScanResult:
     source : str
         Where the structure came from: ``scans.json`` or ``e57``.
     seconds : float
+    bounds : ((3,), (3,)) float64 or None
+        The points' bounding box, world metres (lowest and highest corner): the pass read every
+        point, so the pipeline needs no pass of its own to find it (:func:`dmrt.io.scene.load_scene`).
     """
 
     folder: Path
@@ -126,6 +129,7 @@ class ScanResult:
     stations: int = 0
     source: str = ""
     seconds: float = 0.0
+    bounds: tuple[np.ndarray, np.ndarray] | None = None
 
     def names(self) -> list[str]:
         """The attributes computed, as the octree carries them."""
@@ -256,13 +260,14 @@ def scan_attributes(source, structure: ScanStructure, n_points: int, out_dir, *,
     else:
         items = [(source, p.start, p.stop, False) for p in parts]
         done = executor.map(_scan_range, items, desc="scan grid", progress=progress, threads=threads, **task)
-    n_seen = sum(n for n, _ in done)
+    n_seen = sum(n for n, _, _ in done)
     if n_seen != n_points:
         raise RuntimeError(f"the source yielded {n_seen} points, expected {n_points}")
-    counts = {k: sum(c.get(k, 0) for _, c in done) for k in ("fallback_normals", "isolated_points",
-                                                               "off_grid_points")}
+    counts = {k: sum(c.get(k, 0) for _, c, _ in done) for k in ("fallback_normals", "isolated_points",
+                                                                  "off_grid_points")}
+    bounds = (np.min([lo for _, _, (lo, _) in done], axis=0), np.max([hi for _, _, (_, hi) in done], axis=0))
     return ScanResult(out_dir, n_points, bool(normals), counts, len(structure.stations), structure.source,
-                      time.perf_counter() - t0)
+                      time.perf_counter() - t0, bounds)
 
 
 def _first_chunk(source):
@@ -300,7 +305,7 @@ def _scan_range(item, structure, out_dir: str, halo: int, scale, k_normals, norm
     """The results of points ``a .. b - 1`` of ``item = (source, a, b, whole)`` (see
     :func:`_part_chunks`), written to their rows of ``out_dir/radii.npy`` (and ``normals.npy``):
     each own chunk with its window of ``halo`` points around it, on ``threads`` threads. Returns
-    (points done, counts)."""
+    (points done, counts, (lo, hi): the bounding box of those points, (3,) float64 metres each)."""
     source, a, b, whole = item
     st = _Stations(structure, getattr(source, "path", None))
     out_r = np.load(Path(out_dir) / "radii.npy", mmap_mode="r+")
@@ -308,6 +313,7 @@ def _scan_range(item, structure, out_dir: str, halo: int, scale, k_normals, norm
     counts = dict.fromkeys(("fallback_normals", "isolated_points", "off_grid_points"), 0)
     pending: list = []
     done = 0
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
 
     def drain(limit):
         nonlocal done
@@ -335,6 +341,7 @@ def _scan_range(item, structure, out_dir: str, halo: int, scale, k_normals, norm
                 chunks.append((read, read + m, pool.submit(st.prepare, pc, read)))
                 if own:
                     cores.append((read, read + m))
+                    lo, hi = np.minimum(lo, pc.positions.min(axis=0)), np.maximum(hi, pc.positions.max(axis=0))
                 read += m
             # a chunk is processed once the halo after it is read; its window takes the prepared
             # chunks it overlaps (a task waits only on tasks queued before it: no deadlock)
@@ -353,7 +360,7 @@ def _scan_range(item, structure, out_dir: str, halo: int, scale, k_normals, norm
     for arr in (out_r, out_n):
         if arr is not None:
             arr.flush()
-    return done, counts
+    return done, counts, (lo, hi)
 
 
 class _Stations:
