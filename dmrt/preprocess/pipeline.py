@@ -414,7 +414,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
     scene: Scene = load_scene(Path(scene_dir).resolve(), chunk_size=config.chunk_points, bounds=False)
     # the time outside the phases, recorded too: loading and validating the scene (and the pass
     # for its bounds where no phase found them: load_scene_s), the census after each phase
-    # (bookkeeping_s), writing the proxies and deleting the work files (finish_s)
+    # (bookkeeping_s), writing the proxies and the rest of the work files' deletion (finish_s)
     timings: dict[str, float] = {"load_scene_s": round(time.perf_counter() - t_all, 3)}
     bookkeeping = [0.0]
 
@@ -493,8 +493,11 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         proxy = octree.read_lod(k)
         n_proxy = len(proxy["positions"])
         proxy = {"positions": proxy["positions"],
-                 "normals": proxy["normals"] if has_normals else np.asarray(attrs.normals[:n_proxy]),
-                 "hd_radii": np.asarray(proxy["radii"] if "radii" in proxy else attrs.radii[:n_proxy], np.float32)}
+                 "normals": proxy["normals"] if has_normals else np.array(attrs.normals[:n_proxy]),
+                 "hd_radii": np.array(proxy["radii"] if "radii" in proxy else attrs.radii[:n_proxy], np.float32)}
+        # the work files (the octree: 21 GB at 683M points) are read no more (the depth maps lie in
+        # the bundle; the arrays above are copies): deleted while the proxies are labelled
+        bw.discard(work)
         read_s = time.perf_counter() - t0
         proxies = label_proxies(proxy, cams_local, _DepthFiles(work.parent, depth_files), _Photos(scene),
                                 config, labeling, progress=progress, executor=executor, phase_done=ended)
@@ -529,7 +532,7 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         t0 = time.perf_counter()
         bw.write_proxy(**proxies.proxy)
         coverage = coverage_summary(proxies.candidates, [c.name for c in scene.cameras])
-        shutil.rmtree(work)
+        bw.wait_discarded()
         timings["finish_s"] = round(time.perf_counter() - t0, 3)
         timings["bookkeeping_s"] = round(bookkeeping[0], 3)
         timings["total_s"] = round(time.perf_counter() - t_all, 3)

@@ -74,6 +74,7 @@ from pathlib import Path
 import numpy as np
 
 from dmrt.errors import ConfigError, InputError
+from dmrt.io.pointcloud import extent
 from dmrt.io.stations import MAX_INDEX, ScanStructure
 from dmrt.preprocess.buckets import progress_bar
 from dmrt.preprocess.parallel import default_workers
@@ -341,7 +342,8 @@ def _scan_range(item, structure, out_dir: str, halo: int, scale, k_normals, norm
                 chunks.append((read, read + m, pool.submit(st.prepare, pc, read)))
                 if own:
                     cores.append((read, read + m))
-                    lo, hi = np.minimum(lo, pc.positions.min(axis=0)), np.maximum(hi, pc.positions.max(axis=0))
+                    c_lo, c_hi = extent(pc.positions)
+                    lo, hi = np.minimum(lo, c_lo), np.maximum(hi, c_hi)
                 read += m
             # a chunk is processed once the halo after it is read; its window takes the prepared
             # chunks it overlaps (a task waits only on tasks queued before it: no deadlock)
