@@ -292,6 +292,11 @@ def test_bundles_record_the_method_and_are_unchanged_without_structure(tiny_scen
     assert scan["normals_radii"]["method"] == "scan" and scan["normals_radii"]["normals"] == "scan"
     assert scan["normals_radii"]["fallback_normals"] < 0.01 * scan["counts"]["points"]
     assert scan["counts"]["normals_estimated"] and "scan_grid_s" in scan["timings"]
+    # the time outside the phases is recorded too; the parts do not overlap, so they lie within
+    # total_s (each, and total_s, rounded to the millisecond: 13 roundings, 6.5 ms at most)
+    t = scan["timings"]
+    parts = [v for k, v in t.items() if k.endswith("_s") and k != "total_s"]
+    assert {"load_scene_s", "bookkeeping_s", "finish_s"} <= set(t) and sum(parts) <= t["total_s"] + 0.007
 
 
 def test_the_pass_finds_the_bounds(tiny):

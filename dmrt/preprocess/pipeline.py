@@ -401,6 +401,11 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
     :func:`render_depth_phase`). The (global)
     labeling runs here. The bundle equals the in-process one; bundle.json records the workers under
     ``dask`` or ``processes``. None: everything in this process.
+
+    bundle.json's ``timings`` give each phase's seconds and the time outside them: ``load_scene_s``
+    (loading and validating the scene; on the kNN path also the pass that finds the points'
+    bounds, which the scan-grid pass finds on its own), ``bookkeeping_s`` (the census after each
+    phase) and ``finish_s`` (the proxies written, the work files' deletion waited for).
     """
     from PIL import Image
 
