@@ -308,9 +308,9 @@ def test_the_pass_finds_the_bounds(tiny):
 
 @pytest.mark.parametrize("case", ["nan", "truncated"])
 def test_bad_cloud_on_the_scan_path(case, tiny_scene, tmp_path, capfd):
-    """Where the scan-grid pass is the first to read the points (in worker processes), a NaN still
-    ends ``dmrt preprocess`` with its one line naming the point; a truncated body is refused by the
-    loader from the file's size. No bundle is left."""
+    """Where the scan-grid pass is the first to read the points (in worker processes, the NaN in a
+    chunk after the first), a NaN still ends ``dmrt preprocess`` with its one line naming the
+    point; a truncated body is refused by the loader from the file's size. No bundle is left."""
     scene = tmp_path / "scene"
     shutil.copytree(tiny_scene, scene)
     ply = scene / "points.ply"
@@ -327,5 +327,5 @@ def test_bad_cloud_on_the_scan_path(case, tiny_scene, tmp_path, capfd):
     out = tmp_path / "out"
     out.mkdir()
     line = assert_bad_input(["preprocess", scene, "--out", out / "b", "--quiet", "--radii", "scan",
-                             "--workers", 2], capfd, [ply], out)
+                             "--workers", 2, "--chunk-points", 50_000], capfd, [ply], out)
     assert re.search(pattern, line), line
