@@ -171,14 +171,15 @@ def _columns(rec: np.ndarray, names) -> np.ndarray:
     return np.stack([rec[n] for n in names], axis=1)
 
 
-def _from_record(path: Path, rec: np.ndarray, start: int) -> PointCloud:
-    """Turn a structured vertex array (PLY) into a validated PointCloud; ``start`` = index of rec[0]."""
+def _from_record(path: Path, rec: np.ndarray, start: int, with_colors: bool = True) -> PointCloud:
+    """Turn a structured vertex array (PLY) into a validated PointCloud; ``start`` = index of rec[0];
+    ``with_colors`` False leaves the colours out (None)."""
     names = rec.dtype.names
     pos = _columns(rec, ("x", "y", "z")).astype(np.float64)
     normals = colors = None
     if all(a in names for a in ("nx", "ny", "nz")):
         normals = dequantize_normals(_columns(rec, ("nx", "ny", "nz")))
-    for cn in _COLOR_NAMES:
+    for cn in _COLOR_NAMES if with_colors else ():
         if all(c in names for c in cn):
             colors = _to_uint8(_columns(rec, cn))
             break
@@ -239,7 +240,8 @@ def _validated(path: Path, pc: PointCloud, start: int) -> PointCloud:
     return pc
 
 
-def _ply_chunks(path: Path, chunk_size: int, first: int = 0, stop: int | None = None) -> Iterator[PointCloud]:
+def _ply_chunks(path: Path, chunk_size: int, first: int = 0, stop: int | None = None,
+                with_colors: bool = True) -> Iterator[PointCloud]:
     h = _read_ply_header(path)
     if h.n == 0:
         raise InputError(path, "empty point cloud (0 vertices)")
@@ -258,7 +260,7 @@ def _ply_chunks(path: Path, chunk_size: int, first: int = 0, stop: int | None = 
             count = min(chunk_size, stop - start)
             buf = f.read(count * h.dtype.itemsize)
             rec = np.frombuffer(buf, dtype=h.dtype, count=count)
-            yield _from_record(path, rec, start)
+            yield _from_record(path, rec, start, with_colors)
 
 
 def _ascii_chunks(path: Path, h: _PlyHeader, chunk_size: int) -> Iterator[PointCloud]:
@@ -390,13 +392,14 @@ class PointRange:
     stop: int
     chunk_size: int = 1_000_000
     seekable: bool = False
+    colors: bool = True  # False: a binary PLY's colours are not decoded (None), for passes without use for them
 
     def __len__(self) -> int:
         return self.stop - self.start
 
     def __call__(self) -> Iterator[PointCloud]:
         if self.seekable:
-            return _ply_chunks(self.path, self.chunk_size, self.start, self.stop)
+            return _ply_chunks(self.path, self.chunk_size, self.start, self.stop, self.colors)
         return iter_point_chunks(self.path, self.chunk_size)
 
     def split(self, parts: int) -> list["PointRange"]:
@@ -406,7 +409,7 @@ class PointRange:
         if not self.seekable or parts == 1:
             return [self]
         cuts = [self.start + len(self) * i // parts for i in range(parts + 1)]
-        return [PointRange(self.path, a, b, self.chunk_size, True) for a, b in zip(cuts, cuts[1:]) if b > a]
+        return [PointRange(self.path, a, b, self.chunk_size, True, self.colors) for a, b in zip(cuts, cuts[1:]) if b > a]
 
 
 def point_range(path, chunk_size: int = 1_000_000) -> PointRange:

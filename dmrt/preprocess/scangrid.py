@@ -68,7 +68,7 @@ import math
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -182,9 +182,10 @@ def scan_phase(scene, work, config, progress: bool = False, executor=None) -> Sc
     if scene.scan_structure is None:
         raise ConfigError("radii", f"scan: the scene {scene.root} has no scan structure (no scans.json beside "
                                    f"points.ply, no structured E57 scans with rowIndex/columnIndex)")
-    result = scan_attributes(scene.point_range(config.chunk_points), scene.scan_structure, scene.n_points,
-                           Path(work) / "scan", scale=config.radius_scale, k_normals=config.normals_k,
-                           progress=progress, executor=executor, memory_limit_mb=config.memory_limit_mb)
+    source = replace(scene.point_range(config.chunk_points), colors=False)  # the pass has no use for them
+    result = scan_attributes(source, scene.scan_structure, scene.n_points, Path(work) / "scan",
+                             scale=config.radius_scale, k_normals=config.normals_k, progress=progress,
+                             executor=executor, memory_limit_mb=config.memory_limit_mb)
     off = result.counts["off_grid_points"] / max(result.n_points, 1)
     if off > 0.01:  # a cloud that does not match its scans.json: its cells are guesses
         print(f"dmrt: warning: {scene.root / 'scans.json'}: {off:.1%} of the points lie off their station's grid "
@@ -253,8 +254,6 @@ def scan_attributes(source, structure: ScanStructure, n_points: int, out_dir, *,
         # windows in flight a task: threads + 1 pending, one being prepared
         fit = int(memory_limit_mb * 2 ** 20 / tasks / (threads + 2) / _BYTES_IN_FLIGHT)
         if fit < source.chunk_size:
-            from dataclasses import replace
-
             source = replace(source, chunk_size=max(fit, 1))
     if parts is None or len(parts) < 2:
         done = [_scan_range((source, 0, n_points, True), threads=threads, progress=progress, **task)]
@@ -289,8 +288,6 @@ def _part_chunks(source, a: int, b: int, whole: bool, halo: int):
     ranges: the halo before, its own records, the halo after."""
     if whole:
         return 0, ((pc, True) for pc in source())
-    from dataclasses import replace
-
     lo, hi = max(source.start, a - halo), min(source.stop, b + halo)
 
     def chunks():
