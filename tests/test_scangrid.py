@@ -4,6 +4,8 @@ the real pumpA file), and the pipeline's choice of method with the bundles it ma
 
 import json
 import math
+import re
+import os
 import shutil
 
 import numpy as np
@@ -17,6 +19,7 @@ from dmrt.preprocess.config import PreprocessConfig
 from dmrt.preprocess.pipeline import preprocess
 from dmrt.preprocess.scangrid import STRETCH_MAX, scan_attributes, scan_phase
 from helpers import assert_bundles_equal
+from test_bad_input import assert_bad_input
 from reference.raycast import MeshRaycaster
 from test_e57 import REAL, PUMP, needs_real, quaternion, rotation, write_raw_scans
 
@@ -289,3 +292,40 @@ def test_bundles_record_the_method_and_are_unchanged_without_structure(tiny_scen
     assert scan["normals_radii"]["method"] == "scan" and scan["normals_radii"]["normals"] == "scan"
     assert scan["normals_radii"]["fallback_normals"] < 0.01 * scan["counts"]["points"]
     assert scan["counts"]["normals_estimated"] and "scan_grid_s" in scan["timings"]
+    # the time outside the phases is recorded too; the parts do not overlap, so they lie within
+    # total_s (each, and total_s, rounded to the millisecond: 13 roundings, 6.5 ms at most)
+    t = scan["timings"]
+    parts = [v for k, v in t.items() if k.endswith("_s") and k != "total_s"]
+    assert {"load_scene_s", "bookkeeping_s", "finish_s"} <= set(t) and sum(parts) <= t["total_s"] + 0.007
+
+
+def test_the_pass_finds_the_bounds(tiny):
+    """The scan-grid pass reads every point, so its bounding box is the loader's, exactly (the
+    pipeline then skips the loader's own pass: load_scene(bounds=False))."""
+    lo, hi = tiny["result"].bounds
+    assert lo.tobytes() == tiny["scene"].bounds[0].tobytes() and hi.tobytes() == tiny["scene"].bounds[1].tobytes()
+
+
+@pytest.mark.parametrize("case", ["nan", "truncated"])
+def test_bad_cloud_on_the_scan_path(case, tiny_scene, tmp_path, capfd):
+    """Where the scan-grid pass is the first to read the points (in worker processes, the NaN in a
+    chunk after the first), a NaN still ends ``dmrt preprocess`` with its one line naming the
+    point; a truncated body is refused by the loader from the file's size. No bundle is left."""
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    ply = scene / "points.ply"
+    h = pointcloud._read_ply_header(ply)
+    if case == "nan":
+        rec = np.memmap(ply, h.dtype, "r+", offset=h.body_offset + h.skip, shape=(h.n,))
+        rec["z"][123_456] = np.nan  # in the second of two workers' ranges
+        rec.flush()
+        del rec
+        pattern = "NaN.*index 123456"
+    else:
+        os.truncate(ply, ply.stat().st_size - 100)
+        pattern = "truncated"
+    out = tmp_path / "out"
+    out.mkdir()
+    line = assert_bad_input(["preprocess", scene, "--out", out / "b", "--quiet", "--radii", "scan",
+                             "--workers", 2, "--chunk-points", 50_000], capfd, [ply], out)
+    assert re.search(pattern, line), line

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import threading
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -311,14 +312,19 @@ class BundleWriter:
     ``out`` when the ``with`` block that called :meth:`finish` ends without an error.
 
     ``force`` replaces an existing bundle; otherwise an existing ``out`` is refused up front.
+    Work files made beside the bundle's are deleted on a thread (:meth:`discard`).
     """
 
     def __init__(self, out, force: bool = False):
         self.out = Path(out)
         self._dir = atomic_dir(self.out, force=force, what="bundle")
         self._finished = False
+        # where discarded folders wait for their deletion: beside <out>.partial, on its file system
+        self._trash = self.out.with_name(f".{self.out.name}.discarded")
+        self._deleting: list[threading.Thread] = []
 
     def __enter__(self) -> "BundleWriter":
+        shutil.rmtree(self._trash, ignore_errors=True)  # left by a run that was killed
         self.tmp = self._dir.__enter__()
         for sub in ("depthmaps", "images", "images_low"):
             (self.tmp / sub).mkdir(parents=True)
@@ -354,6 +360,24 @@ class BundleWriter:
             arrays[key] = np.ascontiguousarray(arrays[key], dtype=dtype)
         np.savez(self.tmp / "proxy.npz", **arrays)
 
+    def discard(self, folder) -> None:
+        """Delete ``folder`` (work files under :attr:`tmp`) while the caller goes on: it leaves the
+        bundle at once (renamed aside) and is unlinked on a thread (tens of GB of files take
+        seconds). :meth:`wait_discarded`, and the ``with`` block's end, wait for it."""
+        self._trash.mkdir(exist_ok=True)
+        gone = self._trash / str(len(self._deleting))
+        os.replace(folder, gone)
+        thread = threading.Thread(target=shutil.rmtree, args=(gone,), kwargs={"ignore_errors": True},
+                                  name="dmrt-discard")
+        thread.start()
+        self._deleting.append(thread)
+
+    def wait_discarded(self) -> None:
+        """Return once every folder given to :meth:`discard` is deleted."""
+        for thread in self._deleting:
+            thread.join()
+        shutil.rmtree(self._trash, ignore_errors=True)
+
     def finish(self, meta: dict) -> Path:
         """Write ``bundle.json`` (the last file: a folder without it is no bundle); returns ``out``."""
         meta = {"schema": SCHEMA, "version": SCHEMA_VERSION, **meta}
@@ -362,6 +386,7 @@ class BundleWriter:
         return self.out
 
     def __exit__(self, exc_type, exc, tb) -> None:
+        self.wait_discarded()
         if exc_type is None and not self._finished:
             exc_type = RuntimeError  # a block that never finished leaves no bundle
         self._dir.__exit__(exc_type, exc, tb)

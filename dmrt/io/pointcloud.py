@@ -171,14 +171,15 @@ def _columns(rec: np.ndarray, names) -> np.ndarray:
     return np.stack([rec[n] for n in names], axis=1)
 
 
-def _from_record(path: Path, rec: np.ndarray, start: int) -> PointCloud:
-    """Turn a structured vertex array (PLY) into a validated PointCloud; ``start`` = index of rec[0]."""
+def _from_record(path: Path, rec: np.ndarray, start: int, with_colors: bool = True) -> PointCloud:
+    """Turn a structured vertex array (PLY) into a validated PointCloud; ``start`` = index of rec[0];
+    ``with_colors`` False leaves the colours out (None)."""
     names = rec.dtype.names
     pos = _columns(rec, ("x", "y", "z")).astype(np.float64)
     normals = colors = None
     if all(a in names for a in ("nx", "ny", "nz")):
         normals = dequantize_normals(_columns(rec, ("nx", "ny", "nz")))
-    for cn in _COLOR_NAMES:
+    for cn in _COLOR_NAMES if with_colors else ():
         if all(c in names for c in cn):
             colors = _to_uint8(_columns(rec, cn))
             break
@@ -239,7 +240,8 @@ def _validated(path: Path, pc: PointCloud, start: int) -> PointCloud:
     return pc
 
 
-def _ply_chunks(path: Path, chunk_size: int, first: int = 0, stop: int | None = None) -> Iterator[PointCloud]:
+def _ply_chunks(path: Path, chunk_size: int, first: int = 0, stop: int | None = None,
+                with_colors: bool = True) -> Iterator[PointCloud]:
     h = _read_ply_header(path)
     if h.n == 0:
         raise InputError(path, "empty point cloud (0 vertices)")
@@ -258,7 +260,7 @@ def _ply_chunks(path: Path, chunk_size: int, first: int = 0, stop: int | None = 
             count = min(chunk_size, stop - start)
             buf = f.read(count * h.dtype.itemsize)
             rec = np.frombuffer(buf, dtype=h.dtype, count=count)
-            yield _from_record(path, rec, start)
+            yield _from_record(path, rec, start, with_colors)
 
 
 def _ascii_chunks(path: Path, h: _PlyHeader, chunk_size: int) -> Iterator[PointCloud]:
@@ -341,6 +343,20 @@ def count_points(path) -> int:
         raise InputError(path, f"cannot read LAS/LAZ header: {e}") from None
 
 
+def exact_count(path) -> int | None:
+    """The number of points of a binary PLY from its header, its body's size checked against it
+    (``InputError`` if truncated); None for other formats, whose count takes a pass over the
+    points (E57 readers drop records flagged invalid; ascii lines are counted as read)."""
+    path = Path(path)
+    if _kind(path) != "ply":
+        return None
+    h = _read_ply_header(path)
+    if h.fmt == "ascii":
+        return None
+    _check_body_size(path, h)
+    return h.n
+
+
 def iter_point_chunks(path, chunk_size: int = 1_000_000) -> Iterator[PointCloud]:
     """Stream a cloud in chunks of at most ``chunk_size`` points, validating each chunk.
 
@@ -376,13 +392,14 @@ class PointRange:
     stop: int
     chunk_size: int = 1_000_000
     seekable: bool = False
+    colors: bool = True  # False: a binary PLY's colours are not decoded (None), for passes without use for them
 
     def __len__(self) -> int:
         return self.stop - self.start
 
     def __call__(self) -> Iterator[PointCloud]:
         if self.seekable:
-            return _ply_chunks(self.path, self.chunk_size, self.start, self.stop)
+            return _ply_chunks(self.path, self.chunk_size, self.start, self.stop, self.colors)
         return iter_point_chunks(self.path, self.chunk_size)
 
     def split(self, parts: int) -> list["PointRange"]:
@@ -392,7 +409,7 @@ class PointRange:
         if not self.seekable or parts == 1:
             return [self]
         cuts = [self.start + len(self) * i // parts for i in range(parts + 1)]
-        return [PointRange(self.path, a, b, self.chunk_size, True) for a, b in zip(cuts, cuts[1:]) if b > a]
+        return [PointRange(self.path, a, b, self.chunk_size, True, self.colors) for a, b in zip(cuts, cuts[1:]) if b > a]
 
 
 def point_range(path, chunk_size: int = 1_000_000) -> PointRange:
@@ -421,13 +438,24 @@ def bounds(path, chunk_size: int = 1_000_000) -> tuple[np.ndarray, np.ndarray]:
     return chunk_bounds(iter_point_chunks(path, chunk_size))[:2]
 
 
+def extent(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo, hi)``: the lowest and highest corner ((3,) float64) of (n, 3) ``positions``, n >= 1.
+
+    Column by column: numpy reduces an (n, 3) array along its first axis ten times slower (3
+    elements an inner loop; 75 against 7.5 ms for 1M points)."""
+    cols = range(positions.shape[1])
+    return (np.array([positions[:, k].min() for k in cols], np.float64),
+            np.array([positions[:, k].max() for k in cols], np.float64))
+
+
 def chunk_bounds(chunks) -> tuple[np.ndarray, np.ndarray, int]:
     """``(lo, hi, n)``: the bounding box ((3,) float64 metres each) and number of the points of an
     iterable of PointCloud chunks."""
     lo, hi, n = np.full(3, np.inf), np.full(3, -np.inf), 0
     for c in chunks:
-        lo = np.minimum(lo, c.positions.min(axis=0))
-        hi = np.maximum(hi, c.positions.max(axis=0))
+        if len(c):
+            c_lo, c_hi = extent(c.positions)
+            lo, hi = np.minimum(lo, c_lo), np.maximum(hi, c_hi)
         n += len(c)
     return lo, hi, n
 

@@ -19,7 +19,10 @@ Every photo is a pinhole photo from here on: :meth:`Scene.read_image` undistorts
 from its panorama, and ``cameras`` are the pinhole cameras of the photos it returns.
 
 ``load_scene`` checks everything a later stage would trip over (and streams the cloud once to
-find its bounds), so bad input fails here with an ``InputError`` naming the file.
+find its bounds), so bad input fails here with an ``InputError`` naming the file. A caller whose
+own first pass reads every point anyway (preprocessing's scan-grid pass) may skip that stream for a
+binary PLY (``bounds=False``) and give the bounds it finds (:meth:`Scene.with_bounds`): its
+points are then validated by that pass, every reader validating as it goes.
 """
 
 from __future__ import annotations
@@ -118,10 +121,11 @@ class Scene:
         / name`` for a COLMAP scene, the ``.e57`` for its images.
     mesh_path : Path or None
         The reference mesh, if the scene has one.
-    origin : (3,) float64
+    origin : (3,) float64 or None
         Scene origin, metres: the point bounding-box centre rounded to whole metres. GPU code
         works in ``x - origin`` so float32 keeps millimetres on UTM-sized coordinates; rounding
-        keeps the offset a short, exactly representable number in reports and bundles.
+        keeps the offset a short, exactly representable number in reports and bundles. None
+        (and ``bounds`` None) from ``load_scene(..., bounds=False)`` until :meth:`with_bounds`.
     n_points : int
         Number of points in the cloud (for E57: valid points, records flagged invalid left out).
     bounds : ((3,), (3,)) float64
@@ -150,6 +154,12 @@ class Scene:
     photos: list[PhotoSource | None] | None = None
     warnings: list[str] = field(default_factory=list)
     scan_structure: stations.ScanStructure | None = None
+
+    def with_bounds(self, lo: np.ndarray, hi: np.ndarray) -> "Scene":
+        """This scene with the points' bounding box ``lo``, ``hi`` ((3,) float64 metres each) and
+        the origin it gives."""
+        lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+        return replace(self, bounds=(lo, hi), origin=np.round((lo + hi) / 2.0))
 
     def iter_points(self, chunk_size: int = 1_000_000) -> Iterator[PointCloud]:
         """Stream the cloud (world coordinates, float64) in chunks of at most ``chunk_size``."""
@@ -322,7 +332,18 @@ def _e57_photos(path: Path, check_images: bool) -> tuple[list[Camera], list[Phot
     return [c for c, _ in photos], [s for _, s in photos], warnings
 
 
-def load_scene(root, check_images: bool = True, chunk_size: int = 1_000_000) -> Scene:
+def cloud_extent(points_path, chunk_size: int = 1_000_000) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(lo, hi, n)``: the bounding box ((3,) float64 metres each) and number of the points of
+    the cloud file, every point read and validated. chunk_size bounds the memory each reader
+    takes; a seekable file is read in ranges on threads (reads and numpy release the GIL)."""
+    parts = pointcloud.point_range(points_path, chunk_size).split(len(os.sched_getaffinity(0)))
+    with ThreadPoolExecutor(len(parts)) as pool:
+        ranges = list(pool.map(lambda part: pointcloud.chunk_bounds(part()), parts))
+    return (np.min([r[0] for r in ranges], axis=0), np.max([r[1] for r in ranges], axis=0),
+            sum(r[2] for r in ranges))
+
+
+def load_scene(root, check_images: bool = True, chunk_size: int = 1_000_000, bounds: bool = True) -> Scene:
     """Load and validate a scene directory.
 
     Parameters
@@ -333,6 +354,11 @@ def load_scene(root, check_images: bool = True, chunk_size: int = 1_000_000) -> 
         Check that every camera's image exists, decodes its header, and matches the camera's size
         (for an E57 scene: that each image's blob header decodes). Off, neither the images nor
         ``images/`` need exist (geometry-only use).
+    bounds : bool
+        Stream the cloud to find its bounds and validate every point. False, for a binary PLY:
+        only its header and size are checked, and ``origin`` and ``bounds`` are None until the
+        caller, whose own pass reads every point, gives them (:meth:`Scene.with_bounds`); other
+        formats are streamed as with True (their count takes a pass).
 
     Raises
     ------
@@ -368,19 +394,14 @@ def load_scene(root, check_images: bool = True, chunk_size: int = 1_000_000) -> 
     else:
         mesh_path = None
 
-    n_points = pointcloud.count_points(points_path)
-    if n_points == 0:
+    if pointcloud.count_points(points_path) == 0:
         raise InputError(points_path, "empty point cloud (0 points)")
-    # also validates every point (finite, not truncated); chunk_size bounds the memory each
-    # reader takes. Counted here, not taken from the header: E57 readers drop records flagged
-    # invalid. A seekable file is read in ranges on threads (reads and numpy release the GIL).
-    parts = pointcloud.point_range(points_path, chunk_size).split(len(os.sched_getaffinity(0)))
-    with ThreadPoolExecutor(len(parts)) as pool:
-        ranges = list(pool.map(lambda part: pointcloud.chunk_bounds(part()), parts))
-    lo = np.min([r[0] for r in ranges], axis=0)
-    hi = np.max([r[1] for r in ranges], axis=0)
-    n_points = sum(r[2] for r in ranges)
-    origin = np.round((lo + hi) / 2.0)
+    n_points = None if bounds else pointcloud.exact_count(points_path)
+    extent = None
+    if n_points is None:
+        # also validates every point (finite, not truncated). Counted here, not taken from the
+        # header: E57 readers drop records flagged invalid.
+        *extent, n_points = cloud_extent(points_path, chunk_size)
     scanners = structure = None
     if points_path.suffix.lower() == ".e57":
         scanners = e57.scanner_positions(points_path)
@@ -388,6 +409,7 @@ def load_scene(root, check_images: bool = True, chunk_size: int = 1_000_000) -> 
     elif (root / "scans.json").is_file():
         structure = stations.read_scans_json(root / "scans.json", n_points)
         scanners = structure.positions
-    return Scene(root, points_path, cameras, image_paths, mesh_path, origin, n_points, scanners, (lo, hi),
-                 photos, warnings, structure)
+    scene = Scene(root, points_path, cameras, image_paths, mesh_path, None, n_points, scanners, None,
+                  photos, warnings, structure)
+    return scene if extent is None else scene.with_bounds(*extent)
 

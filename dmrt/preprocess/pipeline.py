@@ -48,7 +48,7 @@ from dmrt.preprocess.photometric import solve_for_proxies
 from dmrt.preprocess.proxies import choose_proxy_levels, label_proxies
 from dmrt.preprocess.registration import coverage_summary
 from dmrt.preprocess.scangrid import scan_phase
-from dmrt.io.scene import Scene, load_scene
+from dmrt.io.scene import Scene, cloud_extent, load_scene
 
 
 def _new_bytes(folder) -> int:
@@ -403,6 +403,11 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
     :func:`render_depth_phase`). The (global)
     labeling runs here. The bundle equals the in-process one; bundle.json records the workers under
     ``dask`` or ``processes``. None: everything in this process.
+
+    bundle.json's ``timings`` give each phase's seconds and the time outside them: ``load_scene_s``
+    (loading and validating the scene; on the kNN path also the pass that finds the points'
+    bounds, which the scan-grid pass finds on its own), ``bookkeeping_s`` (the census after each
+    phase) and ``finish_s`` (the proxies written, the work files' deletion waited for).
     """
     from PIL import Image
 
@@ -411,10 +416,14 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
     executor = executor or InProcess()
     t_all = time.perf_counter()
     # absolute paths: Dask workers may run elsewhere on the shared file system
-    scene: Scene = load_scene(Path(scene_dir).resolve(), chunk_size=config.chunk_points)
-    origin = scene.origin
-    timings: dict[str, float] = {}
-    cams_local = [c.relative_to(origin) for c in scene.cameras]
+    # a binary PLY's points are first read (and validated) by the scan-grid pass where it runs,
+    # which finds their bounds on the way: no pass of the loader's own (bounds below)
+    scene: Scene = load_scene(Path(scene_dir).resolve(), chunk_size=config.chunk_points, bounds=False)
+    # the time outside the phases, recorded too: loading and validating the scene (and the pass
+    # for its bounds where no phase found them: load_scene_s), the census after each phase
+    # (bookkeeping_s), writing the proxies and the rest of the work files' deletion (finish_s)
+    timings: dict[str, float] = {"load_scene_s": round(time.perf_counter() - t_all, 3)}
+    bookkeeping = [0.0]
 
     peak_rss: dict[str, float] = {}
     peak_anon: dict[str, float | None] = {}
@@ -430,12 +439,14 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
     disk: dict[str, int] = {}  # bytes the run holds on disk after each phase
 
     def ended(name):
+        t0 = time.perf_counter()
         cpu_tic(name)
         disk[name] = _new_bytes(bw.tmp)
         # peak resident memory so far (MiB), so the phase that raised it can be read off, and the
         # phase's own peak of anonymous memory (what --memory-limit-mb governs: dmrt.preprocess.memory)
         peak_rss[name] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
         peak_anon[name] = anon.take()
+        bookkeeping[0] += time.perf_counter() - t0
 
     def tic(name, t0):
         timings[name] = round(time.perf_counter() - t0, 3)
@@ -449,6 +460,15 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         scan = scan_phase(scene, work, config, progress, executor)
         if scan is not None:
             tic("scan_grid_s", t0)
+        if scene.bounds is None and scan is not None:
+            scene = scene.with_bounds(*scan.bounds)
+        elif scene.bounds is None:  # the kNN path's first pass needs them: the loader's pass, here
+            t0 = time.perf_counter()
+            scene = scene.with_bounds(*cloud_extent(scene.points_path, config.chunk_points)[:2])
+            timings["load_scene_s"] = round(timings["load_scene_s"] + time.perf_counter() - t0, 3)
+            cpu_tic("load_scene_s")
+        origin = scene.origin
+        cams_local = [c.relative_to(origin) for c in scene.cameras]
 
         # 1. octree (positions relative to the origin, where its float32 keeps micrometres)
         t0 = time.perf_counter()
@@ -480,8 +500,11 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         proxy = octree.read_lod(k)
         n_proxy = len(proxy["positions"])
         proxy = {"positions": proxy["positions"],
-                 "normals": proxy["normals"] if has_normals else np.asarray(attrs.normals[:n_proxy]),
-                 "hd_radii": np.asarray(proxy["radii"] if "radii" in proxy else attrs.radii[:n_proxy], np.float32)}
+                 "normals": proxy["normals"] if has_normals else np.array(attrs.normals[:n_proxy]),
+                 "hd_radii": np.array(proxy["radii"] if "radii" in proxy else attrs.radii[:n_proxy], np.float32)}
+        # the work files (the octree: 21 GB at 683M points) are read no more (the depth maps lie in
+        # the bundle; the arrays above are copies): deleted while the proxies are labelled
+        bw.discard(work)
         read_s = time.perf_counter() - t0
         proxies = label_proxies(proxy, cams_local, _DepthFiles(work.parent, depth_files), _Photos(scene),
                                 config, labeling, progress=progress, executor=executor, phase_done=ended)
@@ -513,9 +536,12 @@ def preprocess(scene_dir, out, config: PreprocessConfig | None = None,
         images, images_low = [rel for rel, _ in written], [low for _, low in written]
         tic("photos_s", t0)
 
+        t0 = time.perf_counter()
         bw.write_proxy(**proxies.proxy)
         coverage = coverage_summary(proxies.candidates, [c.name for c in scene.cameras])
-        shutil.rmtree(work)
+        bw.wait_discarded()
+        timings["finish_s"] = round(time.perf_counter() - t0, 3)
+        timings["bookkeeping_s"] = round(bookkeeping[0], 3)
         timings["total_s"] = round(time.perf_counter() - t_all, 3)
         meta = {
             "scene": str(Path(scene_dir).resolve()),
