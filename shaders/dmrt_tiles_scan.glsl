@@ -12,8 +12,7 @@
 //
 // Buffers (binding: layout):
 //   B_FRAME_STATUS  the frame's FrameStatus record (dmrt/runtime/status.py): its first word, the
-//                   entries this frame (the host sizes the list from it); its third, the longest
-//                   tile's entries (the host splits long lists over workgroups by it: tiles.py)
+//                   entries this frame (the host sizes the list from it)
 //   B_TILE_COUNTS   uint[tiles] (dmrt_tiles_bin.glsl SCATTER 0)
 //   B_TILE_OFFSETS  uint[tiles + 1]: Offsets[t] = sum of Counts[0..t), Offsets[tiles] = total (and the
 //                   padding after it)
@@ -32,7 +31,7 @@
 
 layout(local_size_x = SCAN_THREADS) in;
 
-layout(std430, binding = B_FRAME_STATUS) buffer Status { uint total; uint n_wanted; uint longest; };  // n_wanted: not ours
+layout(std430, binding = B_FRAME_STATUS) buffer Status { uint total; };  // tile_total
 layout(std430, binding = B_TILE_COUNTS) readonly buffer Counts { uvec4 counts4[]; };
 layout(std430, binding = B_TILE_OFFSETS) writeonly buffer Offsets { uvec4 offsets4[]; };
 
@@ -44,7 +43,6 @@ void main() {
     uint t = gl_LocalInvocationID.x;
     uint quads = (u_tile_count + 3u) / 4u;
     uint carry = 0u;  // the counts of the sweeps before
-    uint mine = 0u;  // the longest count of this thread's quads
     for (uint q0 = 0u; q0 < quads; q0 += uint(ROUNDS * SCAN_THREADS)) {
         // the rounds that hold quads (one at 1280x720): the others are skipped, not scanned as zeros
         uint live = min(uint(ROUNDS), (quads - q0 + uint(SCAN_THREADS) - 1u) / uint(SCAN_THREADS));
@@ -71,7 +69,6 @@ void main() {
             uint q = q0 + uint(r * SCAN_THREADS) + t;
             if (q < quads) {
                 uvec4 c = counts4[q];
-                mine = max(mine, max(max(c.x, c.y), max(c.z, c.w)));
                 uint run = carry + s_sum[r * SCAN_THREADS + int(t)] - v[r];  // exclusive
                 offsets4[q] = uvec4(run, run + c.x, run + c.x + c.y, run + c.x + c.y + c.z);
             }
@@ -80,20 +77,11 @@ void main() {
         memoryBarrierShared();
         barrier();  // the next sweep overwrites s_sum
     }
-    // the longest count, in s_sum[0] (free now: the last sweep ended with a barrier; shared memory
-    // is full with eight rounds)
-    if (t == 0u) s_sum[0] = 0u;
-    memoryBarrierShared();
-    barrier();
-    atomicMax(s_sum[0], mine);
-    memoryBarrierShared();
-    barrier();
     // Offsets[tiles]: in the last quad written when tiles is not a multiple of four (the padded
     // counts are zero, so its offset is the total), else the first of the next
     if (t == 0u) {
         if (u_tile_count % 4u == 0u) offsets4[quads] = uvec4(carry);
         total = carry;
-        longest = s_sum[0];
     }
 }
 

@@ -133,11 +133,10 @@ class RenderConfig:
                 f"ones) or auto (sparse for a frame whose tiles held more than {SPARSE_MIN} discs on average the "
                 "last time the list length was read); the same layers")
     tile_split: int = option(0, "tiles: a tile whose list holds more discs than this is walked by one workgroup "
-                                "per tile_batch discs, their results merged, on a frame after one with such a "
-                                "tile (distant discs piling up at a vanishing point keep one workgroup busy for "
-                                f"the whole frame otherwise; {SPLIT_MIN} is the value tried); 0 = never, the "
-                                "default until it is faster on a GPU (reports/many-photos); the same layers",
-                             minimum=0)
+                                "per tile_batch discs, their results merged (distant discs piling up at a "
+                                "vanishing point keep one workgroup busy for the whole frame otherwise; "
+                                f"{SPLIT_MIN} is the value tried); 0 = never, the default until it is faster on a "
+                                "GPU (reports/many-photos); the same layers", minimum=0)
     kbuffer_slots: int = option(0, "k-buffer fragments kept per pixel; 0 = 6 per layer + 2 (>= 99.9 % of the "
                                    "peeled layers' pixels); a pixel with more fragments in front of its k-th layer "
                                    "loses its deepest layers", minimum=0)

@@ -3,8 +3,7 @@
 Two things a frame decides on the GPU need the CPU: the tile-binned visibility stage's list length
 (the CPU sizes the list buffer, :mod:`dmrt.runtime.tiles`) and the photos the full-resolution cache
 should hold (the CPU decodes and uploads them, :mod:`dmrt.runtime.texturing`). Both go into one
-record of ``4 + wanted_max`` uint32 words: ``tile_total``, ``n_wanted``, ``tile_longest`` (the longest
-tile's list: the tiles path splits such lists over workgroups by it), a spare word, then
+record of ``4 + wanted_max`` uint32 words: ``tile_total``, ``n_wanted``, two spare words, then
 ``wanted`` - the photos the label histogram ranks first, most frequent first
 (``shaders/dmrt_photo_choice.glsl``).
 
@@ -65,7 +64,7 @@ class FrameStatus:
         self.records = [MappedBuffer(ctx, zeros) for _ in range(RING)]
         self.frame = -1
         self.reads = 0
-        self._this: dict[int, tuple[int, np.ndarray, int]] = {}  # this frame's reads: back -> (total, wanted, longest)
+        self._this: dict[int, tuple[int, np.ndarray]] = {}  # this frame's reads: back -> (total, wanted)
         self._last: np.ndarray | None = None  # the wanted list of this frame's last read
 
     def begin(self) -> MappedBuffer:
@@ -92,7 +91,7 @@ class FrameStatus:
         self.reads += 1
         n = min(int(raw[1]), self.wanted_max)
         wanted = raw[STATUS_HEADER_WORDS:STATUS_HEADER_WORDS + n].astype(np.int64)
-        self._this[back] = (int(raw[0]), wanted, int(raw[2]))
+        self._this[back] = (int(raw[0]), wanted)
         self._last = wanted
         return int(raw[0]), wanted
 
@@ -104,13 +103,6 @@ class FrameStatus:
     def total(self) -> int:
         """This frame's tile list length: from its record if read in this frame, else read now."""
         return self._this[0][0] if 0 in self._this else self.read(0)[0]
-
-    def longest(self, back: int = 0) -> int:
-        """The longest tile list (entries) that frame ``frame - back`` wrote, from its record as read
-        in this frame (else read now)."""
-        if back not in self._this:
-            self.read(back)
-        return self._this[back][2]
 
     @property
     def nbytes(self) -> int:

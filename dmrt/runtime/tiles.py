@@ -21,7 +21,7 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
    (a bit mask). The ray-disc test is the other paths' (``splat_depth_at``), so every
    layer equals compute peeling's to the bit; no order among the discs is needed and nothing is
    approximated.
-5. ``dmrt_tiles_split``, on a frame whose tiles may hold long lists (``split_min``): the raster hands
+5. ``dmrt_tiles_split``, with ``split_min`` > 0 (off by default): the raster hands
    a tile whose list is longer than ``split_min`` to these passes in slices of ``batch`` discs; per
    layer, a workgroup per slice finds each pixel's smallest over its slice, then a workgroup per
    split tile takes the smallest of its slices', so the layers are again peeling's. A tile is one
@@ -133,8 +133,7 @@ class TileVisibility:
         either way.
     split_min : int
         A tile whose list holds more discs than this is walked by a workgroup per ``batch`` discs
-        (module doc, step 5), on a frame after one whose list held such a tile (the status record's
-        ``tile_longest``); 0: never (the default: see ``SPLIT_MIN``). The layers are the same
+        (module doc, step 5); 0: never (the default: see ``SPLIT_MIN``). The layers are the same
         either way.
 
     Attributes
@@ -172,18 +171,16 @@ class TileVisibility:
                                                                             "MAX_THREAD_TILES": max_thread_tiles})
                      for scatter in (0, 1) for large in (0, 1)}
         self.walk, self.split_min = walk, int(split_min)
-        self._rasters = {(sparse, split): load_program(ctx, "dmrt_tiles_raster",
-                                                       {**self._defines, "TOP": int(top), "SPARSE_WALK": int(sparse),
-                                                        "SPLIT": split})
-                         for sparse in (0, 1) if walk == "auto" or sparse == (walk == "sparse")
-                         for split in ((0, 1) if self.split_min else (0,))}
+        self._splits = self.split_min > 0
+        self._rasters = {sparse: load_program(ctx, "dmrt_tiles_raster",
+                                              {**self._defines, "TOP": int(top), "SPARSE_WALK": int(sparse),
+                                               "SPLIT": int(self._splits)})
+                         for sparse in (0, 1) if walk == "auto" or sparse == (walk == "sparse")}
         self._split_layers = [load_program(ctx, "dmrt_tiles_split", {**self._defines, "MERGE": merge})
-                              for merge in (0, 1)] if self.split_min else None
+                              for merge in (0, 1)] if self._splits else None
         self._last_total = 0  # the last list length read back (walk="auto" decides by it)
-        self._last_longest = 0  # the longest tile's list in the same record (split_min decides by it)
-        self.split: moderngl.Buffer | None = None  # the slices and their partials, once a frame splits
+        self.split: moderngl.Buffer | None = None  # the slices and their partials (split_min > 0)
         self._slots = 0  # slices it holds
-        self._split_now = False  # whether this frame's raster handed long lists to the split passes
         n = max(splats.n, 1)
         # large-disc list: dispatch-indirect header (groups x, y, z), its length, proxy indices
         self.large = ctx.buffer(reserve=16 + 4 * n)
@@ -269,7 +266,7 @@ class TileVisibility:
         if self.check == "lagged" and frame - LAG in self._capacity_of:
             # the GPU has finished the frame two back by now (or the read waits for it, not for this one)
             total = self.status.read(LAG)[0]
-            self._last_total, self._last_longest = total, self.status.longest(LAG)
+            self._last_total = total
             self.dropped_frames += total > self._capacity_of[frame - LAG]
             self._fit(total)
         status = self.status.record(0)
@@ -281,7 +278,7 @@ class TileVisibility:
             self._build_list(tile_uniforms, status, passes)
         with timed(timer, "visibility:tile_raster"):
             self._raster_pass(*raster)
-        if self._split_now:
+        if self._splits:
             with timed(timer, "visibility:tile_split"):
                 self._split_passes(*raster)
         if (self.check == "frame" and self._own_status) or first:
@@ -298,19 +295,13 @@ class TileVisibility:
         grown: the renderer must render the frame again (its discs past the end were lost)."""
         if self.check != "frame" or self._own_status:
             return False
-        total = self.status.total()
-        self._last_longest = self.status.longest()
-        return self._outgrown(total)
+        return self._outgrown(self.status.total())
 
     def _sparse(self) -> bool:
         """Whether this frame's raster walks sparsely (``walk``)."""
         if self.walk != "auto":
             return self.walk == "sparse"
         return self._grid is not None and self._last_total > SPARSE_MIN * self._grid[0] * self._grid[1]
-
-    def _split(self) -> bool:
-        """Whether this frame's raster hands long lists to the split passes (``split_min``)."""
-        return bool(self.split_min) and self._last_longest > self.split_min
 
     def _allocate_split(self) -> None:
         """The split buffer (abi.B_TILE_SPLIT), (re)made when the list or the grid outgrew it: room
@@ -342,15 +333,11 @@ class TileVisibility:
         """Wait for the frame's list length and build the list again, larger, if it outgrew its
         buffer. The wait is outside any timed section: a section open while the CPU waits would
         count the idle GPU."""
-        while True:
-            total = self.status.read(0)[0]
-            self._last_longest = self.status.longest()
-            if not self._outgrown(total):
-                break
+        while self._outgrown(self.status.read(0)[0]):
             with timed(timer, "visibility:redo"):
                 self._build_list(tile_uniforms, status)
                 self._raster_pass(*raster)
-                if self._split_now:
+                if self._splits:
                     self._split_passes(*raster)
 
     def _build_list(self, tile_uniforms: dict, status, timer=None) -> None:
@@ -384,13 +371,13 @@ class TileVisibility:
                 self.ctx.memory_barrier(_BARRIER)
 
     def _raster_pass(self, tile_uniforms: dict, layers: int, layer_depth, layer_label) -> None:
-        split = self._split_now = self._split()
+        split = self._splits
         if split:
             self._allocate_split()
             self.split.write(SPLIT_HEADER)  # no slices yet
         self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label,
                    entries=self.entries, offsets=self.offsets, masks=self.masks, split=self.split if split else None)
-        program = self._rasters[int(self._sparse()), int(split)]
+        program = self._rasters[int(self._sparse())]
         split_uniforms = {"u_split_min": self.split_min, "u_slots": self._slots} if split else {}
         set_uniforms(program, u_capacity=self.capacity, u_layers=int(layers), **split_uniforms, **tile_uniforms)
         program.run(*self._grid)
@@ -426,7 +413,7 @@ class TileVisibility:
             depth maps bound by the caller.
         """
         defines = {**self._defines, "PACKED_LABELS": int(packed), "FINALIZE": int(finalize is not None)}
-        split = self._split_now  # the raster handed long lists over: their tiles are labelled by slices
+        split = self._splits  # the raster handed long lists over: their tiles are labelled by slices
         program = load_program(self.ctx, "dmrt_tiles_labeling", {**defines, "SPLIT": int(split)})
         self._bind(proxies=self.splats.buffer, entries=self.entries, offsets=self.offsets, masks=self.masks,
                    split=self.split if split else None)
@@ -469,7 +456,7 @@ class TileVisibility:
         tiles = self._grid[0] * self._grid[1]
         offsets = np.frombuffer(self.offsets.read(4 * (tiles + 1)), np.uint32)  # exclusive prefix sum + total
         split_tiles = split_slices = 0
-        if self._split_now:  # the two dispatch headers' workgroups (abi.B_TILE_SPLIT)
+        if self._splits:  # the two dispatch headers' workgroups (abi.B_TILE_SPLIT)
             split_slices, _, _, _, split_tiles = (int(v) for v in np.frombuffer(self.split.read(20), np.uint32))
         return {"entries": entries, "capacity": capacity, "dropped": entries > capacity, "large": large,
                 "longest": int(np.diff(offsets).max()) if tiles else 0,
