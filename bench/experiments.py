@@ -183,7 +183,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         :mod:`dmrt.runtime.maps`; missing maps are holes until loaded) and ``tile_stats`` (the tiles
         path's :meth:`~dmrt.runtime.tiles.TileVisibility.stats` of the last frame, else None) and
         ``tile_lists_per_frame`` {``entries``, ``large``, ``longest``, ``split_tiles``,
-        ``split_slices``: lists of the statistics pass's frames}
+        ``split_discs``, ``split_slices``: lists of the statistics pass's frames}
         (:meth:`~dmrt.runtime.tiles.TileVisibility.stats`: the tile raster's and labeling's work,
         whose longest tile sets a slow frame's time unless it was split; None without the tiles path).
     """
@@ -195,7 +195,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
     renderer.timer.wait = True  # the timed pass: each frame's own times (the other passes do not read them)
     try:
         iters, surface, wanted, lists = [], [], {}, {k: [] for k in ("entries", "large", "longest", "split_tiles",
-                                                                   "split_slices")}
+                                                                   "split_discs", "split_slices")}
         for cam in tqdm(cameras, desc=f"{desc} (statistics)", unit="frame", leave=False, disable=not progress):
             f = renderer.render(cam)
             wanted.update(dict.fromkeys(renderer.images.wanted))

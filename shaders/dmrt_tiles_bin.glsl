@@ -12,6 +12,9 @@
 //            counts are back to 0 afterwards and the order within a slice is arbitrary (the raster
 //            and labeling passes take minima, which need no order). Entries at or past u_capacity
 //            are dropped (the host grows the buffer from the frame's total, dmrt_tiles_scan.glsl).
+//   SPLIT 1 (with SCATTER 1): a tile whose list the split plan took over (dmrt_tiles_split.glsl,
+//            STEP 0: its count set to 0) gets its discs in the split buffer instead, at its base
+//            there + (its count left, decremented atomically) - 1.
 // Both walks recompute the disc's box (cheaper than storing it): the same box, so the same tiles.
 // The raster and labeling passes read it from the entry instead of computing it for every tile.
 //
@@ -21,6 +24,11 @@
 //   B_TILE_ENTRIES  uvec2[capacity]: proxy index, box_bits in the tile; tile after tile
 //   B_TILE_COUNTS   uint[tiles]: discs per tile
 //   B_TILE_OFFSETS  uint[tiles + 1]: exclusive prefix sum of Counts (SCATTER 1 only)
+//   B_TILE_SPLIT    SPLIT 1: the long lists' discs (dmrt_tiles_common.glsl)
+#ifndef SPLIT
+#define SPLIT 0
+#endif
+#define SPLIT_BUFFER SPLIT
 #include "dmrt_tiles_common.glsl"
 
 #if defined COMPUTE_SHADER
@@ -50,6 +58,15 @@ uniform uint u_count;  // number of proxies
 void bin_into(int tx, int ty, uint k, ivec4 box) {
     uint tile = uint(ty * u_tiles.x + tx);
 #if SCATTER
+#if SPLIT
+    uint base = split[split_base_at() + tile];
+    if (base != EMPTY_BITS) {  // a long list, taken over by the split passes
+        uint at = split_entries_at() + 2u * (base + atomicAdd(split[split_left_at() + tile], ~0u) - 1u);
+        split[at] = k;
+        split[at + 1u] = box_bits(box, ivec2(tx, ty) * TILE);
+        return;
+    }
+#endif
     uint pos = offsets[tile] + atomicAdd(counts[tile], ~0u) - 1u;  // decrement: adding 2^32 - 1
     if (pos < u_capacity) entries[pos] = uvec2(k, box_bits(box, ivec2(tx, ty) * TILE));
 #else

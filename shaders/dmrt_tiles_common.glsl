@@ -73,31 +73,39 @@ bool in_box(uint pixel, uint box) {
 uniform ivec2 u_tiles;  // tiles per row, tile rows
 
 // -- long lists split over workgroups (TileVisibility's split_min) ------------------------------
-// The raster (SPLIT 1) hands a tile whose list is longer than u_split_min to the split passes in
-// slices of BATCH discs: a pass with a workgroup per slice writes each pixel's result over the
-// slice (its partial), then a pass with a workgroup per split tile takes the smallest of its slices'
-// (dmrt_tiles_split.glsl; the labeling pass's SPLIT_PASS 1 and 2). Two dispatches, so the merge
-// reads the partials with plain loads after a memory barrier. The buffer's layout is
-// dmrt/gl/abi.py's B_TILE_SPLIT.
+// After the count, a plan pass (dmrt_tiles_split.glsl, STEP 0) takes each tile whose list is longer
+// than u_split_min out of the tile lists: its count goes to 0 (the scan gives it an empty slice of
+// Entries, which the raster and labeling passes walk as any empty list) and the scatter writes its
+// discs into the split buffer instead (SPLIT 1 in dmrt_tiles_bin.glsl). Per layer, a pass with a
+// workgroup per slice of BATCH of its discs writes each pixel's result over the slice (its
+// partial), and a pass with a workgroup per split tile takes the smallest of its slices' (STEP 1,
+// 2; the labeling pass's SPLIT_PASS 1, 2). The raster and labeling passes themselves are the ones
+// without the split. The buffer's layout is dmrt/gl/abi.py's B_TILE_SPLIT, in uint words.
 #ifndef SPLIT_BUFFER
 #define SPLIT_BUFFER 0
 #endif
 #if SPLIT_BUFFER
+#ifndef BATCH
+#define BATCH 288  // discs a slice: the raster's batch (TileVisibility.batch, a define of every tiles program)
+#endif
 layout(std430, binding = B_TILE_SPLIT) buffer Split { uint split[]; };
-uniform uint u_slots;  // slices the buffer holds
+uniform uint u_slots;          // slices the buffer holds
+uniform uint u_split_entries;  // discs it holds
 
 struct SplitSlice {
     uint tile;   // the tile (ty * tiles per row + tx)
     uint first;  // the tile's first slice
     uint count;  // the tile's slices
-    uint index;  // this slice's index among them: discs [index * BATCH, (index + 1) * BATCH) of the list
+    uint index;  // this slice's index among them: discs [index * BATCH, (index + 1) * BATCH) of the tile's
 };
 
+uint split_tiles() { return uint(u_tiles.x * u_tiles.y); }
 uint split_tile_items_at() { return 8u + 4u * u_slots; }
-uint split_tiles_at() { return 8u + 8u * u_slots; }
-uint split_partial_at(uint slot) {
-    return split_tiles_at() + uint(u_tiles.x * u_tiles.y) + 2u * uint(TILE * TILE) * slot;
-}
+uint split_base_at() { return 8u + 8u * u_slots; }              // per tile: its first disc, EMPTY_BITS: not split
+uint split_count_at() { return split_base_at() + split_tiles(); }  // per tile: its discs
+uint split_left_at() { return split_count_at() + split_tiles(); }  // per tile: its discs not yet scattered
+uint split_partial_at(uint slot) { return split_left_at() + split_tiles() + 2u * uint(TILE * TILE) * slot; }
+uint split_entries_at() { return split_partial_at(u_slots); }   // uvec2 a disc, as Entries
 
 // Slice `slot` of the slice pass's dispatch.
 SplitSlice split_slice(uint slot) {
@@ -115,9 +123,15 @@ ivec2 split_tile_origin(uint tile) {
     return ivec2(int(tile % uint(u_tiles.x)), int(tile / uint(u_tiles.x))) * TILE;
 }
 
-// Whether the raster handed the tile's list to the split passes this frame.
-bool split_handed_over(uint tile) {
-    return split[split_tiles_at() + tile] != EMPTY_BITS;
+// The slice's discs: [first, end) of the split entries.
+uvec2 split_slice_range(SplitSlice slice) {
+    uint first = split[split_base_at() + slice.tile] + slice.index * uint(BATCH);
+    uint end = split[split_base_at() + slice.tile] + split[split_count_at() + slice.tile];
+    return uvec2(first, min(end, first + uint(BATCH)));
+}
+
+uvec2 split_entry(uint i) {
+    return uvec2(split[split_entries_at() + 2u * i], split[split_entries_at() + 2u * i + 1u]);
 }
 
 // The slice pass: the slice's result for pixel `lid` of its tile (a key, smaller is better:

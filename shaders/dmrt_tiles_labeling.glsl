@@ -11,22 +11,20 @@
 // test made here; the first batch then visits only those discs (a few of the tile's tens to
 // hundreds), and only discs past the 256th are tested.
 //
-// Long lists (TileVisibility's split_min): with SPLIT 1 the workgroup of a tile whose list the raster
-// handed to the split passes (dmrt_tiles_common.glsl) does nothing; those tiles are labelled by
-// SPLIT_PASS 1, a workgroup per slice of BATCH discs writing its nearest per pixel, then SPLIT_PASS
-// 2, a workgroup per split tile taking the nearest of its slices' and writing the output.
+// Long lists (TileVisibility's split_min): a tile whose list the split plan took over
+// (dmrt_tiles_split.glsl) has an empty list here, so its pixels get the output of no covering disc;
+// SPLIT_PASS 1, a workgroup per slice of BATCH of its discs, writes each pixel's nearest over the
+// slice, then SPLIT_PASS 2, a workgroup per split tile, takes the nearest of its slices' and writes
+// the output over it.
 //
 // Output: FINALIZE 1 -> each pixel's final label in its Hit record (dmrt_final_label.glsl: the pass
 // of dmrt_label_finalize.glsl done here, without writing the labels and reading them back); else
 // as dmrt_label_finalize.glsl reads it: PACKED_LABELS 1 -> Key uvec2 (label, distance bits), else
 // Key uint distance bits and Label int label; EMPTY_BITS / EMPTY_LABEL where no disc covers.
-#ifndef SPLIT
-#define SPLIT 0
-#endif
 #ifndef SPLIT_PASS
 #define SPLIT_PASS 0
 #endif
-#define SPLIT_BUFFER (SPLIT || SPLIT_PASS)
+#define SPLIT_BUFFER (SPLIT_PASS != 0)
 #include "dmrt_tiles_common.glsl"
 #include "dmrt_frame.glsl"
 #ifndef FINALIZE
@@ -102,7 +100,6 @@ void main() {
     ivec2 origin = split_tile_origin(tile);
 #else
     uint tile = gl_WorkGroupID.y * uint(u_tiles.x) + gl_WorkGroupID.x;
-
     ivec2 origin = ivec2(gl_WorkGroupID.xy) * TILE;
 #endif
     uint lid = gl_LocalInvocationIndex;
@@ -123,23 +120,23 @@ void main() {
     // the raster's condition for holding the list in shared memory, on the same (cut) length
     uint count = min(end, u_capacity) - min(start, u_capacity);
     bool masked = bool(HIT_MASKS) && count <= uint(BATCH);
-#if SPLIT
-    // a tile handed to the split passes: no walk here (its output, written below, is overwritten by
-    // SPLIT_PASS 2; no return before the barriers: see dmrt_tiles_raster.glsl)
-    if (split_handed_over(tile)) end = start;
-#endif
-#if SPLIT_PASS == 1
-    masked = false;  // the raster wrote no masks for a tile it handed over
-    start += slice.index * uint(BATCH);
-    end = min(end, start + uint(BATCH));
-#elif SPLIT_PASS == 2
-    end = start;  // no walk: the slices' nearest
+#if SPLIT_PASS == 1  // the slice's discs, in the split buffer (no hit masks)
+    uvec2 range = split_slice_range(slice);
+    start = range.x;
+    end = range.y;
+    masked = false;
+#elif SPLIT_PASS == 2  // no walk: the nearest of the slices'
+    end = start;
 #endif
     for (uint base = start; base < end; base += uint(THREADS)) {
         bool by_masks = masked && base == start;  // the same for the whole workgroup
         if (base + lid < end) {
             int label;
+#if SPLIT_PASS
+            uvec2 e = split_entry(base + lid);
+#else
             uvec2 e = entries[base + lid];
+#endif
             Splat s = load_proxy(e.x, label);
             s_cl[lid] = vec4(s.pc, intBitsToFloat(label));
             if (!by_masks) {

@@ -40,13 +40,6 @@
 //   B_TILE_MASKS    h x w x 2 uvec4: the first walk's hit bits of discs 0-255, written for pixels of
 //                   tiles of up to BATCH discs, the second uvec4 only for lists of more than 128
 //                   (masks_second_half; HIT_MASKS: read by dmrt_tiles_labeling.glsl)
-//   B_TILE_SPLIT    SPLIT 1: a list longer than u_split_min is handed to dmrt_tiles_split.glsl in
-//                   slices of BATCH discs (where the buffer has room for them): its tile's workgroup
-//                   here only lists the slices (dmrt_tiles_common.glsl)
-#ifndef SPLIT
-#define SPLIT 0
-#endif
-#define SPLIT_BUFFER SPLIT
 #include "dmrt_tiles_common.glsl"
 
 #if defined COMPUTE_SHADER
@@ -97,10 +90,6 @@ shared uint s_rows[WORDS * TILE];
 shared uint s_box[BATCH + 1];  // pixel box in the tile (box_bits); one more: the walk reads one ahead
 #endif
 shared uint s_found[3];      // "some pixel found this layer", one per walk, rotating
-#if SPLIT
-uniform uint u_split_min;    // lists longer than this are split (when their slices fit)
-shared uint s_split_first;   // the tile's first slice, EMPTY_BITS: not split
-#endif
 
 // per-invocation state
 #if SPARSE_WALK
@@ -366,44 +355,6 @@ void main() {
     uint count = offsets[tile + 1u] - off;
     count = min(count, u_capacity - min(off, u_capacity));  // entries past the buffer were dropped
     g_count = count;
-#if SPLIT
-    if (lid == 0u) {
-        uint first = EMPTY_BITS;
-        if (count > u_split_min) {
-            uint n = (count + uint(BATCH) - 1u) / uint(BATCH);
-            uint at = atomicAdd(split[3], n);  // slices reserved: once past the room, every later one is too
-            if (at + n <= u_slots) {
-                first = at;
-                atomicMax(split[0], at + n);  // the slice pass's workgroups
-                uint o = split_tile_items_at() + 4u * atomicAdd(split[4], 1u);  // the merge pass's
-                split[o] = tile;
-                split[o + 1u] = at;
-                split[o + 2u] = n;
-            }
-        }
-        split[split_tiles_at() + tile] = first;
-        s_split_first = first;
-    }
-    memoryBarrierShared();
-    barrier();
-    if (s_split_first != EMPTY_BITS) {  // the same for the whole workgroup
-        uint n = (count + uint(BATCH) - 1u) / uint(BATCH);
-        for (uint s = lid; s < n; s += uint(THREADS)) {
-            uint o = 8u + 4u * (s_split_first + s);
-            split[o] = tile;
-            split[o + 1u] = s_split_first;
-            split[o + 2u] = n;
-            split[o + 3u] = s;
-        }
-        // walked here as an empty list (empty layers, which the split passes overwrite) rather
-        // than left by a return before the barriers below: the rest of the pass keeps the control
-        // flow of the raster without SPLIT. (With a return there, H200 c097bd9, a frame with the
-        // SPLIT raster and labeling took 4.5 ms more at 1280x720 even with no list to split; which
-        // of the changes cost it is not yet measured.)
-        count = 0u;
-        g_count = 0u;
-    }
-#endif
     bool cached = count <= uint(BATCH);
     if (lid < 3u) s_found[lid] = 0u;
     if (cached) load_batch(off, count);

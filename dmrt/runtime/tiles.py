@@ -21,12 +21,14 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
    (a bit mask). The ray-disc test is the other paths' (``splat_depth_at``), so every
    layer equals compute peeling's to the bit; no order among the discs is needed and nothing is
    approximated.
-5. ``dmrt_tiles_split``, with ``split_min`` > 0 (off by default): the raster hands
-   a tile whose list is longer than ``split_min`` to these passes in slices of ``batch`` discs; per
-   layer, a workgroup per slice finds each pixel's smallest over its slice, then a workgroup per
-   split tile takes the smallest of its slices', so the layers are again peeling's. A tile is one
-   workgroup: where distant discs pile up in a few tiles (a street receding to its vanishing
-   point: thousands of discs a tile), the frame otherwise waits for those tiles alone.
+5. ``dmrt_tiles_split``, with ``split_min`` > 0 (off by default): between the count and the scan, a
+   plan takes each tile whose list is longer than ``split_min`` out of the lists (the raster and
+   labeling passes see it empty) and the scatter writes its discs into a buffer of their own; per
+   layer, after the raster, a workgroup per slice of ``batch`` of its discs finds each pixel's
+   smallest over its slice, then a workgroup per split tile takes the smallest of its slices', so
+   the layers are again peeling's (the labeling pass likewise). A tile is one workgroup: where
+   distant discs pile up in a few tiles (a street receding to its vanishing point: thousands of
+   discs a tile), the frame otherwise waits for those tiles alone.
 
 The list's length is only known on the GPU: the scan writes it into the frame's status record
 (:mod:`dmrt.runtime.status`), the frame's one read-back. By default (``check="frame"``) every
@@ -69,14 +71,14 @@ SPARSE_MIN = 100
 
 # The split_min that bench/split_run.sh tries (four batches: between a tile's usual ~63-180 discs and
 # the thousands where a frame waits for one tile). Off by default: on an H200 (reports/many-photos,
-# split-*.json) frames with the split passes on were slower, not faster, even those with no list to
-# split, for a cause not yet isolated.
+# split-*.json) an earlier form, with the raster and labeling passes themselves handing the long
+# lists over, made frames slower, even those with no list to split.
 SPLIT_MIN = 4 * DEFAULT_BATCH
 # Slices the split buffer holds at most (2 KB of partial results each at 16 x 16 pixels: 32 MB); a
-# tile whose slices do not fit is walked by the raster alone, as without the split.
+# tile whose slices or discs do not fit stays in the lists, walked by the raster alone.
 SPLIT_SLOTS_MAX = 16384
 # the split buffer's two dispatch-indirect headers: slices (x, y, z, slices reserved), split tiles
-# (x, y, z, unused)
+# (x, y, z, discs reserved)
 SPLIT_HEADER = EMPTY_DISPATCH + EMPTY_DISPATCH
 
 
@@ -133,8 +135,8 @@ class TileVisibility:
         either way.
     split_min : int
         A tile whose list holds more discs than this is walked by a workgroup per ``batch`` discs
-        (module doc, step 5); 0: never (the default: see ``SPLIT_MIN``). The layers are the same
-        either way.
+        (module doc, step 5), where the split buffer (as many discs as the list buffer) has room;
+        0: never (the default: see ``SPLIT_MIN``). The layers are the same either way.
 
     Attributes
     ----------
@@ -167,20 +169,21 @@ class TileVisibility:
         self._defines = {"TILE": self.tile, "BATCH": int(batch), "HIT_MASKS": int(self.hit_masks),
                          "WARP_BLOCKS": int(bool(warp_blocks)), **(map_defines or {})}
         self._bin = {(scatter, large): load_program(ctx, "dmrt_tiles_bin", {**self._defines, "SCATTER": scatter,
-                                                                            "LARGE": large,
+                                                                            "LARGE": large, "SPLIT": int(
+                                                                                scatter and split_min > 0),
                                                                             "MAX_THREAD_TILES": max_thread_tiles})
                      for scatter in (0, 1) for large in (0, 1)}
         self.walk, self.split_min = walk, int(split_min)
         self._splits = self.split_min > 0
-        self._rasters = {sparse: load_program(ctx, "dmrt_tiles_raster",
-                                              {**self._defines, "TOP": int(top), "SPARSE_WALK": int(sparse),
-                                               "SPLIT": int(self._splits)})
+        self._rasters = {sparse: load_program(ctx, "dmrt_tiles_raster", {**self._defines, "TOP": int(top),
+                                                                          "SPARSE_WALK": int(sparse)})
                          for sparse in (0, 1) if walk == "auto" or sparse == (walk == "sparse")}
-        self._split_layers = [load_program(ctx, "dmrt_tiles_split", {**self._defines, "MERGE": merge})
-                              for merge in (0, 1)] if self._splits else None
+        # the plan, the slices, the merge (dmrt_tiles_split.glsl's STEP)
+        self._split_steps = [load_program(ctx, "dmrt_tiles_split", {**self._defines, "STEP": step})
+                             for step in (0, 1, 2)] if self._splits else None
         self._last_total = 0  # the last list length read back (walk="auto" decides by it)
-        self.split: moderngl.Buffer | None = None  # the slices and their partials (split_min > 0)
-        self._slots = 0  # slices it holds
+        self.split: moderngl.Buffer | None = None  # the long lists' discs, slices, partials (split_min > 0)
+        self._split_uniforms: dict = {}  # its size, for the programs that read it
         n = max(splats.n, 1)
         # large-disc list: dispatch-indirect header (groups x, y, z), its length, proxy indices
         self.large = ctx.buffer(reserve=16 + 4 * n)
@@ -234,7 +237,7 @@ class TileVisibility:
             timer=None) -> None:
         """Fill ``layers`` label layers for the camera in ``uniforms``; with ``timer``, timed as the
         parts ``visibility:tile_lists`` (bin, scan, scatter), ``visibility:tile_raster``,
-        ``visibility:tile_split`` (the split passes, on a frame that has them) and
+        ``visibility:tile_split`` (the split passes, with ``split_min`` > 0) and
         ``visibility:redo`` (what a frame that outgrew the list did again).
 
         Parameters
@@ -305,17 +308,17 @@ class TileVisibility:
 
     def _allocate_split(self) -> None:
         """The split buffer (abi.B_TILE_SPLIT), (re)made when the list or the grid outgrew it: room
-        for the slices of every tile longer than ``split_min`` in a full list (each at most
-        ``count / batch + 1``), at most ``SPLIT_SLOTS_MAX``."""
+        for as many discs as the list buffer and for their slices (each tile longer than
+        ``split_min`` at most ``count / batch + 1``), at most ``SPLIT_SLOTS_MAX``."""
         tiles = self._grid[0] * self._grid[1]
         slots = min(SPLIT_SLOTS_MAX, self.capacity // self.batch + self.capacity // self.split_min + 1)
-        words = len(SPLIT_HEADER) // 4 + 8 * slots + tiles + 2 * self.tile * self.tile * slots
+        words = len(SPLIT_HEADER) // 4 + 8 * slots + 3 * tiles + 2 * self.tile * self.tile * slots + 2 * self.capacity
         if self.split is not None and self.split.size == 4 * words:
             return
         if self.split is not None:
             self.split.release()
         self.split = self.ctx.buffer(reserve=4 * words)
-        self._slots = slots
+        self._split_uniforms = {"u_slots": slots, "u_split_entries": self.capacity, "u_split_min": self.split_min}
 
     def _outgrown(self, total: int) -> bool:
         """Whether a list of ``total`` entries outgrew the buffer; if so the buffer is grown now,
@@ -350,6 +353,15 @@ class TileVisibility:
             self.large.write(EMPTY_DISPATCH)
             ctx.memory_barrier(_BARRIER)
         self._bin_pass(0, tile_uniforms, timer)
+        if self._splits:
+            with timed(timer, "visibility:lists_split_plan"):
+                self._allocate_split()
+                self.split.write(SPLIT_HEADER)  # no slices yet
+                self._bind(counts=self.counts, split=self.split)
+                plan = self._split_steps[0]
+                set_uniforms(plan, **self._split_uniforms, **tile_uniforms)
+                plan.run(groups(n_tiles, 64))
+                ctx.memory_barrier(_BARRIER)
         with timed(timer, "visibility:lists_scan"):
             self._bind(status=status, counts=self.counts, offsets=self.offsets)
             set_uniforms(self._scan, u_tile_count=n_tiles)
@@ -362,8 +374,8 @@ class TileVisibility:
             with timed(timer, f"visibility:lists_{('count', 'scatter')[scatter]}{('', '_large')[large]}"):
                 program = self._bin[scatter, large]
                 self._bind(proxies=self.splats.buffer, large=self.large, entries=self.entries,
-                           counts=self.counts, offsets=self.offsets)
-                set_uniforms(program, u_capacity=self.capacity, **tile_uniforms)
+                           counts=self.counts, offsets=self.offsets, split=self.split if self._splits else None)
+                set_uniforms(program, u_capacity=self.capacity, **self._split_uniforms, **tile_uniforms)
                 if large:
                     program.run_indirect(self.large)
                 elif self.splats.n:
@@ -371,27 +383,22 @@ class TileVisibility:
                 self.ctx.memory_barrier(_BARRIER)
 
     def _raster_pass(self, tile_uniforms: dict, layers: int, layer_depth, layer_label) -> None:
-        split = self._splits
-        if split:
-            self._allocate_split()
-            self.split.write(SPLIT_HEADER)  # no slices yet
         self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label,
-                   entries=self.entries, offsets=self.offsets, masks=self.masks, split=self.split if split else None)
+                   entries=self.entries, offsets=self.offsets, masks=self.masks)
         program = self._rasters[int(self._sparse())]
-        split_uniforms = {"u_split_min": self.split_min, "u_slots": self._slots} if split else {}
-        set_uniforms(program, u_capacity=self.capacity, u_layers=int(layers), **split_uniforms, **tile_uniforms)
+        set_uniforms(program, u_capacity=self.capacity, u_layers=int(layers), **tile_uniforms)
         program.run(*self._grid)
         self.ctx.memory_barrier(_BARRIER)
 
     def _split_passes(self, tile_uniforms: dict, layers: int, layer_depth, layer_label) -> None:
         """The layers of the tiles the raster handed over (module doc, step 5): per layer (each
         reads the one before) the slices, then the merge of each tile's slices."""
-        self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label,
-                   entries=self.entries, offsets=self.offsets, split=self.split)
+        self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label, split=self.split)
         for i in range(int(layers)):
-            for merge, program in enumerate(self._split_layers):
-                set_uniforms(program, u_capacity=self.capacity, u_layer=i, u_slots=self._slots, **tile_uniforms)
-                program.run_indirect(self.split, offset=16 * merge)  # the slices' header, then the tiles'
+            for step in (1, 2):
+                program = self._split_steps[step]
+                set_uniforms(program, u_layer=i, **self._split_uniforms, **tile_uniforms)
+                program.run_indirect(self.split, offset=16 * (step - 1))  # the slices' header, then the tiles'
                 self.ctx.memory_barrier(_BARRIER)
 
     def label_pass(self, uniforms: dict, hits, key=None, vlabel=None, packed: bool = False,
@@ -413,8 +420,8 @@ class TileVisibility:
             depth maps bound by the caller.
         """
         defines = {**self._defines, "PACKED_LABELS": int(packed), "FINALIZE": int(finalize is not None)}
-        split = self._splits  # the raster handed long lists over: their tiles are labelled by slices
-        program = load_program(self.ctx, "dmrt_tiles_labeling", {**defines, "SPLIT": int(split)})
+        split = self._splits  # the long lists, out of the tile lists, are labelled by slices after
+        program = load_program(self.ctx, "dmrt_tiles_labeling", defines)
         self._bind(proxies=self.splats.buffer, entries=self.entries, offsets=self.offsets, masks=self.masks,
                    split=self.split if split else None)
         hits.bind_to_storage_buffer(abi.B_HITS)
@@ -422,7 +429,7 @@ class TileVisibility:
             key.bind_to_storage_buffer(abi.B_KEY)
             if not packed:
                 vlabel.bind_to_storage_buffer(abi.B_VLABEL)
-        values = {"u_capacity": self.capacity, "u_tiles": self._grid, "u_slots": self._slots, **uniforms,
+        values = {"u_capacity": self.capacity, "u_tiles": self._grid, **self._split_uniforms, **uniforms,
                   **(finalize or {})}
         set_uniforms(program, **values)
         program.run(*self._grid)
@@ -445,22 +452,25 @@ class TileVisibility:
             (discs over more than ``max_thread_tiles`` tiles, binned by a workgroup each),
             ``longest`` (the longest tile's entries: one workgroup runs through them alone, so a
             frame whose discs pile up in a few tiles waits for those, unless they are split),
-            ``split_tiles`` and ``split_slices`` (the tiles whose lists the split passes walked,
-            their slices: workgroups of ``batch`` discs; 0 on a frame without them).
+            ``split_tiles``, ``split_slices`` and ``split_discs`` (the tiles whose lists the split
+            passes walked instead, their slices: workgroups of ``batch`` discs, and their discs,
+            reserved: those of a tile that then found no room for its slices included; 0 without
+            the split). ``entries`` and ``longest`` are the tile lists', without the split tiles.
         """
         if self.status.frame not in self._capacity_of:
             return {"entries": 0, "capacity": self.capacity, "dropped": False, "large": 0, "longest": 0,
-                    "split_tiles": 0, "split_slices": 0}
+                    "split_tiles": 0, "split_slices": 0, "split_discs": 0}
         entries, capacity = self.status.read(0)[0], self._capacity_of[self.status.frame]
         large = int(np.frombuffer(self.large.read(16), np.uint32)[3])  # the list's header: groups x, y, z, length
         tiles = self._grid[0] * self._grid[1]
         offsets = np.frombuffer(self.offsets.read(4 * (tiles + 1)), np.uint32)  # exclusive prefix sum + total
-        split_tiles = split_slices = 0
-        if self._splits:  # the two dispatch headers' workgroups (abi.B_TILE_SPLIT)
-            split_slices, _, _, _, split_tiles = (int(v) for v in np.frombuffer(self.split.read(20), np.uint32))
+        split_tiles = split_slices = split_discs = 0
+        if self._splits:  # the two dispatch headers (abi.B_TILE_SPLIT)
+            split_slices, _, _, _, split_tiles, _, _, split_discs = (
+                int(v) for v in np.frombuffer(self.split.read(32), np.uint32))
         return {"entries": entries, "capacity": capacity, "dropped": entries > capacity, "large": large,
                 "longest": int(np.diff(offsets).max()) if tiles else 0,
-                "split_tiles": split_tiles, "split_slices": split_slices}
+                "split_tiles": split_tiles, "split_slices": split_slices, "split_discs": split_discs}
 
     def read_overflow(self) -> int:
         """Pixels of the last frame that may differ from peeling: every pixel if the frame's list
