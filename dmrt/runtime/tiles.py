@@ -391,8 +391,9 @@ class TileVisibility:
         self.ctx.memory_barrier(_BARRIER)
 
     def _split_passes(self, tile_uniforms: dict, layers: int, layer_depth, layer_label) -> None:
-        """The layers of the tiles the raster handed over (module doc, step 5): per layer (each
-        reads the one before) the slices, then the merge of each tile's slices."""
+        """The layers of the tiles the plan took out of the lists (module doc, step 5), over the
+        raster's empty ones: per layer (each reads the one before) the slices, then the merge of
+        each tile's slices."""
         self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label, split=self.split)
         for i in range(int(layers)):
             for step in (1, 2):
