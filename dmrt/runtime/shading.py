@@ -142,8 +142,9 @@ class FrameShading:
 
     @property
     def nbytes(self) -> dict:
-        """GPU bytes per resource: the photo caches, the Photo records, the leveling buffers."""
-        out = {**self.images.nbytes, "photos": self.photos.size + self.gains.size}
+        """GPU bytes per resource: the photo caches, the Photo records, the photo choice's ranked
+        list, the leveling buffers."""
+        out = {**self.images.nbytes, "photos": self.photos.size + self.gains.size, "photo_choice": self._choice.nbytes}
         if self.leveler is not None:
             out["leveling"] = self.leveler.nbytes
         return out
