@@ -118,7 +118,7 @@ PRESETS = {
     # the `paper` preset's: the rooms are the same).
     "paper-full": BenchPreset(
         name="paper-full", scene="paper-full",
-        preprocess={"depthmap_width": 1024, "memory_limit_mb": 64000, "resident_mb": 40000, "radii": "knn"},
+        preprocess={"depthmap_width": 1024, "memory_limit_mb": 64000, "resident_mb": 40000},
         proxy_levels=(4,), main_proxy_levels=4),
     # The same scene with its radii from the scanner's grid (dmrt/preprocess/scangrid.py: range x
     # angular step, no kNN; the PLY's normals kept): issue #40's >= 5M points/s is measured on it

@@ -58,11 +58,10 @@ def test_scan_work_folder_is_gone_after_the_octree(tiny_scene, tmp_path, monkeyp
     assert disk["depthmaps_s"] > disk["normals_radii_s"]  # the maps, in the bundle's folder
 
 
-def test_knn_path_records_its_attrs(tiny_scene, tmp_path):
-    """The kNN path (--radii knn, or auto on a scene without scan structure) still writes its radii
-    and normals in octree order, 16 bytes a point, and bundle.json says so."""
-    config = PreprocessConfig(radii="knn", depthmap_width=64)
-    meta = read_bundle(pipeline.preprocess(tiny_scene, tmp_path / "knn", config, progress=False)).meta
+def test_knn_path_records_its_attrs(tiny_bundle):
+    """The kNN path (the default) still writes its radii and normals in octree order, 16 bytes a
+    point, and bundle.json says so."""
+    meta = read_bundle(tiny_bundle).meta
     disk, n = meta["disk_bytes_after"], meta["counts"]["points"]
     assert meta["normals_radii"]["method"] == "knn" and "scan_grid_s" not in disk
     assert meta["normals_radii"]["kernel"].startswith("pykdtree")  # the kNN kernel recorded

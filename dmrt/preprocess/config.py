@@ -26,10 +26,10 @@ class PreprocessConfig:
                                        "(32M points -> ~1M proxies)", minimum=1.0)
     memory_limit_mb: float = option(2048, "point data held in memory at once by the out-of-core phases, MiB",
                                     minimum=0.01)
-    # auto: the scan path measured at scale on the GPU machine (reports/scan-speed-h200: the paper's
-    # Scene 2 size in 191.6 s against 366.8 with kNN, and Scene 3 end to end)
+    # knn by default until the scan path is measured at scale on the GPU machine (paper-full, issue
+    # #40); auto is the intended default
     radii: Literal["auto", "scan", "knn"] = option(
-        "auto", "where splat radii and normals come from: scan (the scan's grid of beams: scans.json beside "
+        "knn", "where splat radii and normals come from: scan (the scan's grid of beams: scans.json beside "
                 "the cloud or structured E57 scans; range x angular step, no neighbour search), knn (the "
                 "nearest neighbours), auto (scan where the scene has the structure, else knn)")
     normals_k: int = option(16, "neighbours of the normal plane fit", minimum=3)
