@@ -1014,6 +1014,8 @@ class _BucketWork:
         runs = [Appender(folder / f"r{r:06d}", self.schema) for r in range(len(first))]
         for s, rec in self.chunks(b, n):
             sub = take(rec, np.flatnonzero(assigned[s:s + len(rec["positions"])] == -1))
+            if len(sub["positions"]) == 0:
+                continue  # a slice the levels took whole: no run to cut
             run = np.searchsorted(run_keys, morton_encode(g.coords(sub["positions"])), side="right") - 1
             o = np.argsort(run, kind="stable")
             run = run[o]
