@@ -21,7 +21,9 @@ import pytest
 from dmrt.errors import InputError
 from dmrt.io.pointcloud import PointCloud, PointWriter, point_range
 from dmrt.morton import morton_encode
-from dmrt.preprocess.octree import Octree, OctreeConfig, _best_of_runs, _Grid, _stable_order
+from dmrt.morton import morton_encode
+from dmrt.preprocess.octree import (Octree, OctreeConfig, _best_of_runs, _Grid, _morton_columns, _Runs,
+                                    _stable_order)
 from dmrt.preprocess.parallel import InProcess, ProcessPool
 
 N_BIG = 2_000_000
@@ -593,8 +595,11 @@ def test_stable_order_is_a_stable_argsort(span):
     np.testing.assert_array_equal(srt, keys[o])
 
 
-def test_best_of_runs_matches_a_per_run_loop():
-    """Exact distance ties (resolved by x, y, z, then index), runs of taken points (d2 = inf)."""
+@pytest.mark.parametrize("spread", ["repeat", "run index"])
+def test_best_of_runs_matches_a_per_run_loop(spread):
+    """Exact distance ties (resolved by x, y, z, then index), runs of taken points (d2 = inf); the
+    runs' values spread by np.repeat (long runs) and by a gather through each point's run index
+    (short runs)."""
     rng = np.random.default_rng(2)
     n = 3000
     cols = [rng.integers(0, 3, n).astype(np.float32) for _ in range(3)]  # few values: position ties
@@ -607,18 +612,45 @@ def test_best_of_runs_matches_a_per_run_loop():
         if len(i):
             want.append(i[np.lexsort((i, cols[2][i], cols[1][i], cols[0][i], d2[i]))[0]])
     assert len(want) < len(start), "no run of taken points"
-    np.testing.assert_array_equal(_best_of_runs(start, d2, cols), want)
+    breaks = np.zeros(n - 1, bool)
+    breaks[start[1:] - 1] = True
+    runs = _Runs.from_breaks(breaks)
+    assert runs.rid is not None  # 900 runs of 3000 points: short runs, spread through the run index
+    np.testing.assert_array_equal(runs.start, start)
+    if spread == "repeat":
+        runs.rid = None
+    else:
+        np.testing.assert_array_equal(runs.rid, np.repeat(np.arange(len(start)), np.diff(np.r_[start, n])))
+    np.testing.assert_array_equal(_best_of_runs(runs, d2, cols), want)
 
 
-def test_distance_columns_equal_the_formula_bit_for_bit():
+def test_cell_columns_and_keys_equal_coords_and_morton_encode():
+    rng = np.random.default_rng(4)
+    g = _Grid(np.array([-3.1, 0.7, 12.9]), 0.37, 8, 14)  # 14 + 7 = 21 bits a coordinate: every table bit
+    pos = (rng.random((5000, 3)) * 0.37 * 2 ** 14 * 1.1 + g.origin - 1).astype(np.float32)  # some clipped
+    q = g.coords(pos)
+    qc = g.coord_columns(pos)
+    assert all(a.dtype == np.int32 for a in qc)
+    np.testing.assert_array_equal(np.stack(qc, 1), q)
+    assert q.min() == 0 and q.max() == 2 ** 21 - 1
+    np.testing.assert_array_equal(_morton_columns(qc), morton_encode(q))
+
+
+def test_run_distances_equal_the_formula_bit_for_bit():
     rng = np.random.default_rng(3)
     g = _Grid(np.array([-3.1, 0.7, 12.9]), 0.37, 6, 5)
     pos = (rng.random((4000, 3)) * 11.8 + g.origin).astype(np.float32)
+    pos = pos[np.argsort(morton_encode(g.coords(pos)), kind="stable")]  # cells of every level: runs
     q = g.coords(pos)
+    kf = morton_encode(q)
     for lvl in range(g.n_grid):
         shift = g.finest - lvl
         ql = q >> shift
         want = g.d2(pos[:, 0], pos[:, 1], pos[:, 2], ql[:, 0], ql[:, 1], ql[:, 2], lvl)
-        got = g.d2_columns([pos[:, j].copy() for j in range(3)], [q[:, j].astype(np.int32) for j in range(3)],
-                           shift, lvl)
-        assert got.tobytes() == want.tobytes(), f"level {lvl}"
+        breaks = (kf[1:] >> 3 * shift) != (kf[:-1] >> 3 * shift)
+        runs = _Runs.from_breaks(breaks)
+        for rid in (np.cumsum(np.r_[0, breaks]), None):  # both spreads, whichever the run lengths chose
+            runs.rid = rid
+            got = g.d2_runs([pos[:, j].copy() for j in range(3)], [q[:, j].astype(np.int32) for j in range(3)],
+                            runs, shift, lvl)
+            assert got.tobytes() == want.tobytes(), f"level {lvl}"
