@@ -21,9 +21,9 @@ import pytest
 from dmrt.errors import InputError
 from dmrt.io.pointcloud import PointCloud, PointWriter, point_range
 from dmrt.morton import morton_encode
-from dmrt.morton import morton_encode
-from dmrt.preprocess.octree import (Octree, OctreeConfig, _best_of_runs, _Grid, _morton_columns, _Runs,
-                                    _stable_order)
+from dmrt.preprocess import octree as octree_module
+from dmrt.preprocess.octree import (Octree, OctreeConfig, _best_of_runs, _block_cuts, _Grid, _morton_columns,
+                                    _Runs, _stable_order)
 from dmrt.preprocess.parallel import InProcess, ProcessPool
 
 N_BIG = 2_000_000
@@ -243,7 +243,7 @@ def chunked(pos, ids, size, order=None):
     return lambda: ((pos[s:s + size], {"id": ids[s:s + size]}) for s in starts)
 
 
-def test_matches_naive_reference_out_of_core(tmp_path):
+def test_matches_naive_reference_out_of_core(tmp_path, monkeypatch):
     pos, ids = tricky_cloud()
     lo, hi = pos.min(0), pos.max(0)
     root = float(np.linalg.norm(hi - lo)) / 3  # huge level-0 cells: coarse levels span many buckets
@@ -273,6 +273,10 @@ def test_matches_naive_reference_out_of_core(tmp_path):
     # (whose over-full bucket took the streaming path): the level files do not depend on the buckets
     tree3 = Octree.build(chunked(pos, ids, 3001), tmp_path / "c", cfg2, bbox=(lo, hi), progress=False)
     assert_same_files(tree, tree3)
+    # and so does it selecting in blocks of a few level-0 cells (~27 cells: the blocks are cells)
+    monkeypatch.setattr(octree_module, "SELECT_BLOCK", 257)
+    tree4 = Octree.build(chunked(pos, ids, 3001), tmp_path / "e", cfg2, bbox=(lo, hi), progress=False)
+    assert_same_files(tree, tree4)
 
 
 def test_default_root_and_single_level(tmp_path):
@@ -654,3 +658,18 @@ def test_run_distances_equal_the_formula_bit_for_bit():
             got = g.d2_runs([pos[:, j].copy() for j in range(3)], [q[:, j].astype(np.int32) for j in range(3)],
                             runs, shift, lvl)
             assert got.tobytes() == want.tobytes(), f"level {lvl}"
+
+
+@pytest.mark.parametrize("size", [1, 7, 100, 10_000])
+def test_block_cuts_are_the_first_run_starts_past_each_multiple(size):
+    rng = np.random.default_rng(5)
+    breaks = rng.random(999) < 0.05  # 1000 points in runs of ~20
+    cuts = _block_cuts(breaks, size)
+    start = [0] + [i + 1 for i in np.flatnonzero(breaks)]
+    want = [0]
+    for m in range(size, 1000, size):
+        nxt = [s for s in start if s >= m]
+        if nxt and nxt[0] > want[-1]:
+            want.append(nxt[0])
+    want.append(1000)
+    np.testing.assert_array_equal(cuts, want)
