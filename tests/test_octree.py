@@ -22,8 +22,8 @@ from dmrt.errors import InputError
 from dmrt.io.pointcloud import PointCloud, PointWriter, point_range
 from dmrt.morton import morton_encode
 from dmrt.preprocess import octree as octree_module
-from dmrt.preprocess.octree import (Octree, OctreeConfig, _best_of_runs, _block_cuts, _Grid, _morton_columns,
-                                    _Runs, _stable_order)
+from dmrt.preprocess.buckets import morton_columns
+from dmrt.preprocess.octree import Octree, OctreeConfig, _best_of_runs, _block_cuts, _Grid, _Runs, _stable_order
 from dmrt.preprocess.parallel import InProcess, ProcessPool
 
 N_BIG = 2_000_000
@@ -428,6 +428,17 @@ def test_inconsistent_chunks_are_rejected(tmp_path):
         Octree.build(iter([(pos, {})]), tmp_path / "y", OctreeConfig(levels=4), progress=False)
 
 
+@pytest.mark.filterwarnings("ignore:overflow encountered in cast")  # 1e39 to float32, on purpose
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, 1e39])  # 1e39: beyond float32, inf once rounded
+def test_non_finite_coordinates_are_rejected(tmp_path, bad):
+    pos, ids = tricky_cloud()
+    pos = pos.copy()
+    pos[150, 1] = bad
+    box = (np.zeros(3), np.full(3, 100.0))  # a given box: the count pass is the first to see the points
+    with pytest.raises(ValueError, match="non-finite"):
+        Octree.build(chunked(pos, ids, 100), tmp_path / "x", OctreeConfig(levels=4), bbox=box, progress=False)
+
+
 def test_memory_stays_near_the_limit(tmp_path):
     """Python-heap peak (numpy buffers are traced) of a build of a 600k-point cloud (19 MB of data)
     under a 4 MB limit. The chunk generator's own ~1 MB peak is included; allow 2x for slack."""
@@ -637,7 +648,7 @@ def test_cell_columns_and_keys_equal_coords_and_morton_encode():
     assert all(a.dtype == np.int32 for a in qc)
     np.testing.assert_array_equal(np.stack(qc, 1), q)
     assert q.min() == 0 and q.max() == 2 ** 21 - 1
-    np.testing.assert_array_equal(_morton_columns(qc), morton_encode(q))
+    np.testing.assert_array_equal(morton_columns(qc), morton_encode(q))
 
 
 def test_run_distances_equal_the_formula_bit_for_bit():
