@@ -64,7 +64,9 @@ bucket level and the budget, and selects the levels.
 6. *select*: each bucket is loaded alone, the coarse picks are removed, and levels ``c .. levels-2``
    plus the remainder are selected inside it (level ``>= c`` cells never cross a bucket): one
    stable sort by the finest Morton key makes every level's cells contiguous runs, and each level
-   is a segmented minimum over them. A bucket's spill folder is deleted as soon as it is done.
+   is a segmented minimum over them, taken block by block (blocks of whole level-``c`` cells, small
+   enough to stay in cache across the levels). A bucket's spill folder is deleted as soon as it is
+   done.
 
 A level-``c`` cell that alone exceeds the capacity (extreme point density) is processed by streaming
 per-level reductions over its spill file; then memory is proportional to its number of occupied
