@@ -30,10 +30,10 @@ the passes that read it (count, distribute) are printed with and without the gen
 
 ``--profile N`` profiles the build (cProfile, in this process: with ``--workers 1``) and prints its N
 costliest functions in microseconds a point; e.g. the select of a bucket as dense per cell as the
-683M-point scan's (its finest cells hold ~10 points; here a root cell 15x the default)::
+683M-point scan's (levels of about the same sizes, scaled: a root cell of 20 m, 9x the default)::
 
     OMP_NUM_THREADS=1 taskset -c 0 python -m bench.bench_octree --points 3000000 --memory-limit-mb 2048 \
-        --root-cell 3 --ply /tmp/cloud.ply --out-dir /tmp/oct --profile 30 --no-progress
+        --root-cell 20 --ply /tmp/cloud.ply --out-dir /tmp/oct --profile 30 --no-progress
 
 ``--ply FILE`` writes the generated cloud to a binary PLY once (unless FILE already holds
 ``--points`` points; not timed) and builds from it through
