@@ -279,6 +279,26 @@ def test_matches_naive_reference_out_of_core(tmp_path, monkeypatch):
     assert_same_files(tree, tree4)
 
 
+def test_streamed_bucket_whose_first_slice_the_levels_take_whole(tmp_path):
+    """An over-full bucket whose first 1100 points (a slice and more) each sit alone in a finest
+    cell, so the grid levels take them all, before a dense blob (the remainder): the streamed
+    remainder skips the empty slice and writes the in-memory build's bytes."""
+    rng = np.random.default_rng(0)
+    grid_pts = (np.stack(np.meshgrid(*[np.arange(11)] * 3, indexing="ij"), -1).reshape(-1, 3)[:1100] + 0.5) * 0.09
+    blob = 0.5 + rng.normal(0, 0.0005, (5000, 3))
+    background = rng.random((20000, 3)) * 16 + [2, 0, 0]  # many cells: the count table coarsens
+    pos = np.concatenate([grid_pts, blob, background])
+    chunks = [(pos[s:s + 5000], {}) for s in range(0, len(pos), 5000)]
+    box = (np.zeros(3), np.full(3, 18.0))
+    streamed = Octree.build(chunks, tmp_path / "s", OctreeConfig(levels=8, root_cell=1.0, memory_limit_mb=0.1),
+                            bbox=box, progress=False)
+    assert streamed.meta["max_bucket_points"] > streamed.meta["bucket_capacity"]
+    in_memory = Octree.build(chunks, tmp_path / "m", OctreeConfig(levels=8, root_cell=1.0, memory_limit_mb=512),
+                             bbox=box, progress=False)
+    assert in_memory.meta["n_buckets"] == 1
+    assert_same_files(streamed, in_memory)
+
+
 def test_default_root_and_single_level(tmp_path):
     pos, ids = tricky_cloud(seed=5)
     tree = Octree.build(chunked(pos, ids, 5000), tmp_path / "d", OctreeConfig(levels=6), progress=False)

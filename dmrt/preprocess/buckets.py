@@ -21,10 +21,11 @@ Counts
 ------
 A *grid* is any object whose ``coords(pos)`` gives (n, 3) int64 cell coordinates on a fine grid
 (:class:`FineGrid`, the octree's grid of levels); one that also has ``coord_columns(pos)`` (the
-same coordinates as three (n,) int32 columns, the octree's) is read through those, which is faster. Coarser cells are those coordinates shifted right
-(``shift`` doublings), never a second ``floor()``, so every pass puts a point in exactly the same
-cell. :class:`CellCounts` is a sparse table of points per cell (sorted int64 Morton keys and
-counts), coarsened one doubling at a time while it holds more than ``cap`` cells. It coarsens past
+same coordinates as three (n,) int32 columns, as the octree's has) is read through those, which
+is faster. Coarser cells are those coordinates shifted right (``shift`` doublings), never a second
+``floor()``, so every pass puts a point in exactly the same cell. :class:`CellCounts` is a sparse
+table of points per cell (sorted int64 Morton keys and counts), coarsened one doubling at a time
+while it holds more than ``cap`` cells. It coarsens past
 a shift ``s`` only when the table of the points added so far, hence that of all points, exceeds the
 cap at ``s``, and it ends with the table of all points within the cap: so it ends at the finest
 shift whose table of all points fits, a pure function of the point set, whatever the order and
@@ -61,7 +62,8 @@ except ImportError:  # pragma: no cover
 
 __all__ = ["progress_bar", "chunk_source", "normalize_chunk", "iter_chunks", "first_chunk", "positions_dtype",
            "InputPart", "split_input", "input_pass", "bbox_part", "input_bbox", "compute_bbox",
-           "morton_columns", "cell_columns", "cell_keys", "unique_counts", "in_sorted", "merge_counts", "coarsen", "CellCounts", "count_cells", "count_input",
+           "morton_columns", "cell_columns", "cell_keys", "unique_counts", "in_sorted", "merge_counts", "coarsen",
+           "CellCounts", "count_cells", "count_input",
            "FineGrid", "Buckets", "halo_schema", "distribute"]
 
 
@@ -263,8 +265,8 @@ _SPREAD = morton_encode(np.c_[np.arange(1 << _SPREAD_BITS), np.zeros((1 << _SPRE
 
 def morton_columns(qc) -> np.ndarray:
     """:func:`~dmrt.morton.morton_encode` of the cell coordinate columns ``qc`` (three (n,) int32 or
-    int64, each in ``[0, 2**21)``): (n,) int64 keys, the same values, by two lookups in a table per axis
-    instead of fifteen whole-array bit operations (measured 91 against 145 ms for 3M keys)."""
+    int64, each in ``[0, 2**21)``): (n,) int64 keys, the same values, by two lookups in a table per
+    axis instead of fifteen whole-array bit operations (measured 91 against 145 ms for 3M keys)."""
     key = None
     for j, q in enumerate(qc):
         lo = np.take(_SPREAD, q & ((1 << _SPREAD_BITS) - 1))
