@@ -28,6 +28,13 @@ spawned before the clock starts (as the pipeline's pool is), and the largest one
 printed as ``worker_peak_rss_mb``. The generated input is generated and read in this process, so
 the passes that read it (count, distribute) are printed with and without the generator's time.
 
+``--profile N`` profiles the build (cProfile, in this process: with ``--workers 1``) and prints its N
+costliest functions in microseconds a point; e.g. the select of a bucket as dense per cell as the
+683M-point scan's (levels of about the same sizes, scaled: a root cell of 20 m, 9x the default)::
+
+    OMP_NUM_THREADS=1 taskset -c 0 python -m bench.bench_octree --points 3000000 --memory-limit-mb 2048 \
+        --root-cell 20 --ply /tmp/cloud.ply --out-dir /tmp/oct --profile 30 --no-progress
+
 ``--ply FILE`` writes the generated cloud to a binary PLY once (unless FILE already holds
 ``--points`` points; not timed) and builds from it through
 :func:`~dmrt.io.pointcloud.point_range`, as the preprocessing pipeline reads a scene: that source
@@ -38,9 +45,11 @@ distribute) run in the N processes too, one range each.
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
 import os
 import platform
+import pstats
 import resource
 import shutil
 import time
@@ -141,6 +150,15 @@ def _current_rss_mb() -> float:
     return float("nan")
 
 
+def _print_profile(profiler, points: int, top: int):
+    """The ``top`` functions of the profile by cumulative time, in microseconds a point."""
+    rows = sorted(pstats.Stats(profiler).stats.items(), key=lambda kv: -kv[1][3])[:top]
+    print("profile (us/pt cumulative, own; calls; function):")
+    for (path, line, name), (_, calls, own, cum, _) in rows:
+        print(f"  {cum * 1e6 / max(1, points):7.3f} {own * 1e6 / max(1, points):7.3f} {calls:7d}  "
+              f"{name} ({os.path.basename(path)}:{line})")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--points", type=int, default=20_000_000)
@@ -160,6 +178,9 @@ def main(argv=None):
     ap.add_argument("--json", default=None, help="write the results here")
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--delete", action="store_true", help="remove the octree afterwards")
+    ap.add_argument("--profile", type=int, default=0, metavar="N",
+                    help="profile the build in this process (cProfile; use with --workers 1) and print its N "
+                         "costliest functions in microseconds a point, cumulative and own")
     args = ap.parse_args(argv)
 
     baseline = _current_rss_mb()
@@ -198,8 +219,13 @@ def main(argv=None):
         executor.map(time.sleep, [0.2] * args.workers)  # spawn the workers before the clock starts
         spawn_s = time.perf_counter() - t
         t0, cpu0, workers_cpu0 = time.perf_counter(), _cpu_s(), _cpu_s(resource.RUSAGE_CHILDREN)
+        profiler = cProfile.Profile() if args.profile else None
+        if profiler:
+            profiler.enable()
         tree = Octree.build(source, args.out_dir, cfg, bbox=bbox_of_scene(), progress=not args.no_progress,
                             executor=executor)
+        if profiler:
+            profiler.disable()
         wall, cpu = time.perf_counter() - t0, _cpu_s() - cpu0
     # the workers' CPU time counts once they are joined (at the executor's close), spawning included
     workers_cpu = _cpu_s(resource.RUSAGE_CHILDREN) - workers_cpu0
@@ -254,6 +280,8 @@ def main(argv=None):
           + " (microseconds a point, generator time excluded)")
     print(f"rss     baseline {baseline:.0f} MB, peak {peak:.0f} MB (getrusage) vs limit {args.memory_limit_mb:g} MB"
           + (f"; largest worker {worker_peak:.0f} MB" if worker_peak is not None else ""))
+    if profiler:
+        _print_profile(profiler, args.points, args.profile)
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(res, fh, indent=1)

@@ -10,6 +10,7 @@ from dmrt.morton import morton_encode
 from dmrt.preprocess.buckets import (Buckets, CellCounts, FineGrid, InputPart, coarsen, count_input, distribute,
                                      halo_schema, in_sorted, merge_counts, unique_counts)
 from dmrt.preprocess.parallel import InProcess
+from dmrt.preprocess import spill as spill_module
 from dmrt.preprocess.spill import Spill
 
 
@@ -105,9 +106,11 @@ def test_a_halo_holds_exactly_the_points_whose_margin_box_overlaps_an_occupied_c
     assert halos > 100
 
 
+@pytest.mark.parametrize("runs", [False, True])  # buckets at random (sorted first) / in runs (buffered as they come)
 @pytest.mark.parametrize("buffer_bytes", [1, 1 << 20])
-def test_spill_files_round_trip_their_records(tmp_path, buffer_bytes):
+def test_spill_files_round_trip_their_records(tmp_path, buffer_bytes, runs, monkeypatch):
     rng = np.random.default_rng(2)
+    monkeypatch.setattr(spill_module, "RUN_POINTS", 4)  # runs of 10 points average more
     schema = {"positions": ("float32", (3,)), "id": ("int64", ()), "rgb": ("uint8", (3,))}
     spill = Spill(str(tmp_path / "s"), schema, parts=2)
     nb = 7
@@ -121,6 +124,8 @@ def test_spill_files_round_trip_their_records(tmp_path, buffer_bytes):
             rec = {"positions": rng.random((m, 3)).astype(np.float32), "id": rng.integers(0, 1 << 40, m),
                    "rgb": rng.integers(0, 256, (m, 3)).astype(np.uint8), "extra": np.zeros(m)}
             bucket = rng.integers(0, nb - 1, m)  # unsorted; the last bucket stays empty
+            if runs:
+                bucket = np.repeat(bucket, 10)[:m]
             w.add(bucket, rec)
             adds.append((bucket, rec))
         counts = w.close()

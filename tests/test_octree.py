@@ -21,7 +21,9 @@ import pytest
 from dmrt.errors import InputError
 from dmrt.io.pointcloud import PointCloud, PointWriter, point_range
 from dmrt.morton import morton_encode
-from dmrt.preprocess.octree import Octree, OctreeConfig, _best_of_runs, _Grid, _stable_order
+from dmrt.preprocess import octree as octree_module
+from dmrt.preprocess.buckets import morton_columns
+from dmrt.preprocess.octree import Octree, OctreeConfig, _best_of_runs, _block_cuts, _Grid, _Runs, _stable_order
 from dmrt.preprocess.parallel import InProcess, ProcessPool
 
 N_BIG = 2_000_000
@@ -241,7 +243,7 @@ def chunked(pos, ids, size, order=None):
     return lambda: ((pos[s:s + size], {"id": ids[s:s + size]}) for s in starts)
 
 
-def test_matches_naive_reference_out_of_core(tmp_path):
+def test_matches_naive_reference_out_of_core(tmp_path, monkeypatch):
     pos, ids = tricky_cloud()
     lo, hi = pos.min(0), pos.max(0)
     root = float(np.linalg.norm(hi - lo)) / 3  # huge level-0 cells: coarse levels span many buckets
@@ -271,6 +273,30 @@ def test_matches_naive_reference_out_of_core(tmp_path):
     # (whose over-full bucket took the streaming path): the level files do not depend on the buckets
     tree3 = Octree.build(chunked(pos, ids, 3001), tmp_path / "c", cfg2, bbox=(lo, hi), progress=False)
     assert_same_files(tree, tree3)
+    # and so does it selecting in blocks of a few level-0 cells (~27 cells: the blocks are cells)
+    monkeypatch.setattr(octree_module, "SELECT_BLOCK", 257)
+    tree4 = Octree.build(chunked(pos, ids, 3001), tmp_path / "e", cfg2, bbox=(lo, hi), progress=False)
+    assert_same_files(tree, tree4)
+
+
+def test_streamed_bucket_whose_first_slice_the_levels_take_whole(tmp_path):
+    """An over-full bucket whose first 1100 points (a slice and more) each sit alone in a finest
+    cell, so the grid levels take them all, before a dense blob (the remainder): the streamed
+    remainder skips the empty slice and writes the in-memory build's bytes."""
+    rng = np.random.default_rng(0)
+    grid_pts = (np.stack(np.meshgrid(*[np.arange(11)] * 3, indexing="ij"), -1).reshape(-1, 3)[:1100] + 0.5) * 0.09
+    blob = 0.5 + rng.normal(0, 0.0005, (5000, 3))
+    background = rng.random((20000, 3)) * 16 + [2, 0, 0]  # many cells: the count table coarsens
+    pos = np.concatenate([grid_pts, blob, background])
+    chunks = [(pos[s:s + 5000], {}) for s in range(0, len(pos), 5000)]
+    box = (np.zeros(3), np.full(3, 18.0))
+    streamed = Octree.build(chunks, tmp_path / "s", OctreeConfig(levels=8, root_cell=1.0, memory_limit_mb=0.1),
+                            bbox=box, progress=False)
+    assert streamed.meta["max_bucket_points"] > streamed.meta["bucket_capacity"]
+    in_memory = Octree.build(chunks, tmp_path / "m", OctreeConfig(levels=8, root_cell=1.0, memory_limit_mb=512),
+                             bbox=box, progress=False)
+    assert in_memory.meta["n_buckets"] == 1
+    assert_same_files(streamed, in_memory)
 
 
 def test_default_root_and_single_level(tmp_path):
@@ -420,6 +446,17 @@ def test_inconsistent_chunks_are_rejected(tmp_path):
     assert not (tmp_path / "x").exists()
     with pytest.raises(TypeError, match="callable"):
         Octree.build(iter([(pos, {})]), tmp_path / "y", OctreeConfig(levels=4), progress=False)
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered in cast")  # 1e39 to float32, on purpose
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, 1e39])  # 1e39: beyond float32, inf once rounded
+def test_non_finite_coordinates_are_rejected(tmp_path, bad):
+    pos, ids = tricky_cloud()
+    pos = pos.copy()
+    pos[150, 1] = bad
+    box = (np.zeros(3), np.full(3, 100.0))  # a given box: the count pass is the first to see the points
+    with pytest.raises(ValueError, match="non-finite"):
+        Octree.build(chunked(pos, ids, 100), tmp_path / "x", OctreeConfig(levels=4), bbox=box, progress=False)
 
 
 def test_memory_stays_near_the_limit(tmp_path):
@@ -593,8 +630,11 @@ def test_stable_order_is_a_stable_argsort(span):
     np.testing.assert_array_equal(srt, keys[o])
 
 
-def test_best_of_runs_matches_a_per_run_loop():
-    """Exact distance ties (resolved by x, y, z, then index), runs of taken points (d2 = inf)."""
+@pytest.mark.parametrize("spread", ["repeat", "run index"])
+def test_best_of_runs_matches_a_per_run_loop(spread):
+    """Exact distance ties (resolved by x, y, z, then index), runs of taken points (d2 = inf); the
+    runs' values spread by np.repeat (long runs) and by a gather through each point's run index
+    (short runs)."""
     rng = np.random.default_rng(2)
     n = 3000
     cols = [rng.integers(0, 3, n).astype(np.float32) for _ in range(3)]  # few values: position ties
@@ -607,18 +647,60 @@ def test_best_of_runs_matches_a_per_run_loop():
         if len(i):
             want.append(i[np.lexsort((i, cols[2][i], cols[1][i], cols[0][i], d2[i]))[0]])
     assert len(want) < len(start), "no run of taken points"
-    np.testing.assert_array_equal(_best_of_runs(start, d2, cols), want)
+    breaks = np.zeros(n - 1, bool)
+    breaks[start[1:] - 1] = True
+    runs = _Runs.from_breaks(breaks)
+    assert runs.rid is not None  # 900 runs of 3000 points: short runs, spread through the run index
+    np.testing.assert_array_equal(runs.start, start)
+    if spread == "repeat":
+        runs.rid = None
+    else:
+        np.testing.assert_array_equal(runs.rid, np.repeat(np.arange(len(start)), np.diff(np.r_[start, n])))
+    np.testing.assert_array_equal(_best_of_runs(runs, d2, cols), want)
 
 
-def test_distance_columns_equal_the_formula_bit_for_bit():
+def test_cell_columns_and_keys_equal_coords_and_morton_encode():
+    rng = np.random.default_rng(4)
+    g = _Grid(np.array([-3.1, 0.7, 12.9]), 0.37, 8, 14)  # 14 + 7 = 21 bits a coordinate: every table bit
+    pos = (rng.random((5000, 3)) * 0.37 * 2 ** 14 * 1.1 + g.origin - 1).astype(np.float32)  # some clipped
+    q = g.coords(pos)
+    qc = g.coord_columns(pos)
+    assert all(a.dtype == np.int32 for a in qc)
+    np.testing.assert_array_equal(np.stack(qc, 1), q)
+    assert q.min() == 0 and q.max() == 2 ** 21 - 1
+    np.testing.assert_array_equal(morton_columns(qc), morton_encode(q))
+
+
+def test_run_distances_equal_the_formula_bit_for_bit():
     rng = np.random.default_rng(3)
     g = _Grid(np.array([-3.1, 0.7, 12.9]), 0.37, 6, 5)
     pos = (rng.random((4000, 3)) * 11.8 + g.origin).astype(np.float32)
+    pos = pos[np.argsort(morton_encode(g.coords(pos)), kind="stable")]  # cells of every level: runs
     q = g.coords(pos)
+    kf = morton_encode(q)
     for lvl in range(g.n_grid):
         shift = g.finest - lvl
         ql = q >> shift
         want = g.d2(pos[:, 0], pos[:, 1], pos[:, 2], ql[:, 0], ql[:, 1], ql[:, 2], lvl)
-        got = g.d2_columns([pos[:, j].copy() for j in range(3)], [q[:, j].astype(np.int32) for j in range(3)],
-                           shift, lvl)
-        assert got.tobytes() == want.tobytes(), f"level {lvl}"
+        breaks = (kf[1:] >> 3 * shift) != (kf[:-1] >> 3 * shift)
+        runs = _Runs.from_breaks(breaks)
+        for rid in (np.cumsum(np.r_[0, breaks]), None):  # both spreads, whichever the run lengths chose
+            runs.rid = rid
+            got = g.d2_runs([pos[:, j].copy() for j in range(3)], [q[:, j].astype(np.int32) for j in range(3)],
+                            runs, shift, lvl)
+            assert got.tobytes() == want.tobytes(), f"level {lvl}"
+
+
+@pytest.mark.parametrize("size", [1, 7, 100, 10_000])
+def test_block_cuts_are_the_first_run_starts_past_each_multiple(size):
+    rng = np.random.default_rng(5)
+    breaks = rng.random(999) < 0.05  # 1000 points in runs of ~20
+    cuts = _block_cuts(breaks, size)
+    start = [0] + [i + 1 for i in np.flatnonzero(breaks)]
+    want = [0]
+    for m in range(size, 1000, size):
+        nxt = [s for s in start if s >= m]
+        if nxt and nxt[0] > want[-1]:
+            want.append(nxt[0])
+    want.append(1000)
+    np.testing.assert_array_equal(cuts, want)

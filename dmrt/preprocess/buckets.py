@@ -20,10 +20,12 @@ read back part after part is in input order: the serial pass's bytes.
 Counts
 ------
 A *grid* is any object whose ``coords(pos)`` gives (n, 3) int64 cell coordinates on a fine grid
-(:class:`FineGrid`, the octree's grid of levels). Coarser cells are those coordinates shifted right
-(``shift`` doublings), never a second ``floor()``, so every pass puts a point in exactly the same
-cell. :class:`CellCounts` is a sparse table of points per cell (sorted int64 Morton keys and
-counts), coarsened one doubling at a time while it holds more than ``cap`` cells. It coarsens past
+(:class:`FineGrid`, the octree's grid of levels); one that also has ``coord_columns(pos)`` (the
+same coordinates as three (n,) int32 columns, as the octree's has) is read through those, which
+is faster. Coarser cells are those coordinates shifted right (``shift`` doublings), never a second
+``floor()``, so every pass puts a point in exactly the same cell. :class:`CellCounts` is a sparse
+table of points per cell (sorted int64 Morton keys and counts), coarsened one doubling at a time
+while it holds more than ``cap`` cells. It coarsens past
 a shift ``s`` only when the table of the points added so far, hence that of all points, exceeds the
 cap at ``s``, and it ends with the table of all points within the cap: so it ends at the finest
 shift whose table of all points fits, a pure function of the point set, whatever the order and
@@ -49,6 +51,7 @@ from typing import Callable, Iterable, Iterator, NamedTuple
 
 import numpy as np
 
+from dmrt.io.pointcloud import extent
 from dmrt.morton import morton_encode
 from dmrt.preprocess.spill import Spill
 
@@ -59,7 +62,8 @@ except ImportError:  # pragma: no cover
 
 __all__ = ["progress_bar", "chunk_source", "normalize_chunk", "iter_chunks", "first_chunk", "positions_dtype",
            "InputPart", "split_input", "input_pass", "bbox_part", "input_bbox", "compute_bbox",
-           "unique_counts", "in_sorted", "merge_counts", "coarsen", "CellCounts", "count_cells", "count_input",
+           "morton_columns", "cell_columns", "cell_keys", "unique_counts", "in_sorted", "merge_counts", "coarsen",
+           "CellCounts", "count_cells", "count_input",
            "FineGrid", "Buckets", "halo_schema", "distribute"]
 
 
@@ -253,6 +257,46 @@ def compute_bbox(chunks_fn, progress=False) -> tuple[np.ndarray, np.ndarray, int
 # ---------------------------------------------------------------------------------------------
 # counts
 # ---------------------------------------------------------------------------------------------
+_SPREAD_BITS = 11
+_SPREAD = morton_encode(np.c_[np.arange(1 << _SPREAD_BITS), np.zeros((1 << _SPREAD_BITS, 2), np.int64)])
+"""Bit ``i`` of the index moved to bit ``3 i``: :func:`morton_encode` of 11 bits by a table lookup
+(16 KB, cache-resident)."""
+
+
+def morton_columns(qc) -> np.ndarray:
+    """:func:`~dmrt.morton.morton_encode` of the cell coordinate columns ``qc`` (three (n,) int32 or
+    int64, each in ``[0, 2**21)``): (n,) int64 keys, the same values, by two lookups in a table per
+    axis instead of fifteen whole-array bit operations (measured 91 against 145 ms for 3M keys)."""
+    key = None
+    for j, q in enumerate(qc):
+        lo = np.take(_SPREAD, q & ((1 << _SPREAD_BITS) - 1))
+        hi = np.take(_SPREAD, q >> _SPREAD_BITS)
+        hi <<= 3 * _SPREAD_BITS + j
+        if j:
+            lo <<= j
+            key |= lo
+        else:
+            key = lo
+        key |= hi
+    return key
+
+
+def cell_columns(grid, pos: np.ndarray, shift: int = 0) -> list:
+    """The coordinates of the cells ``shift`` doublings coarser than ``grid``'s of the points
+    ``pos`` (n, 3) as three (n,) integer columns: ``grid.coord_columns`` where the grid has it
+    (int32), else the columns of ``grid.coords`` (int64)."""
+    columns = getattr(grid, "coord_columns", None)
+    if columns is None:
+        q = grid.coords(pos) >> shift
+        return [q[:, 0], q[:, 1], q[:, 2]]
+    return [q >> shift for q in columns(pos)]
+
+
+def cell_keys(grid, pos: np.ndarray, shift: int = 0) -> np.ndarray:
+    """(n,) int64 Morton keys of the cells of :func:`cell_columns`."""
+    return morton_columns(cell_columns(grid, pos, shift))
+
+
 def unique_counts(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Sorted unique values and their counts, (m,) and (m,) int64 (sort-based: NumPy 2.4's
     hash-based ``np.unique`` is an order of magnitude slower on large int64 arrays)."""
@@ -387,12 +431,15 @@ def count_cells(part: InputPart, grid, cap: int, slice_points: int, *, schema=No
     # same whatever the batches (CellCounts: a function of the point set).
     waiting, n_waiting = [], 0
     for pos, _ in iter_chunks(part.source, schema, slice_points, part.where, dtype):
-        if not np.isfinite(pos).all():
+        # the columns' extremes (non-finite if any coordinate is: min and max keep NaN and inf)
+        # spare the per-row test of the points in the box, which costs 5x more
+        lo, hi = extent(pos)
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
             beyond = " (or beyond float32's range)" if np.dtype(dtype) == np.float32 else ""
             raise ValueError(f"the point source contains non-finite coordinates{beyond}")
-        if bbox is not None:
+        if bbox is not None and not ((lo >= bbox[0]).all() and (hi <= bbox[1]).all()):
             n_out += int(np.count_nonzero(np.any((pos < bbox[0]) | (pos > bbox[1]), axis=1)))
-        waiting.append(morton_encode(grid.coords(pos) >> counts.shift))
+        waiting.append(cell_keys(grid, pos, counts.shift))
         n_waiting += len(pos)
         if n_waiting >= max(slice_points, len(counts.keys)):
             counts.add(*unique_counts(np.concatenate(waiting)), counts.shift)
@@ -489,16 +536,21 @@ class Buckets:
 
     def of(self, pos: np.ndarray) -> np.ndarray:
         """(n,) int64 bucket of each point (n, 3)."""
-        q = self.grid.coords(pos) >> self.shift
-        # Scans come in scan order, so runs of consecutive points share a bucket-grid cell: a cheap
-        # packing of the coordinates finds the runs, and only each run's cell is Morton-encoded and
-        # looked up (the same buckets; on every point when the runs are short). Coordinates are
-        # below 2**21, as Morton keys need: 21 bits an axis pack them exactly
-        packed = (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
-        heads = np.flatnonzero(np.r_[True, packed[1:] != packed[:-1]])
-        if len(heads) > len(q) // 4:
-            return self.of_keys(morton_encode(q))
-        return np.repeat(self.of_keys(morton_encode(q[heads])), np.diff(np.r_[heads, len(q)]))
+        if len(pos) == 0:
+            return np.zeros(0, np.int64)
+        qc = cell_columns(self.grid, pos, self.shift)
+        # Scans come in scan order, so runs of consecutive points share a bucket-grid cell: a
+        # comparison of consecutive coordinates finds the runs, and only each run's cell is
+        # Morton-encoded and looked up (the same buckets; on every point when the runs are short)
+        head = np.empty(len(pos), bool)
+        head[0] = True
+        np.not_equal(qc[0][1:], qc[0][:-1], out=head[1:])
+        for a in qc[1:]:
+            head[1:] |= a[1:] != a[:-1]
+        heads = np.flatnonzero(head)
+        if len(heads) > len(pos) // 4:
+            return self.of_keys(morton_columns(qc))
+        return np.repeat(self.of_keys(morton_columns([a[heads] for a in qc])), np.diff(np.r_[heads, len(pos)]))
 
     def with_halos(self, pos: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every (bucket, point) pair of the points' own buckets and halos: each point's own bucket,
