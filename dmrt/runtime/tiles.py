@@ -69,10 +69,8 @@ DEFAULT_TOP = 12
 SPARSE_MIN = 100
 
 
-# The split_min that bench/split_run.sh tries (four batches: between a tile's usual ~63-180 discs and
-# the thousands where a frame waits for one tile). Off by default: on an H200 (reports/many-photos,
-# split-*.json) an earlier form, with the raster and labeling passes themselves handing the long
-# lists over, made frames slower, even those with no list to split.
+# RenderConfig.tile_split's default, which bench/split_run.sh compares with 0 (four batches: between
+# a tile's usual ~63-180 discs and the thousands where a frame waits for one tile; reports/many-photos).
 SPLIT_MIN = 4 * DEFAULT_BATCH
 # Slices the split buffer holds at most (2 KB of partial results each at 16 x 16 pixels: 32 MB); a
 # tile whose slices or discs do not fit stays in the lists, walked by the raster alone.
