@@ -48,5 +48,5 @@ disk["measured_peak_bytes"] = max(used) - used[0] if used else None
 disk["sample_seconds"] = 5
 (res / "disk.json").write_text(json.dumps(disk, indent=1))
 EOF
-(cd "$out" && find results -name '*.json' -print0 | tar czf results.tgz --null -T -)
+(cd "$out" && find results \( -name '*.json' -o -name '*.txt' -o -name '*.tsv' \) -print0 | tar czf results.tgz --null -T -)
 echo finished >>"$out/done.txt"
