@@ -181,9 +181,10 @@ class TileVisibility:
                              for step in (0, 1, 2)] if self._splits else None
         self._last_total = 0  # the last list length read back (walk="auto" decides by it)
         self.split: moderngl.Buffer | None = None  # the long lists' discs, slices, partials (split_min > 0)
-        # the split passes' dispatch-indirect headers, copied out of the split buffer once a frame:
-        # dispatched from the split buffer itself (~5-30 MB), every pass cost ~0.4 ms at 1280x720
-        # and ~2 ms at 3840x2160 on an H200, growing with that buffer, even with no workgroups
+        # the split buffer's headers, copied out once a frame: the split passes dispatch from this
+        # copy and stats() reads it. Once the CPU had read the 4-28 MB split buffer itself, and
+        # while the passes dispatched from it, every later frame's split passes cost 4 ms at
+        # 1280x720 and 22 ms at 3840x2160 on an H200, nothing split or not (reports/many-photos)
         self.split_args: moderngl.Buffer | None = ctx.buffer(reserve=len(SPLIT_HEADER)) if split_min > 0 else None
         self._split_uniforms: dict = {}  # its size, for the programs that read it
         n = max(splats.n, 1)
@@ -396,16 +397,14 @@ class TileVisibility:
         """The layers of the tiles the plan took out of the lists (module doc, step 5), over the
         raster's empty ones: per layer (each reads the one before) the slices, then the merge of
         each tile's slices."""
-        args = self.split_args if self.split_args is not None else self.split
-        if args is not self.split:
-            self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)  # the plan's header writes
-            self.ctx.copy_buffer(args, self.split, size=len(SPLIT_HEADER))
+        self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)  # the plan's header writes
+        self.ctx.copy_buffer(self.split_args, self.split, size=len(SPLIT_HEADER))
         self._bind(proxies=self.splats.buffer, layer_depth=layer_depth, layer_label=layer_label, split=self.split)
         for i in range(int(layers)):
             for step in (1, 2):
                 program = self._split_steps[step]
                 set_uniforms(program, u_layer=i, **self._split_uniforms, **tile_uniforms)
-                program.run_indirect(args, offset=16 * (step - 1))  # the slices' header, then the tiles'
+                program.run_indirect(self.split_args, offset=16 * (step - 1))  # the slices' header, then the tiles'
                 self.ctx.memory_barrier(_BARRIER)
 
     def label_pass(self, uniforms: dict, hits, key=None, vlabel=None, packed: bool = False,
@@ -444,8 +443,7 @@ class TileVisibility:
         for split_pass in (1, 2) if split else ():  # the slices, then each split tile's merge
             program = load_program(self.ctx, "dmrt_tiles_labeling", {**defines, "SPLIT_PASS": split_pass})
             set_uniforms(program, **values)
-            program.run_indirect(self.split_args if self.split_args is not None else self.split,
-                                 offset=16 * (split_pass - 1))
+            program.run_indirect(self.split_args, offset=16 * (split_pass - 1))
             self.ctx.memory_barrier(_BARRIER)
 
     # -- diagnostics ------------------------------------------------------------------------
@@ -475,13 +473,10 @@ class TileVisibility:
         split_tiles = split_slices = split_discs = 0
         if self._splits:  # the two dispatch headers (abi.B_TILE_SPLIT), as the split passes took them
             split_slices, _, _, _, split_tiles, _, _, split_discs = (
-                int(v) for v in np.frombuffer(self._stats_source().read(32), np.uint32))
+                int(v) for v in np.frombuffer(self.split_args.read(32), np.uint32))
         return {"entries": entries, "capacity": capacity, "dropped": entries > capacity, "large": large,
                 "longest": int(np.diff(offsets).max()) if tiles else 0,
                 "split_tiles": split_tiles, "split_slices": split_slices, "split_discs": split_discs}
-
-    def _stats_source(self):
-        return self.split_args if self.split_args is not None else self.split
 
     def read_overflow(self) -> int:
         """Pixels of the last frame that may differ from peeling: every pixel if the frame's list
