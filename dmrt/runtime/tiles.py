@@ -50,7 +50,7 @@ import moderngl
 import numpy as np
 
 from dmrt.gl import abi
-from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups
+from dmrt.gl.kernels import EMPTY_DISPATCH, Staging, fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import timed
 from dmrt.runtime.status import RING, FrameStatus
@@ -181,12 +181,13 @@ class TileVisibility:
                              for step in (0, 1, 2)] if self._splits else None
         self._last_total = 0  # the last list length read back (walk="auto" decides by it)
         self.split: moderngl.Buffer | None = None  # the long lists' discs, slices, partials (split_min > 0)
-        # the split buffer's headers, copied out once a frame: the split passes dispatch from this
-        # copy and stats() reads it. Once the CPU had read the 4-28 MB split buffer itself, and
-        # while the passes dispatched from it, every later frame's split passes cost 4 ms at
-        # 1280x720 and 22 ms at 3840x2160 on an H200, nothing split or not (reports/many-photos)
+        # the split buffer's headers, copied out once a frame for the split passes to dispatch
+        # from: from the 4-28 MB split buffer itself, and with stats() reading that buffer back
+        # (before it read through Staging), every later frame's split passes cost 4 ms at 1280x720
+        # and 22 ms at 3840x2160 on an H200, nothing split or not (reports/many-photos)
         self.split_args: moderngl.Buffer | None = ctx.buffer(reserve=len(SPLIT_HEADER)) if split_min > 0 else None
         self._split_uniforms: dict = {}  # its size, for the programs that read it
+        self._staging: Staging | None = None  # stats()'s read-backs
         n = max(splats.n, 1)
         # large-disc list: dispatch-indirect header (groups x, y, z), its length, proxy indices
         self.large = ctx.buffer(reserve=16 + 4 * n)
@@ -467,13 +468,16 @@ class TileVisibility:
             return {"entries": 0, "capacity": self.capacity, "dropped": False, "large": 0, "longest": 0,
                     "split_tiles": 0, "split_slices": 0, "split_discs": 0}
         entries, capacity = self.status.read(0)[0], self._capacity_of[self.status.frame]
-        large = int(np.frombuffer(self.large.read(16), np.uint32)[3])  # the list's header: groups x, y, z, length
+        if self._staging is None:  # the buffers read stay in GPU memory (Staging: why)
+            self._staging = Staging(self.ctx)
+        read = self._staging.read
+        large = int(np.frombuffer(read(self.large, 16), np.uint32)[3])  # the list's header: groups x, y, z, length
         tiles = self._grid[0] * self._grid[1]
-        offsets = np.frombuffer(self.offsets.read(4 * (tiles + 1)), np.uint32)  # exclusive prefix sum + total
+        offsets = np.frombuffer(read(self.offsets, 4 * (tiles + 1)), np.uint32)  # exclusive prefix sum + total
         split_tiles = split_slices = split_discs = 0
         if self._splits:  # the two dispatch headers (abi.B_TILE_SPLIT), as the split passes took them
             split_slices, _, _, _, split_tiles, _, _, split_discs = (
-                int(v) for v in np.frombuffer(self.split_args.read(32), np.uint32))
+                int(v) for v in np.frombuffer(read(self.split_args, 32), np.uint32))
         return {"entries": entries, "capacity": capacity, "dropped": entries > capacity, "large": large,
                 "longest": int(np.diff(offsets).max()) if tiles else 0,
                 "split_tiles": split_tiles, "split_slices": split_slices, "split_discs": split_discs}
@@ -498,5 +502,7 @@ class TileVisibility:
             if buf is not None:
                 buf.release()
                 setattr(self, name, None)
+        if self._staging is not None:
+            self._staging.release()
         if self._own_status:
             self.status.release()
