@@ -11,7 +11,7 @@ their defaults. For every photo, its depth map against the mesh's camera z at th
 (median, 90th and 99th percentiles, mm: the last are silhouettes, where a disc overhangs an edge),
 the share of the mesh's pixels the map covers, and the proxies' splat radii (median, mm).
 ``--scan-scale S`` adds a third path, ``--radii scan --radius-scale S``: whether the tail follows the
-discs' size (the scan's radii exceed kNN's where stations overlap, kNN seeing their union).
+discs' size (the scan's radii exceed kNN's near the scanners' zenith and where stations overlap).
 """
 
 from __future__ import annotations
