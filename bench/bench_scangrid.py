@@ -21,7 +21,9 @@ point (this process's threads together: steadier than wall time on a shared mach
 (scan / knn: median and 5th-95th percentiles, overall and by the angle between surface and beam);
 the angle between the two paths' normals and between each and the true surface normals (the
 mesh's face hit by the point's beam, Embree), as medians and 90th percentiles (orientation
-ignored: the paths face different viewpoints).
+ignored: the paths face different viewpoints), also by the beam's elevation (world z: the
+synthetic scanners stand upright; below the horizon are floors and the lower walls, which photos
+see most).
 """
 
 from __future__ import annotations
@@ -117,6 +119,7 @@ def main(argv=None) -> dict:
         u = beam / np.linalg.norm(beam, axis=1, keepdims=True)
         cos = np.abs(np.einsum("ij,ij->i", truth, u))
         ratio = r_scan / r_knn
+        elevation = np.degrees(np.arcsin(np.clip(u[:, 2], -1.0, 1.0)))
         out = {
             "preset": args.preset, "points": n, "stations": len(st.stations), "machine": platform.node(),
             "cores": len(os.sched_getaffinity(0)), "threads": args.threads, "workers": args.workers,
@@ -139,6 +142,12 @@ def main(argv=None) -> dict:
                 "scan_vs_truth": _stats(_angles(n_scan, truth), (50, 90)),
                 "knn_vs_truth": _stats(_angles(n_knn, truth), (50, 90)),
             },
+            "normal_angle_to_truth_by_elevation": {
+                f"{lo} to {hi} deg": {"points": round(float(sel.mean()), 4),
+                                      "scan": _stats(_angles(n_scan[sel], truth[sel]), (50, 90)),
+                                      "knn": _stats(_angles(n_knn[sel], truth[sel]), (50, 90))}
+                for lo, hi in ((-90, -45), (-45, 0), (0, 60), (60, 90))
+                for sel in [(elevation >= lo) & (elevation < hi) if hi < 90 else elevation >= lo] if sel.any()},
         }
     finally:
         shutil.rmtree(work, ignore_errors=True)
