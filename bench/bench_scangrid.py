@@ -21,9 +21,9 @@ point (this process's threads together: steadier than wall time on a shared mach
 (scan / knn: median and 5th-95th percentiles, overall and by the angle between surface and beam);
 the angle between the two paths' normals and between each and the true surface normals (the
 mesh's face hit by the point's beam, Embree), as medians and 90th percentiles (orientation
-ignored: the paths face different viewpoints), also by the beam's elevation (world z: the
+ignored: the paths face different viewpoints); both also by the beam's elevation (world z: the
 synthetic scanners stand upright; below the horizon are floors and the lower walls, which photos
-see most).
+see most; near the zenith the beams crowd into rings).
 """
 
 from __future__ import annotations
@@ -142,11 +142,13 @@ def main(argv=None) -> dict:
                 "scan_vs_truth": _stats(_angles(n_scan, truth), (50, 90)),
                 "knn_vs_truth": _stats(_angles(n_knn, truth), (50, 90)),
             },
-            "normal_angle_to_truth_by_elevation": {
+            "by_elevation": {
                 f"{lo} to {hi} deg": {"points": round(float(sel.mean()), 4),
-                                      "scan": _stats(_angles(n_scan[sel], truth[sel]), (50, 90)),
-                                      "knn": _stats(_angles(n_knn[sel], truth[sel]), (50, 90))}
-                for lo, hi in ((-90, -45), (-45, 0), (0, 60), (60, 90))
+                                      "radius_ratio_scan_over_knn": _stats(ratio[sel]),
+                                      "normal_angle_to_truth": {
+                                          "scan": _stats(_angles(n_scan[sel], truth[sel]), (50, 90)),
+                                          "knn": _stats(_angles(n_knn[sel], truth[sel]), (50, 90))}}
+                for lo, hi in ((-90, -45), (-45, 0), (0, 60), (60, 75), (75, 90))
                 for sel in [(elevation >= lo) & (elevation < hi) if hi < 90 else elevation >= lo] if sel.any()},
         }
     finally:

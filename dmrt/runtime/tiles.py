@@ -21,7 +21,7 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
    (a bit mask). The ray-disc test is the other paths' (``splat_depth_at``), so every
    layer equals compute peeling's to the bit; no order among the discs is needed and nothing is
    approximated.
-5. ``dmrt_tiles_split``, with ``split_min`` > 0 (off by default): between the count and the scan, a
+5. ``dmrt_tiles_split``, with ``split_min`` > 0 (the renderer's default): between the count and the scan, a
    plan takes each tile whose list is longer than ``split_min`` out of the lists (the raster and
    labeling passes see it empty) and the scatter writes its discs into a buffer of their own; per
    layer, after the raster, a workgroup per slice of ``batch`` of its discs finds each pixel's
@@ -134,7 +134,8 @@ class TileVisibility:
     split_min : int
         A tile whose list holds more discs than this is walked by a workgroup per ``batch`` discs
         (module doc, step 5), where the split buffer (as many discs as the list buffer) has room;
-        0: never (the default: see ``SPLIT_MIN``). The layers are the same either way.
+        0: never (here the default; the renderer's is ``SPLIT_MIN``, ``RenderConfig.tile_split``).
+        The layers are the same either way.
 
     Attributes
     ----------
@@ -181,10 +182,10 @@ class TileVisibility:
                              for step in (0, 1, 2)] if self._splits else None
         self._last_total = 0  # the last list length read back (walk="auto" decides by it)
         self.split: moderngl.Buffer | None = None  # the long lists' discs, slices, partials (split_min > 0)
-        # the split buffer's headers, copied out once a frame for the split passes to dispatch
-        # from: from the 4-28 MB split buffer itself, and with stats() reading that buffer back
-        # (before it read through Staging), every later frame's split passes cost 4 ms at 1280x720
-        # and 22 ms at 3840x2160 on an H200, nothing split or not (reports/many-photos)
+        # the split buffer's headers, copied out once a frame: the split passes dispatch from the
+        # copy. Dispatched from the 4-28 MB split buffer, which stats() then read back directly,
+        # every later frame's split passes cost 4 ms at 1280x720 and 22 ms at 3840x2160 on an
+        # H200, whether anything was split or not (reports/many-photos)
         self.split_args: moderngl.Buffer | None = ctx.buffer(reserve=len(SPLIT_HEADER)) if split_min > 0 else None
         self._split_uniforms: dict = {}  # its size, for the programs that read it
         self._staging: Staging | None = None  # stats()'s read-backs
