@@ -14,6 +14,7 @@
 #    first 960 photos along the block (about 12 rooms: the paper preset's walking speed), with a
 #    1 GiB and a 3 GiB photo cache and the CPU profiled (render-bundle-walk960.json), then over all
 #    10,240 (the whole block in 30 frames: every frame needs new maps; render-bundle.json).
+#    MANY_WALKS (default "960 0") picks those walks: "960" skips the whole block (~4 minutes).
 # The environment (EGL vendor file, PYTHONPATH with the wheels, DMRT_COMMIT) is the caller's: see
 # ../shared/GPU.md. Results: OUT_DIR/results.tgz (render-paper.json, render-bundle.json,
 # many/preprocess-many.json ...), repacked after each step.
@@ -37,7 +38,7 @@ pack
 # the paper's walking speed (12 of its 128 rooms) with the default photo cache (1 GiB: 383 photos, fewer
 # than the walk wants) and one that holds the walk's 960 (3 GiB), the CPU profiled; then the whole
 # block in 30 frames
-for walk in 960 0; do
+for walk in ${MANY_WALKS:-960 0}; do
     extra=(); [ $walk = 960 ] && extra=(--cache-mb 1024 3072 --cpu-profile)
     t0=$(date +%s)
     python3 -m bench.bench_render --bundle "$out/many/work/bundle" --out "$out/results" "${render[@]}" --map-cache-mb 0 \
