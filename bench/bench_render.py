@@ -89,6 +89,11 @@ def _depth_change(first_steps: int, first: list, depths: list) -> dict:
             "background_change": float(np.mean([np.mean(b == 0) - np.mean(a == 0) for a, b in zip(first, depths)]))}
 
 
+def _mb(budget: float | None) -> str:
+    """A cache budget for the progress line: MiB, or the config's default ("auto")."""
+    return "auto" if budget is None else f"{budget:g}MB"
+
+
 def main(argv=None) -> None:
     from bench.experiments import measure_walkthrough, profile_walkthrough
     from dmrt.gl import get_context, renderer_info
@@ -112,7 +117,8 @@ def main(argv=None) -> None:
     p.add_argument("--map-cache-mb", type=float, nargs="+", default=[0.0],
                    help="depth-map cache budgets (RenderConfig.map_cache_mb; 0 = one texture array's worth)")
     p.add_argument("--cache-mb", type=float, nargs="+", default=[RenderConfig().cache_mb],
-                   help="full-resolution photo cache budgets (RenderConfig.cache_mb, MiB; default the config's): a "
+                   help="full-resolution photo cache budgets (RenderConfig.cache_mb, MiB; default the config's, sized "
+                        "from the GPU's free memory: its size is gpu_bytes.image_cache): a "
                         "walk that wants more photos than the cache holds uploads photos in every frame")
     p.add_argument("--max-steps", type=int, nargs="+", default=[100],
                    help="iterative-search steps per layer (RenderConfig.max_steps; the paper: 100). A lower cap "
@@ -172,7 +178,7 @@ def main(argv=None) -> None:
             if len(args.max_steps) == 1 and len(args.tile_split) == 1:
                 keep = None
             r = measure_walkthrough(bundle, config, path,
-                                    f"{method} {choice} maps={maps_mb:g}MB photos={photos_mb:g}MB k={k} {w}x{h}",
+                                    f"{method} {choice} maps={maps_mb:g}MB photos={_mb(photos_mb)} k={k} {w}x{h}",
                                     fenced=args.fenced, passes=args.passes, on_frame=keep)
             r.pop("stage_ms_per_frame")
             if args.cpu_profile:
@@ -193,7 +199,7 @@ def main(argv=None) -> None:
                          "max_steps": steps, "layers": k,
                          "photo_choice": choice, "map_cache_mb": maps_mb, "cache_mb": photos_mb, **r})
             stages = "  ".join(f"{s} {v:.3f}" for s, v in {**r["median_ms"], **r["median_part_ms"]}.items())
-            print(f"{w}x{h} {method:8s} {choice:6s} split={split} maps={r['map_cache']['slots']} photos={photos_mb:g}MB "
+            print(f"{w}x{h} {method:8s} {choice:6s} split={split} maps={r['map_cache']['slots']} photos={_mb(photos_mb)} "
                   f"{refine:9s} {check:6s} steps={steps:3d} k={k:2d}  {stages}"
                   + f"  | GPU median {r['median_total_ms']:.3f} p95 {r['p95_total_ms']:.3f} ms, wall median "
                     f"{r['median_wall_ms']:.3f} p95 {r['p95_wall_ms']:.3f} ms, sustained {r['sustained_ms']:.3f} "

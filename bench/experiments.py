@@ -833,7 +833,7 @@ def run_memory(ws: Workspace, p: MemoryParams, out: Path) -> dict:
     try:
         renderer.render(cam)
         measured = dict(renderer.gpu_bytes)
-        cache_mb = renderer.config.cache_mb
+        cache_mb = renderer.shading.images.budget_mb
     finally:
         renderer.release()
     w, h = p.frame_size

@@ -96,6 +96,26 @@ def test_image_cache_replaces_the_least_recently_wanted(ctx, bundle):
         cache.release()
 
 
+def test_photo_cache_budget_follows_the_free_gpu_memory(ctx, bundle):
+    """cache_mb=None sizes the cache from the GPU memory free (a quarter, within [1 GiB, half]);
+    where the driver does not say (Mesa's llvmpipe here), the paper's 1 GiB."""
+    from dmrt.gl.context import free_memory_mb
+    from dmrt.runtime.texturing import ImageCache, auto_cache_mb
+
+    assert auto_cache_mb(None) == 1024.0
+    assert auto_cache_mb(140_000.0) == 35_000.0  # an idle H200: a quarter
+    assert auto_cache_mb(3_000.0) == 1024.0  # a quarter would be less than the paper's 1 GiB
+    assert auto_cache_mb(1_000.0) == 500.0  # a small GPU: never more than half of what is free
+    free = free_memory_mb(ctx)
+    cache = ImageCache(ctx, bundle, cache_mb=None)
+    try:
+        assert cache.budget_mb == auto_cache_mb(free)
+        slot_mb = max(c.width * c.height for c in bundle.cameras) * ImageCache.SLOT_TEXEL_BYTES / 2 ** 20
+        assert cache.n_slots == min(len(bundle.cameras), int(cache.budget_mb // slot_mb))
+    finally:
+        cache.release()
+
+
 def test_image_cache_preload(ctx, bundle):
     """preload makes the first n_slots of its photos resident at once (decoded in parallel, even in
     a streaming cache that uploads one photo a frame), the same bytes as an upload by update; a

@@ -84,7 +84,8 @@ class DMTConfig:
                                "maps' boxes", minimum=1e-6)
     min_cos: float = option(0.05, "clamp of |cos theta| in the quality key (a grazing view's footprint is at most "
                                   "20x its frontal one)", minimum=1e-6, maximum=1.0)
-    cache_mb: float = option(1024.0, "as RenderConfig's: GPU MiB for full-resolution photos", minimum=0.0)
+    cache_mb: float | None = option(None, "as RenderConfig's: GPU MiB for full-resolution photos (default from "
+                                          "the GPU's free memory)", minimum=0.0)
     async_photos: bool = option(True, "as RenderConfig's: decode photos on background threads")
     max_uploads_per_frame: int = option(4, "as RenderConfig's: photo uploads per frame (0 = no bound)", minimum=0)
     cpu_cache_mb: float = option(1024.0, "as RenderConfig's: CPU MiB of decoded photos", minimum=0.0)

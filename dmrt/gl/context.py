@@ -77,6 +77,30 @@ def renderer_info(ctx: moderngl.Context) -> dict:
     }
 
 
+# glGetIntegerv names of the free video memory, KiB: NVIDIA's (GL_NVX_gpu_memory_info's
+# CURRENT_AVAILABLE_VIDMEM) and AMD/Mesa's (GL_ATI_meminfo's TEXTURE_FREE_MEMORY: 4 integers, the
+# first the pool's free total)
+_FREE_MEMORY = {"GL_NVX_gpu_memory_info": (0x9049, 1), "GL_ATI_meminfo": (0x87FC, 4)}
+
+
+def free_memory_mb(ctx: moderngl.Context) -> float | None:
+    """GPU memory free now, MiB, where the driver tells it (``GL_NVX_gpu_memory_info`` or
+    ``GL_ATI_meminfo``; ``ctx`` current); None elsewhere (Mesa's CPU rasterizers among them)."""
+    import ctypes
+
+    from dmrt.gl.mapped import entry_points
+
+    for extension, (name, count) in _FREE_MEMORY.items():
+        if extension in ctx.extensions:
+            get = entry_points({"glGetIntegerv": (None, [ctypes.c_uint, ctypes.POINTER(ctypes.c_int)])},
+                               f"{extension} is read with glGetIntegerv").glGetIntegerv
+            values = (ctypes.c_int * count)()
+            get(name, values)
+            check_gl(ctx, f"reading {extension}")
+            return values[0] / 1024.0 if values[0] > 0 else None
+    return None
+
+
 def check_gl(ctx: moderngl.Context, what: str) -> None:
     """Raise if the GL error flag is set: an invalid call, exhausted GPU memory or a lost context
     (a driver reset after a dispatch ran too long) leave buffers stale, and a frame read back from

@@ -145,8 +145,11 @@ class RenderConfig:
         "auto", "compute splatting: int64 (one pass with 64-bit atomicMin on depth and label, "
                 "GL_NV_shader_atomic_int64), portable (a depth pass, then a label pass: any GL 4.3) or auto "
                 "(int64 where the driver has it); the same results")
-    cache_mb: float = option(1024.0, "GPU memory for the full-resolution photo cache, MiB (paper: 1 GB); 0 = "
-                                     "low-resolution copies only", minimum=0.0, level="common")
+    cache_mb: float | None = option(None, "GPU memory for the full-resolution photo cache, MiB (paper: 1 GB); 0 = "
+                                          "low-resolution copies only; default a quarter of the GPU memory free "
+                                          "once the depth maps are loaded, at least 1024 and at most half of it, "
+                                          "where the driver tells (NVIDIA, AMD), else 1024", minimum=0.0,
+                                    level="common")
     async_photos: bool = option(True, "decode photos (and depth maps a partial map cache misses) on background "
                                       "threads so that no frame waits for a disk read (the low-resolution copy "
                                       "stands in until the upload); off, every frame's cache holds exactly its most "

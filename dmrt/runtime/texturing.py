@@ -5,7 +5,7 @@
   them with the depth maps (:class:`dmrt.runtime.maps.MapCache`: beyond one texture array's
   layers they are cached with them).
 * Full-resolution photos are cached in a second RGB8 texture array of as many layers ("slots")
-  as ``cache_mb`` holds. Relevance of a photo = the frequency of its label in the frame's final
+  as ``cache_mb`` holds (by default sized from the GPU's free memory: :func:`auto_cache_mb`). Relevance of a photo = the frequency of its label in the frame's final
   label buffer, counted on the GPU, and the most relevant photos (count > 0, at most as many as
   there are slots, most frequent first: :func:`choose_photos`) are chosen on the GPU too
   (``shaders/dmrt_photo_choice.glsl``); the CPU reads only the choice, with the frame's one
@@ -37,7 +37,7 @@ import numpy as np
 from dmrt.io.bundle import Bundle
 from dmrt.errors import InputError
 from dmrt.gl import abi
-from dmrt.gl.context import check_fits, check_gl
+from dmrt.gl.context import check_fits, check_gl, free_memory_mb
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.runtime.view_choice import MAX_BLEND
 
@@ -49,9 +49,9 @@ class ImageCache:
     ----------
     ctx : moderngl.Context
     bundle : Bundle
-    cache_mb : float
+    cache_mb : float or None
         GPU memory for full-resolution photos, MiB (paper: 1 GB). Each slot holds the largest
-        photo's size in RGB8.
+        photo's size in RGBA8. None: :func:`auto_cache_mb` of the memory free now.
     max_uploads : int
         Full-resolution uploads per frame at most; 0 = unbounded.
     asynchronous : bool
@@ -63,6 +63,7 @@ class ImageCache:
 
     Attributes
     ----------
+    budget_mb : float, the cache's budget, MiB (``cache_mb``, or what None chose).
     low_sizes : list of (width, height) of the low-resolution copies.
     defines : dict, the shader defines of programs that read ``low`` (:attr:`MapCache.defines`)
     n_slots : int, number of full-resolution slots.
@@ -78,7 +79,7 @@ class ImageCache:
     # copy, and the GPU stores RGB8 in 4 bytes a texel either way.
     SLOT_TEXEL_BYTES = 4
 
-    def __init__(self, ctx, bundle: Bundle, cache_mb: float, max_uploads: int = 0, asynchronous: bool = False,
+    def __init__(self, ctx, bundle: Bundle, cache_mb: float | None, max_uploads: int = 0, asynchronous: bool = False,
                  cpu_cache_mb: float = 1024.0, maps=None):
         self.ctx, self.bundle = ctx, bundle
         n = len(bundle.cameras)
@@ -95,7 +96,8 @@ class ImageCache:
                 self.low.write(np.ascontiguousarray(im).tobytes(), viewport=(0, 0, i, im.shape[1], im.shape[0], 1))
         self.full_dims = (max(c.width for c in bundle.cameras), max(c.height for c in bundle.cameras))
         slot_bytes = self.full_dims[0] * self.full_dims[1] * self.SLOT_TEXEL_BYTES
-        self.n_slots = int(min(n, max(0.0, cache_mb) * 2 ** 20 // slot_bytes, ctx.info["GL_MAX_ARRAY_TEXTURE_LAYERS"]))
+        self.budget_mb = auto_cache_mb(free_memory_mb(ctx)) if cache_mb is None else max(0.0, cache_mb)
+        self.n_slots = int(min(n, self.budget_mb * 2 ** 20 // slot_bytes, ctx.info["GL_MAX_ARRAY_TEXTURE_LAYERS"]))
         check_gl(ctx, "before the photo cache's allocation")
         # a 1x1 stand-in keeps the sampler bound when the cache has no slot
         self.high = ctx.texture_array((*self.full_dims, self.n_slots) if self.n_slots else (1, 1, 1),
@@ -253,6 +255,25 @@ class ImageCache:
             self._pool.shutdown(wait=True, cancel_futures=True)
         for obj in (self.high, self.slots) if self._maps is not None else (self.low, self.high, self.slots):
             obj.release()
+
+
+# auto_cache_mb's rule: the paper's 1 GB at least; a quarter of the memory free once the depth maps
+# are resident (the rest for frame buffers, DMT's maps and other programs), never more than half
+PAPER_CACHE_MB = 1024.0
+AUTO_CACHE_SHARE, AUTO_CACHE_MAX_SHARE = 0.25, 0.5
+
+
+def auto_cache_mb(free_mb: float | None) -> float:
+    """The photo cache's default budget, MiB, from the GPU memory free (MiB; None: unknown).
+
+    A walk's photos should fit: with thousands of photos, the paper's 1 GB (383 photos of 1024x684)
+    reloads photos every frame (reports/many-photos: 3.2x the frame time of a 3 GB cache on an
+    H200). So a quarter of the free memory, at least 1 GB but at most half of it; 1 GB where the
+    driver does not tell (the slots stay bounded by the photos and one texture array's layers).
+    """
+    if free_mb is None:
+        return PAPER_CACHE_MB
+    return min(max(PAPER_CACHE_MB, AUTO_CACHE_SHARE * free_mb), AUTO_CACHE_MAX_SHARE * free_mb)
 
 
 def choose_photos(counts: np.ndarray, n_slots: int) -> np.ndarray:
