@@ -146,9 +146,9 @@ class RenderConfig:
                 "GL_NV_shader_atomic_int64), portable (a depth pass, then a label pass: any GL 4.3) or auto "
                 "(int64 where the driver has it); the same results")
     cache_mb: float | None = option(None, "GPU memory for the full-resolution photo cache, MiB (paper: 1 GB); 0 = "
-                                          "low-resolution copies only; default a quarter of the GPU memory free "
-                                          "once the depth maps are loaded, at least 1024 and at most half of it, "
-                                          "where the driver tells (NVIDIA, AMD), else 1024", minimum=0.0,
+                                          "low-resolution copies only; default a quarter of the GPU memory the "
+                                          "driver reports free after the depth maps, at least 1024 and at most "
+                                          "half of it (NVIDIA, AMD), else 1024", minimum=0.0,
                                     level="common")
     async_photos: bool = option(True, "decode photos (and depth maps a partial map cache misses) on background "
                                       "threads so that no frame waits for a disk read (the low-resolution copy "

@@ -257,8 +257,9 @@ class ImageCache:
             obj.release()
 
 
-# auto_cache_mb's rule: the paper's 1 GB at least; a quarter of the memory free once the depth maps
-# are resident (the rest for frame buffers, DMT's maps and other programs), never more than half
+# auto_cache_mb's rule: the paper's 1 GB at least; a quarter of the memory the driver says is free
+# when the cache is made, after the depth maps (the rest for frame buffers, DMT's maps, other
+# programs, and maps the driver has not counted yet: free_memory_mb), never more than half
 PAPER_CACHE_MB = 1024.0
 AUTO_CACHE_SHARE, AUTO_CACHE_MAX_SHARE = 0.25, 0.5
 
