@@ -39,6 +39,8 @@ def main(argv=None) -> None:
     p.add_argument("--points", type=int, help="override the preset's point count")
     p.add_argument("--photos", type=int, help="override the preset's photo count")
     p.add_argument("--photo-size", type=int, nargs=2, metavar=("W", "H"), help="override the preset's photo size")
+    p.add_argument("--photographer", choices=["auto", "embree", "gl"],
+                   help="override the preset's photographer (auto: OpenGL for matte photos, minutes for thousands)")
     p.add_argument("--write-normals", action="store_true", help="the scan carries normals (as the paper preset's "
                    "benchmarks: estimating them is measured apart)")
     p.add_argument("--work", type=Path, default=Path("/tmp/dmrt-bench"), help="scratch folder (scene, bundle)")
@@ -51,7 +53,8 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
 
     overrides = {k: v for k, v in (("points", args.points), ("photos", args.photos),
-                                   ("photo_size", args.photo_size and tuple(args.photo_size))) if v is not None}
+                                   ("photo_size", args.photo_size and tuple(args.photo_size)),
+                                   ("photographer", args.photographer)) if v is not None}
     cfg = replace(PRESETS[args.preset], **overrides, write_normals=args.write_normals or PRESETS[args.preset].write_normals)
     shutil.rmtree(args.work, ignore_errors=True)
     args.work.mkdir(parents=True)

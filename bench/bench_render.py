@@ -89,6 +89,11 @@ def _depth_change(first_steps: int, first: list, depths: list) -> dict:
             "background_change": float(np.mean([np.mean(b == 0) - np.mean(a == 0) for a, b in zip(first, depths)]))}
 
 
+def _budget(text: str) -> float | None:
+    """``--cache-mb``'s values: MiB, or ``auto`` (None: RenderConfig's default)."""
+    return None if text == "auto" else float(text)
+
+
 def _mb(budget: float | None) -> str:
     """A cache budget for the progress line: MiB, or the config's default ("auto")."""
     return "auto" if budget is None else f"{budget:g}MB"
@@ -98,7 +103,8 @@ def main(argv=None) -> None:
     from bench.experiments import measure_walkthrough, profile_walkthrough
     from dmrt.gl import get_context, renderer_info
     from dmrt.runtime.renderer import RenderConfig
-    from dmrt.runtime.walkthrough import camera_path
+    from dmrt.errors import DMRTError
+    from dmrt.runtime.walkthrough import camera_path, load_path, save_path
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_source_args(p, "/tmp/dmrt-bench")
@@ -116,9 +122,9 @@ def main(argv=None) -> None:
                    help="photo choices (RenderConfig.photo_choice), each with the other options at their defaults")
     p.add_argument("--map-cache-mb", type=float, nargs="+", default=[0.0],
                    help="depth-map cache budgets (RenderConfig.map_cache_mb; 0 = one texture array's worth)")
-    p.add_argument("--cache-mb", type=float, nargs="+", default=[RenderConfig().cache_mb],
-                   help="full-resolution photo cache budgets (RenderConfig.cache_mb, MiB; default the config's, sized "
-                        "from the GPU's free memory: its size is gpu_bytes.image_cache): a "
+    p.add_argument("--cache-mb", type=_budget, nargs="+", default=[RenderConfig().cache_mb],
+                   help="full-resolution photo cache budgets (RenderConfig.cache_mb, MiB, or auto: the config's "
+                        "default, sized from the GPU's free memory, its size in gpu_bytes.image_cache; default auto): a "
                         "walk that wants more photos than the cache holds uploads photos in every frame")
     p.add_argument("--max-steps", type=int, nargs="+", default=[100],
                    help="iterative-search steps per layer (RenderConfig.max_steps; the paper: 100). A lower cap "
@@ -140,6 +146,10 @@ def main(argv=None) -> None:
                         "whole scene into 30 frames (every frame a new place, every map new); N photos at the "
                         "paper scene's density (many: 960, about its first 12 rooms, as the paper preset's 192 "
                         "photos are its 12) keep the paper's walking speed")
+    p.add_argument("--keys", type=Path, metavar="PATH_JSON",
+                   help="the walkthrough's key cameras from a camera path file (--save-keys of another run: the same "
+                        "walk through a scene of the same geometry with other photos) instead of the bundle's photos")
+    p.add_argument("--save-keys", type=Path, metavar="PATH_JSON", help="write the walkthrough's key cameras here")
     p.add_argument("--cpu-profile", action="store_true", help="also profile the CPU while it issues the frames "
                    "back to back (cProfile: Python and each GL call's own time; cpu_profile in the JSON)")
     p.add_argument("--write-normals", action="store_true", help="synthetic scan carries normals (skips estimation)")
@@ -147,13 +157,25 @@ def main(argv=None) -> None:
     if args.walk_photos and args.walk_photos < 2:
         p.exit(2, f"{p.prog}: error: --walk-photos: {args.walk_photos} photos give no path (at least 2 key "
                   f"cameras; 0 = all)\n")
+    if args.keys and args.walk_photos:
+        p.exit(2, f"{p.prog}: error: --keys and --walk-photos both choose the walk's key cameras: give one\n")
+    try:
+        given_keys = load_path(args.keys) if args.keys else None
+    except DMRTError as exc:
+        p.exit(2, f"{p.prog}: error: --keys: {exc}\n")
+    if given_keys is not None and len(given_keys) < 2:
+        p.exit(2, f"{p.prog}: error: --keys: {args.keys} holds {len(given_keys)} camera (a walk needs 2)\n")
     setup = {}
     bundle = open_bundle(p, args, setup)
     args.out.mkdir(parents=True, exist_ok=True)
     name = args.preset or bundle.root.name
-    keys = walk_keys(bundle.cameras, args.walk_photos)
+    keys = given_keys or walk_keys(bundle.cameras, args.walk_photos)
     if args.walk_photos:
         name += f"-walk{args.walk_photos}"
+    if args.keys:
+        name += f"-keys-{args.keys.stem}"
+    if args.save_keys:
+        save_path(args.save_keys, keys)
     runs = []
     # with several step caps, the first one's depths (statistics pass) and what the others change
     reference: dict[tuple, tuple[int, list]] = {}
@@ -214,7 +236,8 @@ def main(argv=None) -> None:
     result = {"benchmark": "render", "version": 2, "bundle": str(bundle.root), "preset": args.preset,
               "fenced": args.fenced, "passes": args.passes,
               "machine": {"gl": renderer_info(get_context())}, "setup_s": setup, "frames": args.frames,
-              "leveling": args.leveling, "walk_photos": args.walk_photos, "counts": bundle.meta.get("counts"),
+              "leveling": args.leveling, "walk_photos": args.walk_photos,
+              "keys": str(args.keys) if args.keys else None, "counts": bundle.meta.get("counts"),
               "runs": runs}
     out = args.out / f"render-{name}.json"
     out.write_text(json.dumps(result, indent=1))

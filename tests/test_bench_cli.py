@@ -37,3 +37,18 @@ def test_render_walk_of_fewer_than_two_photos_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert ": error: --walk-photos: 1 photos" in err and "\n" not in err
     assert not (tmp_path / "out").exists()
+
+
+def test_render_keys_file_errors_are_one_line(tmp_path, capsys):
+    """--keys names a camera path file: a missing one, or one given with --walk-photos, is one line
+    and exit status 2 before anything is written."""
+    from bench.bench_render import main
+
+    for extra, expected in ((["--keys", str(tmp_path / "none.json")], "none.json"),
+                            (["--keys", str(tmp_path / "k.json"), "--walk-photos", "4"], "give one")):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["--bundle", str(tmp_path / "none"), "--out", str(tmp_path / "out"), *extra])
+        assert exit_info.value.code == 2
+        err = capsys.readouterr().err.strip()
+        assert ": error: --keys" in err and expected in err and "\n" not in err
+        assert not (tmp_path / "out").exists()
