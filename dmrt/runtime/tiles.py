@@ -493,8 +493,9 @@ class TileVisibility:
     @property
     def nbytes(self) -> int:
         """GPU bytes of the path's own buffers (list, tile counts and offsets, large list, hit masks,
-        split slices, status records if its own)."""
-        bufs = [self.entries, self.large, self.counts, self.offsets, self.masks, self.split]
+        split slices and their dispatch headers, status records if its own; not the statistics'
+        read-back copy, which :meth:`stats` alone makes)."""
+        bufs = [self.entries, self.large, self.counts, self.offsets, self.masks, self.split, self.split_args]
         return sum(b.size for b in bufs if b is not None) + (self.status.nbytes if self._own_status else 0)
 
     def release(self) -> None:
