@@ -16,11 +16,14 @@
 #    profiled (render-bundle-walk960.json), then over all
 #    10,240 (the whole block in 30 frames: every frame needs new maps; render-bundle.json).
 #    MANY_WALKS (default "960 0") picks those walks: "960" skips the whole block (~4 minutes).
-# 3. with SCENES="paper-many" (default "many"; "many paper-many" runs both, ~37 minutes): the paper
-#    preset's geometry with 10,240 photos (PAPER_MANY_PHOTOS) made by the OpenGL photographer and
-#    preprocessed as many_run.sh does, then walked along the paper step's key cameras
-#    (--keys paper-keys.json): the same views with 53x the photos, so the ratio of the two frames
-#    is the photo count's alone (many's also holds its longer block's).
+# 3. SCENES (default "many") lists the scenes after the paper step, in order: "many" (step 2), and
+#    PRESET-N (e.g. many-1280, paper-2560): that preset's geometry with N photos, made by the OpenGL
+#    photographer and preprocessed as many_run.sh does, then walked along the key cameras of
+#    PRESET's own walk in this run (--keys: many's 960-photo walk, or the paper step's; so list it
+#    after "many"). The same views with other photo counts: their frames' ratio is the photo
+#    count's alone, where many's against paper's also holds the longer block's. Each PRESET-N
+#    takes about 5 minutes at 1,280 photos; photo-dense rooms grow the candidates, labeling and
+#    photometric phases (paper-10240 is 850 photos a room).
 # The environment (EGL vendor file, PYTHONPATH with the wheels, DMRT_COMMIT) is the caller's: see
 # ../shared/GPU.md. Results: OUT_DIR/results.tgz (render-paper.json, render-bundle.json,
 # many/preprocess-many.json ...), repacked after each step.
@@ -38,19 +41,19 @@ pack
 rm -rf "$out/paper"  # the disk holds one scene at a time (many: ~40 GB)
 for scene in ${SCENES:-many}; do
 case $scene in
-paper-many)
+*-*)
+    preset=${scene%-*} photos=${scene##*-}
     t0=$(date +%s)
-    bench/many_run.sh "$out/paper-many" --preset paper --photos "${PAPER_MANY_PHOTOS:-10240}" --photographer auto \
-        >>"$out/log.txt" 2>&1
-    echo "paper-many preprocess rc=$? $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
-    mkdir -p "$out/results/paper-many" && tar xzf "$out/paper-many/results.tgz" -C "$out/results/paper-many" 2>/dev/null
+    bench/many_run.sh "$out/$scene" --preset "$preset" --photos "$photos" --photographer auto >>"$out/log.txt" 2>&1
+    echo "$scene preprocess rc=$? $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
+    mkdir -p "$out/results/$scene" && tar xzf "$out/$scene/results.tgz" -C "$out/results/$scene" 2>/dev/null
     pack
     t0=$(date +%s)
-    python3 -m bench.bench_render --bundle "$out/paper-many/work/bundle" --out "$out/results" "${render[@]}" \
-        --map-cache-mb 0 --keys "$out/results/paper-keys.json" 2>&1 | tr '\r' '\n' | grep -v 'frame/s' >>"$out/log.txt"
-    echo "paper-many render rc=${PIPESTATUS[0]} $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
+    python3 -m bench.bench_render --bundle "$out/$scene/work/bundle" --out "$out/results/$scene" "${render[@]}" \
+        --map-cache-mb 0 --keys "$out/results/$preset-keys.json" 2>&1 | tr '\r' '\n' | grep -v 'frame/s' >>"$out/log.txt"
+    echo "$scene render rc=${PIPESTATUS[0]} $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
     pack
-    rm -rf "$out/paper-many/work"
+    rm -rf "$out/$scene/work"
     ;;
 many)
 t0=$(date +%s)
@@ -60,7 +63,7 @@ mkdir -p "$out/results/many" && tar xzf "$out/many/results.tgz" -C "$out/results
 pack
 # the paper's walking speed (12 of its 128 rooms), the CPU profiled; then the whole block in 30 frames
 for walk in ${MANY_WALKS:-960 0}; do
-    extra=(); [ $walk = 960 ] && extra=(--cpu-profile)
+    extra=(); [ $walk = 960 ] && extra=(--cpu-profile --save-keys "$out/results/many-keys.json")
     t0=$(date +%s)
     python3 -m bench.bench_render --bundle "$out/many/work/bundle" --out "$out/results" "${render[@]}" --map-cache-mb 0 \
         --walk-photos $walk "${extra[@]}" 2>&1 | tr '\r' '\n' | grep -v 'frame/s' >>"$out/log.txt"
