@@ -5,7 +5,8 @@
   them with the depth maps (:class:`dmrt.runtime.maps.MapCache`: beyond one texture array's
   layers they are cached with them).
 * Full-resolution photos are cached in a second RGB8 texture array of as many layers ("slots")
-  as ``cache_mb`` holds (by default sized from the GPU's free memory: :func:`auto_cache_mb`). Relevance of a photo = the frequency of its label in the frame's final
+  as ``cache_mb`` holds (by default sized from the GPU's free memory: :func:`auto_cache_mb`).
+  Relevance of a photo = the frequency of its label in the frame's final
   label buffer, counted on the GPU, and the most relevant photos (count > 0, at most as many as
   there are slots, most frequent first: :func:`choose_photos`) are chosen on the GPU too
   (``shaders/dmrt_photo_choice.glsl``); the CPU reads only the choice, with the frame's one
