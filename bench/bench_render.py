@@ -94,6 +94,9 @@ def _budget(text: str) -> float | None:
     return None if text == "auto" else float(text)
 
 
+_budget.__name__ = "MiB or auto"  # argparse's "invalid ... value" names the type by it
+
+
 def _mb(budget: float | None) -> str:
     """A cache budget for the progress line: MiB, or the config's default ("auto")."""
     return "auto" if budget is None else f"{budget:g}MB"

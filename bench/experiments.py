@@ -826,10 +826,12 @@ class MemoryParams:
 def run_memory(ws: Workspace, p: MemoryParams, out: Path) -> dict:
     from bench import paper
     from dmrt.runtime.renderer import RenderConfig, Renderer
+    from dmrt.runtime.texturing import PAPER_CACHE_MB
 
     b = ws.bundle()
     cam = walkthrough_cameras(ws, Walk(p.frame_size, 2, 2, 0))[0]
-    renderer = Renderer(b, RenderConfig(layers=p.layers, photo_choice=PAPER_CHOICE))
+    # the paper's 1 GB photo cache, not the GPU-sized default: the same figure on any machine
+    renderer = Renderer(b, RenderConfig(layers=p.layers, photo_choice=PAPER_CHOICE, cache_mb=PAPER_CACHE_MB))
     try:
         renderer.render(cam)
         measured = dict(renderer.gpu_bytes)

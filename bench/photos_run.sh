@@ -43,6 +43,10 @@ for scene in ${SCENES:-many}; do
 case $scene in
 *-*)
     preset=${scene%-*} photos=${scene##*-}
+    if [ ! -f "$out/results/$preset-keys.json" ]; then  # before minutes of preprocessing
+        echo "$scene: no $preset walk's keys in this run (list $preset first; many: MANY_WALKS with 960) rc=2" >>"$out/done.txt"
+        continue
+    fi
     t0=$(date +%s)
     bench/many_run.sh "$out/$scene" --preset "$preset" --photos "$photos" --photographer auto >>"$out/log.txt" 2>&1
     echo "$scene preprocess rc=$? $(( $(date +%s) - t0 )) s" >>"$out/done.txt"
@@ -72,6 +76,7 @@ for walk in ${MANY_WALKS:-960 0}; do
 done
 rm -rf "$out/many/work"
 ;;
+*) echo "$scene: unknown scene (many or PRESET-N) rc=2" >>"$out/done.txt" ;;
 esac
 done
 echo finished >>"$out/done.txt"

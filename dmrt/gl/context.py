@@ -85,7 +85,8 @@ _FREE_MEMORY = {"GL_NVX_gpu_memory_info": (0x9049, 1), "GL_ATI_meminfo": (0x87FC
 
 def free_memory_mb(ctx: moderngl.Context) -> float | None:
     """GPU memory free now, MiB, where the driver tells it (``GL_NVX_gpu_memory_info`` or
-    ``GL_ATI_meminfo``; ``ctx`` current); None elsewhere (Mesa's CPU rasterizers among them).
+    ``GL_ATI_meminfo``; ``ctx`` current, no GL error pending: the read clears the flag); None
+    elsewhere (Mesa's CPU rasterizers among them).
     A texture's memory may count only once it is used: on an H200 (driver 580) the figure stayed
     143,140 MiB before and after a 4 GiB texture array with one layer written."""
     import ctypes
@@ -94,11 +95,17 @@ def free_memory_mb(ctx: moderngl.Context) -> float | None:
 
     for extension, (name, count) in _FREE_MEMORY.items():
         if extension in ctx.extensions:
-            get = entry_points({"glGetIntegerv": (None, [ctypes.c_uint, ctypes.POINTER(ctypes.c_int)])},
-                               f"{extension} is read with glGetIntegerv").glGetIntegerv
+            # advisory: a driver that lists the extension but refuses the query (or a loader
+            # without the entry point) gives None, not an error; call it with no GL error pending
+            try:
+                get = entry_points({"glGetIntegerv": (None, [ctypes.c_uint, ctypes.POINTER(ctypes.c_int)])},
+                                   f"{extension} is read with glGetIntegerv").glGetIntegerv
+            except RuntimeError:
+                return None
             values = (ctypes.c_int * count)()
             get(name, values)
-            check_gl(ctx, f"reading {extension}")
+            if ctx.error != "GL_NO_ERROR":
+                return None
             return values[0] / 1024.0 if values[0] > 0 else None
     return None
 

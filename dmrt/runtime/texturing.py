@@ -4,7 +4,7 @@
   GPU in one RGB8 texture array, one layer per photo: the fallback of every lookup. DMRT keeps
   them with the depth maps (:class:`dmrt.runtime.maps.MapCache`: beyond one texture array's
   layers they are cached with them).
-* Full-resolution photos are cached in a second RGB8 texture array of as many layers ("slots")
+* Full-resolution photos are cached in a second texture array (RGB8 in RGBA8 texels) of as many layers ("slots")
   as ``cache_mb`` holds (by default sized from the GPU's free memory: :func:`auto_cache_mb`).
   Relevance of a photo = the frequency of its label in the frame's final
   label buffer, counted on the GPU, and the most relevant photos (count > 0, at most as many as
@@ -97,9 +97,9 @@ class ImageCache:
                 self.low.write(np.ascontiguousarray(im).tobytes(), viewport=(0, 0, i, im.shape[1], im.shape[0], 1))
         self.full_dims = (max(c.width for c in bundle.cameras), max(c.height for c in bundle.cameras))
         slot_bytes = self.full_dims[0] * self.full_dims[1] * self.SLOT_TEXEL_BYTES
+        check_gl(ctx, "before the photo cache's allocation")
         self.budget_mb = auto_cache_mb(free_memory_mb(ctx)) if cache_mb is None else max(0.0, cache_mb)
         self.n_slots = int(min(n, self.budget_mb * 2 ** 20 // slot_bytes, ctx.info["GL_MAX_ARRAY_TEXTURE_LAYERS"]))
-        check_gl(ctx, "before the photo cache's allocation")
         # a 1x1 stand-in keeps the sampler bound when the cache has no slot
         self.high = ctx.texture_array((*self.full_dims, self.n_slots) if self.n_slots else (1, 1, 1),
                                       self.SLOT_TEXEL_BYTES)
