@@ -26,7 +26,7 @@ class PreprocessConfig:
                                        "(32M points -> ~1M proxies)", minimum=1.0)
     memory_limit_mb: float = option(2048, "point data held in memory at once by the out-of-core phases, MiB",
                                     minimum=0.01)
-    # knn by default although the scan path is 2.96x faster at Scene 2's size (issue #40): its depth
+    # knn by default although the scan path preprocesses Scene 2's size in 123.9 s (issue #40): its depth
     # maps have the longer error tail (tiny, bench_radii_depthmaps: |dz| p90 19.5 mm against 10.9),
     # and with auto test_dmt's leveling test fails; auto is the intended default once that is mended
     radii: Literal["auto", "scan", "knn"] = option(
