@@ -183,7 +183,9 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         :mod:`dmrt.runtime.maps`; missing maps are holes until loaded) and ``tile_stats`` (the tiles
         path's :meth:`~dmrt.runtime.tiles.TileVisibility.stats` of the last frame, else None) and
         ``tile_lists_per_frame`` {``entries``, ``large``, ``longest``, ``split_tiles``,
-        ``split_discs``, ``split_slices``: lists of the statistics pass's frames}
+        ``split_discs``, ``split_slices``: lists of the statistics pass's frames},
+        ``split_frames_sustained`` (the share of the sustained pass's frames that ran the tiles
+        path's split: :attr:`~dmrt.runtime.tiles.TileVisibility.split_hold`; None without it)
         (:meth:`~dmrt.runtime.tiles.TileVisibility.stats`: the tile raster's and labeling's work,
         whose longest tile sets a slow frame's time unless it was split; None without the tiles path).
     """
@@ -227,12 +229,14 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         renderer.timer.fenced = False
         renderer.timer.enabled = False
         _back_to_back(renderer, cameras, WARM_UP_S)  # clocks up again after the timed pass's waits
-        reads0 = renderer.shading.status.reads
+        tiles = renderer.visibility.tiles  # its list length: the tile raster's work (disc-tile pairs)
+        reads0, splits0 = renderer.shading.status.reads, tiles.split_runs if tiles is not None else 0
         t0 = time.perf_counter()
         calls = _back_to_back(renderer, cameras, SUSTAINED_S)
         n = len(calls)
         sustained = (time.perf_counter() - t0) * 1e3 / n
         reads = (renderer.shading.status.reads - reads0) / n
+        split_share = (tiles.split_runs - splits0) / n if tiles is not None else None
         renderer.timer.enabled = True
         clocks["sustained"] = gpu_clocks()
         renderer.timer.deferred = True
@@ -247,7 +251,6 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         renderer.timer.passes = False
         sustained_timed = _stage_summary(frames)
         sustained_timed["wall_ms"] = timed_wall
-        tiles = renderer.visibility.tiles  # its list length: the tile raster's work (disc-tile pairs)
         tile_stats = tiles.stats() if tiles is not None else None
         stages = list(timings[0])
         totals = [float(sum(t.values())) for t in timings]
@@ -258,6 +261,7 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
                 "p95_total_ms": float(np.percentile(totals, 95)), "p95_wall_ms": float(np.percentile(wall, 95)),
                 "frame_size": [cameras[0].width, cameras[0].height], "sustained_ms": sustained,
                 "gpu_clocks": clocks, "sustained_timed": sustained_timed, "status_reads_per_frame": reads,
+                "split_frames_sustained": split_share,
                 "sustained_call_ms": {"median": float(np.median(calls)), "p95": float(np.percentile(calls, 95))},
                 **fps_summary(totals),
                 "total_ms_per_frame": totals, "stage_ms_per_frame": {s: [t[s] for t in timings] for s in stages},

@@ -12,10 +12,14 @@
 //
 // Buffers (binding: layout):
 //   B_FRAME_STATUS  the frame's FrameStatus record (dmrt/runtime/status.py): its first word, the
-//                   entries this frame (the host sizes the list from it)
+//                   entries this frame (the host sizes the list from it); its third, the tiles whose
+//                   list is longer than u_split_min (the host runs the split passes while frames
+//                   have them: TileVisibility.split_hold)
 //   B_TILE_COUNTS   uint[tiles] (dmrt_tiles_bin.glsl SCATTER 0)
 //   B_TILE_OFFSETS  uint[tiles + 1]: Offsets[t] = sum of Counts[0..t), Offsets[tiles] = total (and the
 //                   padding after it)
+//   B_TILE_SPLIT    with u_planned: its header's fifth word, the tiles the split plan took out of
+//                   the lists (their counts here are 0) (dmrt_tiles_split.glsl)
 #if defined COMPUTE_SHADER
 
 #ifndef SCAN_THREADS
@@ -31,11 +35,14 @@
 
 layout(local_size_x = SCAN_THREADS) in;
 
-layout(std430, binding = B_FRAME_STATUS) buffer Status { uint total; };  // tile_total
+layout(std430, binding = B_FRAME_STATUS) buffer Status { uint total; uint n_wanted; uint long_tiles; };
 layout(std430, binding = B_TILE_COUNTS) readonly buffer Counts { uvec4 counts4[]; };
 layout(std430, binding = B_TILE_OFFSETS) writeonly buffer Offsets { uvec4 offsets4[]; };
+layout(std430, binding = B_TILE_SPLIT) readonly buffer SplitHeader { uint split_header[]; };
 
 uniform uint u_tile_count;  // tiles_x * tiles_y
+uniform uint u_split_min;   // a list longer than this is long (0xFFFFFFFF: no split)
+uniform uint u_planned;     // 1: the split plan ran this frame (B_TILE_SPLIT bound)
 
 shared uint s_sum[ROUNDS * SCAN_THREADS];  // per round, the inclusive scan of its quad sums
 
@@ -43,6 +50,7 @@ void main() {
     uint t = gl_LocalInvocationID.x;
     uint quads = (u_tile_count + 3u) / 4u;
     uint carry = 0u;  // the counts of the sweeps before
+    uint long_lists = 0u;  // this thread's
     for (uint q0 = 0u; q0 < quads; q0 += uint(ROUNDS * SCAN_THREADS)) {
         // the rounds that hold quads (one at 1280x720): the others are skipped, not scanned as zeros
         uint live = min(uint(ROUNDS), (quads - q0 + uint(SCAN_THREADS) - 1u) / uint(SCAN_THREADS));
@@ -51,6 +59,8 @@ void main() {
             uint q = q0 + uint(r * SCAN_THREADS) + t;
             uvec4 c = q < quads ? counts4[q] : uvec4(0u);
             v[r] = c.x + c.y + c.z + c.w;
+            long_lists += uint(c.x > u_split_min) + uint(c.y > u_split_min) + uint(c.z > u_split_min)
+                          + uint(c.w > u_split_min);
             if (uint(r) < live) s_sum[r * SCAN_THREADS + int(t)] = v[r];
         }
         memoryBarrierShared();
@@ -79,9 +89,17 @@ void main() {
     }
     // Offsets[tiles]: in the last quad written when tiles is not a multiple of four (the padded
     // counts are zero, so its offset is the total), else the first of the next
+    // the long lists summed in s_sum[0] (free after the last sweep; 8 rounds fill shared memory)
+    if (t == 0u) s_sum[0] = 0u;
+    memoryBarrierShared();
+    barrier();
+    if (long_lists > 0u) atomicAdd(s_sum[0], long_lists);
+    memoryBarrierShared();
+    barrier();
     if (t == 0u) {
         if (u_tile_count % 4u == 0u) offsets4[quads] = uvec4(carry);
         total = carry;
+        long_tiles = s_sum[0] + (u_planned != 0u ? split_header[4] : 0u);
     }
 }
 

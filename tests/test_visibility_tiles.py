@@ -219,6 +219,44 @@ def test_long_lists_split_over_workgroups(ctx, discs, batch, split_min):
             obj.release()
 
 
+def test_split_only_while_frames_have_long_lists(ctx):
+    """The scan counts the long lists into the frame's status record, and a frame splits only while
+    one of the last split_hold frames read back had one: looking away from the crowded tile, the
+    split stops after split_hold frames; the first frame back walks the long list with the raster
+    alone (and counts it), the next splits again. Every frame's layers and labels equal peeling's,
+    bit for bit, split or not."""
+    from dmrt.runtime.tiles import TileVisibility
+    from dmrt.runtime.visibility import ProxySplats, VisibilityStage
+
+    discs = 300
+    cam, proxy = _crowded_tile(discs)
+    turned = np.diag([-1.0, 1.0, -1.0])  # half a turn about y: the discs (z > 0) behind the camera
+    away = Camera("away", cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, turned, np.zeros(3))
+    splats = ProxySplats(ctx, proxy)
+    peel = VisibilityStage(ctx, splats, "compute")
+    tiles = TileVisibility(ctx, splats, batch=64, split_min=100, split_hold=2)
+    try:
+        splats.begin_frame()
+        ref = {c.name: _layers(ctx, peel, c, 5) for c in (cam, away)}
+        first = ref[cam.name][0][0].view(np.float32) * (ref[cam.name][0][0] != EMPTY_BITS)
+        want = _tile_labels(ctx, None, splats, cam, first)
+        # frames 0-3 split their long list (each record counts the tile the plan took out), 4 and
+        # 5 still split (hold 2), 6 not; 7 looks back unsplit, and its record makes 8 split
+        views = [cam] * 4 + [away] * 3 + [cam] * 2
+        splits = [True] * 6 + [False, False, True]
+        for frame, (c, split) in enumerate(zip(views, splits)):
+            _assert_equal(ref[c.name], _layers(ctx, tiles, c, 5), 5, f"frame {frame} ({c.name})")
+            stats = tiles.stats()
+            assert (stats["split_tiles"] > 0) == (split and c is cam), f"frame {frame}: {stats}"
+            assert tiles.split_runs == sum(splits[:frame + 1]), f"frame {frame}"
+            if c is cam:
+                np.testing.assert_array_equal(_tile_labels(ctx, tiles, splats, cam, first), want)
+                assert stats["longest"] == (0 if split else discs), f"frame {frame}: {stats}"
+    finally:
+        for obj in (tiles, peel, splats):
+            obj.release()
+
+
 def test_list_passes_timed_apart(ctx, bundle, splats):
     """GpuTimer.passes: each dispatch of the tile lists timed as a part of its own, in place of the
     one ``visibility:tile_lists`` section; the layers are the same either way."""
@@ -251,7 +289,8 @@ def test_scan_against_numpy(ctx):
     """The tile counts' exclusive prefix sum (dmrt_tiles_scan.glsl, one workgroup reading and writing
     four words at a time, 4096 tiles a round, 1 or 8 rounds a sweep) against numpy's: counts that are
     not a multiple of four, one sweep exactly, and several sweeps; the total in the status word and
-    after the last offset. Buffers as TileVisibility allocates them (padded to four words)."""
+    after the last offset, and the lists longer than u_split_min in the status record's third word.
+    Buffers as TileVisibility allocates them (padded to four words)."""
     from dmrt.gl import abi
     from dmrt.gl.shaders import load_program, set_uniforms
     from dmrt.runtime.tiles import _padded
@@ -268,12 +307,13 @@ def test_scan_against_numpy(ctx):
         try:
             for point, buf in bufs.items():
                 buf.bind_to_storage_buffer(point)
-            set_uniforms(program, u_tile_count=tiles)
+            set_uniforms(program, u_tile_count=tiles, u_split_min=250, u_planned=0)
             program.run(1)
             offsets = np.frombuffer(bufs[abi.B_TILE_OFFSETS].read(), np.uint32)[:tiles + 1]
             want = np.concatenate([[0], np.cumsum(counts, dtype=np.uint64)]).astype(np.uint32)
             np.testing.assert_array_equal(offsets, want, err_msg=f"{tiles} tiles, {rounds} rounds")
-            assert np.frombuffer(bufs[abi.B_FRAME_STATUS].read(4), np.uint32)[0] == want[-1]
+            total, _, long_tiles = np.frombuffer(bufs[abi.B_FRAME_STATUS].read(12), np.uint32)
+            assert (total, long_tiles) == (want[-1], (counts > 250).sum()), f"{tiles} tiles, {rounds} rounds"
         finally:
             for buf in bufs.values():
                 buf.release()

@@ -92,8 +92,9 @@ EMPTY_LABEL = 0x7FFFFFFF  # an empty label layer entry
 EMPTY_Z = float(np.finfo(np.float32).max)  # raster targets' clear value (MIN blending keeps the nearest)
 
 # -- record layouts ----------------------------------------------------------------------------
-# FrameStatus (dmrt/runtime/status.py): uint tile_total (the tile list's length), uint n_wanted, two
-# spare words, then int wanted[] (photos for the full-resolution cache, most frequent first)
+# FrameStatus (dmrt/runtime/status.py): uint tile_total (the tile list's length), uint n_wanted, uint
+# long_tiles (tiles whose list is longer than the split's minimum), a spare word, then int wanted[]
+# (photos for the full-resolution cache, most frequent first)
 STATUS_HEADER_WORDS = 4
 # struct Hit (shaders/dmrt_frame.glsl): one per pixel, written by every DMRT/DMT pass; 16 bytes
 HIT_DTYPE = np.dtype([("depth", "<f4"), ("label", "<i4"), ("final_label", "<i4"), ("layer_iters", "<u4")])

@@ -3,8 +3,9 @@
 Two things a frame decides on the GPU need the CPU: the tile-binned visibility stage's list length
 (the CPU sizes the list buffer, :mod:`dmrt.runtime.tiles`) and the photos the full-resolution cache
 should hold (the CPU decodes and uploads them, :mod:`dmrt.runtime.texturing`). Both go into one
-record of ``4 + wanted_max`` uint32 words: ``tile_total``, ``n_wanted``, two spare words, then
-``wanted`` - the photos the label histogram ranks first, most frequent first
+record of ``4 + wanted_max`` uint32 words: ``tile_total``, ``n_wanted``, ``long_tiles`` (the tiles
+whose list is longer than the split's minimum: the tiles path splits them while frames have them),
+a spare word, then ``wanted`` - the photos the label histogram ranks first, most frequent first
 (``shaders/dmrt_photo_choice.glsl``).
 
 Three records turn in a ring, in persistently mapped host memory (:class:`dmrt.gl.mapped.MappedBuffer`):
@@ -54,6 +55,9 @@ class FrameStatus:
         The frame being rendered (-1 before the first :meth:`begin`).
     reads : int
         Records read back so far (the benchmarks count them per frame).
+    long_frame : int
+        The last frame whose record, read back, counted a tile list longer than the split's
+        minimum (``long_tiles``); 0 before any (the tiles path splits the first frames).
     """
 
     def __init__(self, ctx: moderngl.Context, wanted_max: int = 0):
@@ -64,6 +68,7 @@ class FrameStatus:
         self.records = [MappedBuffer(ctx, zeros) for _ in range(RING)]
         self.frame = -1
         self.reads = 0
+        self.long_frame = 0
         self._this: dict[int, tuple[int, np.ndarray]] = {}  # this frame's reads: back -> (total, wanted)
         self._last: np.ndarray | None = None  # the wanted list of this frame's last read
 
@@ -89,6 +94,8 @@ class FrameStatus:
         """
         raw = np.frombuffer(self.record(back).read(), np.uint32)
         self.reads += 1
+        if back >= 0 and raw[2]:  # the next frame's record (back -1) holds an older frame's count
+            self.long_frame = max(self.long_frame, self.frame - back)
         n = min(int(raw[1]), self.wanted_max)
         wanted = raw[STATUS_HEADER_WORDS:STATUS_HEADER_WORDS + n].astype(np.int64)
         self._this[back] = (int(raw[0]), wanted)

@@ -28,7 +28,10 @@ covered pixel and layer (the compute and k-buffer paths' atomics). Per frame:
    smallest over its slice, then a workgroup per split tile takes the smallest of its slices', so
    the layers are again peeling's (the labeling pass likewise). A tile is one workgroup: where
    distant discs pile up in a few tiles (a street receding to its vanishing point: thousands of
-   discs a tile), the frame otherwise waits for those tiles alone.
+   discs a tile), the frame otherwise waits for those tiles alone. The scan counts the long lists
+   into the frame's status record, and a frame runs the split (plan, scatter into the split buffer,
+   passes) only while one of the last ``split_hold`` frames read back had one: a view without long
+   lists does not pay for it.
 
 The list's length is only known on the GPU: the scan writes it into the frame's status record
 (:mod:`dmrt.runtime.status`), the frame's one read-back. By default (``check="frame"``) every
@@ -78,6 +81,13 @@ SPLIT_SLOTS_MAX = 16384
 # the split buffer's two dispatch-indirect headers: slices (x, y, z, slices reserved), split tiles
 # (x, y, z, discs reserved)
 SPLIT_HEADER = EMPTY_DISPATCH + EMPTY_DISPATCH
+# Frames the split keeps running after the last one read back with a long list (split_hold). On an
+# H200, session 28's walk along the `many` block (reports/many-photos, split-walk120-961f858) had
+# its frames without a long list take 1.79 ms at 1280x720 and 5.29 at 3840x2160 with the split
+# against 1.77 and 4.93 without (its plan, the scatter's reads of it, its passes); a frame that
+# turns to a long list walks it with the raster alone until its record is read (a frame or two, as
+# slow as the split's absence: 5.1 against 2.4 ms there). 30 frames: half a second at 60 fps.
+SPLIT_HOLD = 30
 
 
 SCAN_THREADS, SCAN_ROUNDS = 1024, 8  # dmrt_tiles_scan.glsl: its workgroup, the most quads a thread holds
@@ -136,20 +146,26 @@ class TileVisibility:
         (module doc, step 5), where the split buffer (as many discs as the list buffer) has room;
         0: never (here the default; the renderer's is ``SPLIT_MIN``, ``RenderConfig.tile_split``).
         The layers are the same either way.
+    split_hold : int
+        With ``split_min``: a frame splits while one of the last ``split_hold`` frames whose status
+        record was read back had a long list (the first frames split); else its long lists, if any,
+        are walked by the raster alone (and counted, so that the next frames split).
 
     Attributes
     ----------
-    tile, batch, top, check, walk, split_min : the parameters above
+    tile, batch, top, check, walk, split_min, split_hold : the parameters above
     capacity : int
         Entries the list buffer holds.
     dropped_frames : int
         Frames whose list outgrew the buffer (``check="frame"``: built again).
+    split_runs : int
+        :meth:`run` calls that split (``split_min``, ``split_hold``).
     """
 
     def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = DEFAULT_BATCH, top: int = DEFAULT_TOP,
                  max_thread_tiles: int = 16, check: str = "frame", status: FrameStatus | None = None,
                  hit_masks: bool = True, warp_blocks: bool = True, walk: str = "auto", split_min: int = 0,
-                 map_defines: dict | None = None):
+                 split_hold: int = SPLIT_HOLD, map_defines: dict | None = None):
         if not 1 <= tile <= 32:
             raise ValueError(f"tile must be 1..32 (tile^2 invocations per workgroup), not {tile}")
         if batch < 1:
@@ -162,18 +178,22 @@ class TileVisibility:
             raise ValueError(f"walk must be 'auto', 'linear' or 'sparse', not {walk!r}")
         if split_min < 0:
             raise ValueError(f"split_min must be >= 0 (0: never), not {split_min}")
+        if split_hold < 0:
+            raise ValueError(f"split_hold must be >= 0, not {split_hold}")
         self.ctx, self.splats = ctx, splats
         self.tile, self.check, self.batch, self.top = int(tile), check, int(batch), int(top)
         self.hit_masks = bool(hit_masks) and self.tile * self.tile == MASK_DISCS
         self._defines = {"TILE": self.tile, "BATCH": int(batch), "HIT_MASKS": int(self.hit_masks),
                          "WARP_BLOCKS": int(bool(warp_blocks)), **(map_defines or {})}
-        self._bin = {(scatter, large): load_program(ctx, "dmrt_tiles_bin", {**self._defines, "SCATTER": scatter,
-                                                                            "LARGE": large, "SPLIT": int(
-                                                                                scatter and split_min > 0),
-                                                                            "MAX_THREAD_TILES": max_thread_tiles})
-                     for scatter in (0, 1) for large in (0, 1)}
-        self.walk, self.split_min = walk, int(split_min)
+        # (scatter, large, split): the scatter into the split buffer only in frames that split
+        self._bin = {(scatter, large, split): load_program(ctx, "dmrt_tiles_bin", {
+                         **self._defines, "SCATTER": scatter, "LARGE": large, "SPLIT": split,
+                         "MAX_THREAD_TILES": max_thread_tiles})
+                     for scatter in (0, 1) for large in (0, 1) for split in ((0, 1) if scatter and split_min > 0 else (0,))}
+        self.walk, self.split_min, self.split_hold = walk, int(split_min), int(split_hold)
         self._splits = self.split_min > 0
+        self._split_now = False  # this frame splits (split_hold)
+        self.split_runs = 0
         self._rasters = {sparse: load_program(ctx, "dmrt_tiles_raster", {**self._defines, "TOP": int(top),
                                                                           "SPARSE_WALK": int(sparse)})
                          for sparse in (0, 1) if walk == "auto" or sparse == (walk == "sparse")}
@@ -277,6 +297,8 @@ class TileVisibility:
             self._last_total = total
             self.dropped_frames += total > self._capacity_of[frame - LAG]
             self._fit(total)
+        self._split_now = self._splits and frame - self.status.long_frame <= self.split_hold
+        self.split_runs += self._split_now
         status = self.status.record(0)
         tile_uniforms = {**uniforms, "u_tiles": grid, "u_count": self.splats.n, "u_tile_count": grid[0] * grid[1]}
         raster = (tile_uniforms, layers, layer_depth, layer_label)
@@ -286,7 +308,7 @@ class TileVisibility:
             self._build_list(tile_uniforms, status, passes)
         with timed(timer, "visibility:tile_raster"):
             self._raster_pass(*raster)
-        if self._splits:
+        if self._split_now:
             with timed(timer, "visibility:tile_split"):
                 self._split_passes(*raster)
         if (self.check == "frame" and self._own_status) or first:
@@ -345,7 +367,7 @@ class TileVisibility:
             with timed(timer, "visibility:redo"):
                 self._build_list(tile_uniforms, status)
                 self._raster_pass(*raster)
-                if self._splits:
+                if self._split_now:
                     self._split_passes(*raster)
 
     def _build_list(self, tile_uniforms: dict, status, timer=None) -> None:
@@ -358,7 +380,7 @@ class TileVisibility:
             self.large.write(EMPTY_DISPATCH)
             ctx.memory_barrier(_BARRIER)
         self._bin_pass(0, tile_uniforms, timer)
-        if self._splits:
+        if self._split_now:
             with timed(timer, "visibility:lists_split_plan"):
                 self._allocate_split()
                 self.split.write(SPLIT_HEADER)  # no slices yet
@@ -368,8 +390,10 @@ class TileVisibility:
                 plan.run(groups(n_tiles, 64))
                 ctx.memory_barrier(_BARRIER)
         with timed(timer, "visibility:lists_scan"):
-            self._bind(status=status, counts=self.counts, offsets=self.offsets)
-            set_uniforms(self._scan, u_tile_count=n_tiles)
+            self._bind(status=status, counts=self.counts, offsets=self.offsets,
+                       split=self.split if self._split_now else None)
+            set_uniforms(self._scan, u_tile_count=n_tiles, u_planned=int(self._split_now),
+                         u_split_min=self.split_min if self._splits else abi.EMPTY_BITS)
             self._scan.run(1)
             status.written(_BARRIER)  # reading the list length waits for the scan, not the whole frame
         self._bin_pass(1, tile_uniforms, timer)
@@ -377,9 +401,9 @@ class TileVisibility:
     def _bin_pass(self, scatter: int, tile_uniforms: dict, timer=None) -> None:
         for large in (0, 1):
             with timed(timer, f"visibility:lists_{('count', 'scatter')[scatter]}{('', '_large')[large]}"):
-                program = self._bin[scatter, large]
+                program = self._bin[scatter, large, int(scatter and self._split_now)]
                 self._bind(proxies=self.splats.buffer, large=self.large, entries=self.entries,
-                           counts=self.counts, offsets=self.offsets, split=self.split if self._splits else None)
+                           counts=self.counts, offsets=self.offsets, split=self.split if self._split_now else None)
                 set_uniforms(program, u_capacity=self.capacity, **self._split_uniforms, **tile_uniforms)
                 if large:
                     program.run_indirect(self.large)
@@ -428,7 +452,7 @@ class TileVisibility:
             depth maps bound by the caller.
         """
         defines = {**self._defines, "PACKED_LABELS": int(packed), "FINALIZE": int(finalize is not None)}
-        split = self._splits  # the long lists, out of the tile lists, are labelled by slices after
+        split = self._split_now  # the long lists, out of the tile lists, are labelled by slices after
         program = load_program(self.ctx, "dmrt_tiles_labeling", defines)
         self._bind(proxies=self.splats.buffer, entries=self.entries, offsets=self.offsets, masks=self.masks,
                    split=self.split if split else None)
@@ -463,7 +487,8 @@ class TileVisibility:
             ``split_tiles``, ``split_slices`` and ``split_discs`` (the tiles whose lists the split
             passes walked instead, their slices: workgroups of ``batch`` discs, and their discs,
             reserved: those of a tile that then found no room for its slices included; 0 without
-            the split). ``entries`` and ``longest`` are the tile lists', without the split tiles.
+            the split, or in a frame that did not split: ``split_hold``). ``entries`` and
+            ``longest`` are the tile lists', without the split tiles.
         """
         if self.status.frame not in self._capacity_of:
             return {"entries": 0, "capacity": self.capacity, "dropped": False, "large": 0, "longest": 0,
@@ -476,7 +501,7 @@ class TileVisibility:
         tiles = self._grid[0] * self._grid[1]
         offsets = np.frombuffer(read(self.offsets, 4 * (tiles + 1)), np.uint32)  # exclusive prefix sum + total
         split_tiles = split_slices = split_discs = 0
-        if self._splits:  # the two dispatch headers (abi.B_TILE_SPLIT), as the split passes took them
+        if self._split_now:  # the two dispatch headers (abi.B_TILE_SPLIT), as the split passes took them
             split_slices, _, _, _, split_tiles, _, _, split_discs = (
                 int(v) for v in np.frombuffer(read(self.split_args, 32), np.uint32))
         return {"entries": entries, "capacity": capacity, "dropped": entries > capacity, "large": large,
