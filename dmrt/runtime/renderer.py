@@ -57,7 +57,7 @@ from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import GpuTimer
 from dmrt.runtime.maps import MapCache
 from dmrt.runtime.shading import FrameShading, camera_uniforms, hit_depth_at
-from dmrt.runtime.tiles import DEFAULT_BATCH, DEFAULT_TOP, SPARSE_MIN, SPLIT_MIN
+from dmrt.runtime.tiles import DEFAULT_BATCH, DEFAULT_TOP, SPARSE_MIN, SPLIT_HOLD, SPLIT_MIN
 from dmrt.runtime.view_choice import MAX_BLEND, ViewChoice
 from dmrt.runtime.visibility import ProxySplats, VisibilityStage
 
@@ -133,11 +133,13 @@ class RenderConfig:
                 f"ones) or auto (sparse for a frame whose tiles held more than {SPARSE_MIN} discs on average the "
                 "last time the list length was read); the same layers")
     # H200, the small many walk (reports/many-photos): 1280x720 sustained 3.21 -> 1.97 ms, 3840x2160
-    # 5.49 -> 5.44; a frame with nothing to split pays the plan and its empty passes
+    # 5.49 -> 5.44. The split runs only while a recent frame had a long list (tiles.SPLIT_HOLD): on
+    # the paper preset, which has none, 1152 and 0 cost the same (1.113 / 1.115 ms at 1280x720)
     tile_split: int = option(SPLIT_MIN, "tiles: a tile whose list holds more discs than this is walked by one "
                                         "workgroup per tile_batch discs, their results merged (distant discs "
                                         "piling up at a vanishing point keep one workgroup busy for the whole "
-                                        "frame otherwise); 0 = never; the same layers", minimum=0)
+                                        f"frame otherwise), while one of the last {SPLIT_HOLD} frames had such "
+                                        "a tile; 0 = never; the same layers", minimum=0)
     kbuffer_slots: int = option(0, "k-buffer fragments kept per pixel; 0 = 6 per layer + 2 (>= 99.9 % of the "
                                    "peeled layers' pixels); a pixel with more fragments in front of its k-th layer "
                                    "loses its deepest layers", minimum=0)
