@@ -87,8 +87,6 @@ void main() {
         memoryBarrierShared();
         barrier();  // the next sweep overwrites s_sum
     }
-    // Offsets[tiles]: in the last quad written when tiles is not a multiple of four (the padded
-    // counts are zero, so its offset is the total), else the first of the next
     // the long lists summed in s_sum[0] (free after the last sweep; 8 rounds fill shared memory)
     if (t == 0u) s_sum[0] = 0u;
     memoryBarrierShared();
@@ -96,6 +94,8 @@ void main() {
     if (long_lists > 0u) atomicAdd(s_sum[0], long_lists);
     memoryBarrierShared();
     barrier();
+    // Offsets[tiles]: in the last quad written when tiles is not a multiple of four (the padded
+    // counts are zero, so its offset is the total), else the first of the next
     if (t == 0u) {
         if (u_tile_count % 4u == 0u) offsets4[quads] = uvec4(carry);
         total = carry;
