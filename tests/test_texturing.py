@@ -141,6 +141,31 @@ def test_image_cache_preload(ctx, bundle):
         synced.release()
 
 
+def test_streamed_decodes_no_frame_wants_any_more_end(ctx, bundle):
+    """A streaming cache's background decodes of photos that a frame wanted and the next ones do
+    not: once finished they join the decoded photos (CPU cache), so nothing stays pending, and a
+    later frame wanting them uploads them without decoding again."""
+    import time
+
+    from dmrt.runtime.texturing import ImageCache
+
+    slot_mb = max(c.width * c.height for c in bundle.cameras) * ImageCache.SLOT_TEXEL_BYTES / 2 ** 20
+    cache = ImageCache(ctx, bundle, cache_mb=2.5 * slot_mb, max_uploads=1, asynchronous=True)
+    try:
+        cache.update([0, 1])  # decodes start for both (at most one uploaded, if ready at once)
+        end = time.monotonic() + 30.0  # two small decodes on a loaded 2-core CI machine
+        while time.monotonic() < end:
+            cache.update([2])  # frames that want only photo 2
+            if cache.pending == 0 and cache.slot_of[2] >= 0:
+                break
+            time.sleep(0.01)
+        assert cache.pending == 0 and cache.slot_of[2] >= 0 and (cache.slot_of[[0, 1]] < 0).all()
+        # decoded already: uploaded by this frame, not decoding (pending) for a later one
+        assert cache.update([2, 1]) == 1 and cache.slot_of[1] >= 0 and cache.pending == 0
+    finally:
+        cache.release()
+
+
 def test_label_histogram_counts_labels_of_any_number_of_photos(ctx):
     """The histogram pass's per-workgroup hash table against np.bincount: long runs of one label,
     and blocks of more distinct labels (of 5,000 photos) than the table holds, which count globally."""

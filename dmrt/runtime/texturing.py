@@ -182,6 +182,7 @@ class ImageCache:
                 self._last_used[self.slot_of[j]] = self._frame
 
     def _upload(self, limit: int, block: bool) -> int:
+        self._harvest()
         missing = [j for j in self._wanted if self.slot_of[j] < 0]
         if not missing:  # the steady state: nothing to sort
             return 0
@@ -221,6 +222,21 @@ class ImageCache:
         slots = np.flatnonzero(~np.isin(photo, self._wanted))
         return slots[np.lexsort((self._last_used[slots], photo[slots] >= 0))].tolist()
 
+    def _harvest(self) -> None:
+        """Keep the finished background decodes among the decoded photos, wanted or not: one that a
+        frame started and no later frame wanted stayed pending for good (its photo held in memory
+        outside ``cpu_cache_mb``, and ``pending`` never 0: the 10,240-photo walk's warm-up at
+        3840x2160 never settled, reports/many-photos)."""
+        for j in [j for j, fut in self._pending.items() if fut.done()]:
+            self._keep(j, self._pending.pop(j).result())
+
+    def _keep(self, j: int, image: np.ndarray) -> None:
+        """Photo ``j`` decoded, the most recent in the CPU cache (least recent dropped past
+        ``cpu_cache_mb``)."""
+        self._decoded[j] = image
+        while len(self._decoded) > 1 and sum(a.nbytes for a in self._decoded.values()) > self._cpu_budget:
+            self._decoded.popitem(last=False)
+
     def _image(self, j: int, block: bool) -> np.ndarray | None:
         """Photo ``j`` decoded (h, w, 4) uint8 RGBA (alpha unused), or None while its background decode
         runs."""
@@ -235,9 +251,7 @@ class ImageCache:
             return None
         image = fut.result() if fut is not None else self._decode(j)
         self._pending.pop(j, None)
-        self._decoded[j] = image
-        while len(self._decoded) > 1 and sum(a.nbytes for a in self._decoded.values()) > self._cpu_budget:
-            self._decoded.popitem(last=False)
+        self._keep(j, image)
         return image
 
     def _decode(self, j: int) -> np.ndarray:
