@@ -86,3 +86,20 @@ def test_shaders_take_bindings_and_sentinels_from_the_abi():
     for name, value in abi.BINDINGS.items():
         assert f"#define {name} {value}\n" in src
     assert len(set(abi.BINDINGS.values())) == len(abi.BINDINGS), "binding points must be unique per role"
+
+
+def test_runtime_reads_gpu_buffers_through_staging():
+    """A buffer that the CPU reads back directly moves to host memory on NVIDIA's driver, and every
+    pass that uses it afterwards slows down (dmrt.gl.kernels.Staging; met in sessions 8 and 28, and
+    in the viewer's depth_at). The runtime reads its buffers through a Staging copy: the only direct
+    reads are the status records (persistently mapped, made for reading: dmrt.gl.mapped)."""
+    from pathlib import Path
+
+    import dmrt.runtime
+
+    direct = re.compile(r"[\w\])]\.read\(")
+    allowed = re.compile(r"(staging|self\.status|self\.record\(back\)|self\._records\[[^\]]*\]|self)\.read\(")
+    offenders = [f"{p.name}:{n}: {line.strip()}" for p in sorted(Path(dmrt.runtime.__file__).parent.glob("*.py"))
+                 for n, line in enumerate(p.read_text().splitlines(), 1)
+                 if direct.search(line.split("#")[0]) and not allowed.search(line.split("#")[0])]
+    assert offenders == []

@@ -48,14 +48,14 @@ class Staging:
         self.ctx = ctx
         self._buffer: moderngl.Buffer | None = None
 
-    def read(self, src: moderngl.Buffer, nbytes: int | None = None) -> bytes:
-        """The first ``nbytes`` bytes of ``src`` (default: all of it); waits for the GPU."""
-        n = src.size if nbytes is None else int(nbytes)
+    def read(self, src: moderngl.Buffer, nbytes: int | None = None, offset: int = 0) -> bytes:
+        """``nbytes`` bytes of ``src`` from byte ``offset`` (default: all of it); waits for the GPU."""
+        n = src.size - offset if nbytes is None else int(nbytes)
         if self._buffer is None or self._buffer.size < n:
             self.release()
             self._buffer = self.ctx.buffer(reserve=n)
         self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        self.ctx.copy_buffer(self._buffer, src, n)
+        self.ctx.copy_buffer(self._buffer, src, n, read_offset=offset)
         return self._buffer.read(n)
 
     def release(self) -> None:

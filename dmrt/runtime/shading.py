@@ -65,11 +65,12 @@ def camera_uniforms(local: Camera) -> dict:
             "u_K": (local.fx, local.fy, local.cx, local.cy), "u_size": (local.width, local.height)}
 
 
-def hit_depth_at(hits: moderngl.Buffer, width: int, x: int, y: int) -> float:
+def hit_depth_at(staging: Staging, hits: moderngl.Buffer, width: int, x: int, y: int) -> float:
     """Camera z (metres, 0 = background) of pixel (x, y) of a frame's ``Hit`` records, ``width``
-    pixels a row: one 4-byte read (it waits for the frame)."""
+    pixels a row: one 4-byte read (it waits for the frame), through ``staging``: read directly, the
+    records would move to host memory on NVIDIA's driver, and every later frame write them there."""
     offset = HIT_DTYPE.itemsize * (y * width + x)  # Hit.depth is the record's first word
-    return float(np.frombuffer(hits.read(4, offset=offset), np.float32)[0])
+    return float(np.frombuffer(staging.read(hits, 4, offset), np.float32)[0])
 
 
 def read_gpu_frame(staging: Staging, hits_buffer: moderngl.Buffer, colors_buffer: moderngl.Buffer,

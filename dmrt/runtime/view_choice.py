@@ -37,7 +37,7 @@ import numpy as np
 
 from dmrt.gl import abi
 from dmrt.gl.abi import STATUS_HEADER_WORDS
-from dmrt.gl.kernels import fill_u32, groups
+from dmrt.gl.kernels import Staging, fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.runtime.ranking import PhotoRanking
 
@@ -123,6 +123,7 @@ class ViewChoice:
         self._choice = load_program(ctx, "dmrt_view_choice", {"BLEND": self.blend, "CANDIDATES": self.n_candidates,
                                                               **(map_defines or {})})
         self.blend_buffer: moderngl.Buffer | None = None
+        self._staging = Staging(ctx)  # the read_ diagnostics': the buffers stay in GPU memory (Staging: why)
 
     @property
     def nbytes(self) -> int:
@@ -189,7 +190,7 @@ class ViewChoice:
 
     def read_candidates(self) -> np.ndarray:
         """(m,) int32 the last frame's candidates, best-scored first (waits for the GPU)."""
-        words = np.frombuffer(self.candidates.read(), np.int32)
+        words = np.frombuffer(self._staging.read(self.candidates), np.int32)
         return words[STATUS_HEADER_WORDS:STATUS_HEADER_WORDS + words[1]].copy()
 
     def read_blend(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
@@ -201,12 +202,13 @@ class ViewChoice:
         weights : (h, w, 4) float32, the weights of the 1st (the final label) to 4th photo, 8-bit
             quantised (sum ~1; 0 for background pixels and unused entries)
         """
-        rec = np.frombuffer(self.blend_buffer.read(16 * width * height), np.int32).reshape(height, width, 4)
+        rec = np.frombuffer(self._staging.read(self.blend_buffer, 16 * width * height), np.int32).reshape(
+            height, width, 4)
         packed = rec[..., 3].view(np.uint32)
         weights = np.stack([(packed >> (8 * i)) & 0xFF for i in range(4)], -1).astype(np.float32) / 255.0
         return rec[..., :3].copy(), weights
 
     def release(self) -> None:
-        for obj in (self.scores, self.candidates, self._list, self._rank, self.blend_buffer):
+        for obj in (self.scores, self.candidates, self._list, self._rank, self.blend_buffer, self._staging):
             if obj is not None:
                 obj.release()

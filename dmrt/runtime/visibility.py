@@ -43,7 +43,7 @@ import numpy as np
 
 from dmrt.gl import abi
 from dmrt.gl.abi import EMPTY_BITS, EMPTY_LABEL, EMPTY_Z, PROXY_FLOATS
-from dmrt.gl.kernels import EMPTY_DISPATCH, fill_u32, groups
+from dmrt.gl.kernels import EMPTY_DISPATCH, Staging, fill_u32, groups
 from dmrt.gl.shaders import load_program, set_uniforms
 from dmrt.gl.timer import timed
 from dmrt.morton import morton_order
@@ -172,6 +172,7 @@ class VisibilityStage:
             self._resolve = load_program(ctx, "dmrt_kbuffer_resolve", self._kdefines)
             self._kbuf = None
             self._overflow = ctx.buffer(reserve=4)
+            self._staging = Staging(ctx)  # read_overflow's: the counter stays in GPU memory (Staging: why)
         if self.int64:
             self._unpack = load_program(ctx, "dmrt_layer_unpack")
         if method == "raster":
@@ -250,7 +251,7 @@ class VisibilityStage:
         that may differ from peeling, :meth:`dmrt.runtime.tiles.TileVisibility.read_overflow`)."""
         if self.tiles is not None:
             return self.tiles.read_overflow()
-        return int(np.frombuffer(self._overflow.read(), np.uint32)[0]) if self.method == "kbuffer" else 0
+        return int(np.frombuffer(self._staging.read(self._overflow), np.uint32)[0]) if self.method == "kbuffer" else 0
 
     @property
     def nbytes(self) -> int:
@@ -307,7 +308,7 @@ class VisibilityStage:
         self._release_targets()
         if self.tiles is not None:
             self.tiles.release()
-        for name in ("_vao_points", "_vao_quads", "_packed", "_kbuf", "_overflow"):
+        for name in ("_vao_points", "_vao_quads", "_packed", "_kbuf", "_overflow", "_staging"):
             obj = self.__dict__.pop(name, None)
             if obj is not None:
                 obj.release()
