@@ -21,9 +21,10 @@
 #    photographer and preprocessed as many_run.sh does, then walked along the key cameras of
 #    PRESET's own walk in this run (--keys: many's 960-photo walk, or the paper step's; so list it
 #    after "many"). The same views with other photo counts: their frames' ratio is the photo
-#    count's alone, where many's against paper's also holds the longer block's. Each PRESET-N
-#    takes about 5 minutes at 1,280 photos; photo-dense rooms grow the candidates, labeling and
-#    photometric phases (paper-10240 is 850 photos a room).
+#    count's alone, where many's against paper's also holds the longer block's. many-1280 took
+#    3 minutes (session 30: 124 s made and preprocessed, 56 s walked; the whole run with
+#    MANY_WALKS=960 20 minutes); photo-dense rooms grow the candidates, labeling and photometric
+#    phases (paper-10240 is 850 photos a room).
 # The environment (EGL vendor file, PYTHONPATH with the wheels, DMRT_COMMIT) is the caller's: see
 # ../shared/GPU.md. Results: OUT_DIR/results.tgz (render-paper.json, render-bundle.json,
 # many/preprocess-many.json ...), repacked after each step.
