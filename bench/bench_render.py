@@ -229,7 +229,8 @@ def main(argv=None) -> None:
                   + f"  | GPU median {r['median_total_ms']:.3f} p95 {r['p95_total_ms']:.3f} ms, wall median "
                     f"{r['median_wall_ms']:.3f} p95 {r['p95_wall_ms']:.3f} ms, sustained {r['sustained_ms']:.3f} "
                     f"ms/frame, {r['mean_iterations']:.2f} steps, status reads {r['status_reads_per_frame']:.2f}/frame, "
-                    f"split in {r['split_frames_sustained'] or 0:.0%} of the sustained frames, "
+                    f"split in {'-' if r['split_frames_sustained'] is None else format(r['split_frames_sustained'], '.0%')} "
+                    "of the sustained frames, "
                     f"render() call {r['sustained_call_ms']['median']:.3f} ms (the CPU's issue + waits), "
                     f"sustained timed: wall {r['sustained_timed']['wall_ms']:.3f} ms/frame, GPU median "
                     f"{r['sustained_timed']['median_total_ms']:.3f} = " + "  ".join(

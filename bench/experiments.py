@@ -99,21 +99,23 @@ def warm_photo_cache(renderer, cameras, wanted) -> dict:
     """Make the photo cache steady for ``cameras``: upload ``wanted`` (photo indices, e.g. those the
     statistics pass wanted, first seen first; :meth:`dmrt.runtime.texturing.ImageCache.preload`),
     render the walkthrough (frames left on the GPU), and again with what it wanted added, until a
-    whole walkthrough uploads no photo with no decode pending, or :data:`WARM_UP_MAX_S` have
-    passed. (A streaming cache follows the frame before's choice, so the statistics pass never
-    wants its last frame's own.) Returns ``loops`` (walkthroughs rendered), ``uploads`` (photos
-    uploaded, the preloads' included) and ``steady`` (the last walkthrough uploaded nothing)."""
+    whole walkthrough uploads no photo and starts no decode, with none pending, or
+    :data:`WARM_UP_MAX_S` have passed (a decode that a frame started and a later one no longer
+    wanted ends in the CPU cache, not uploaded: the next walkthrough wants it again). (A
+    streaming cache follows the frame before's choice, so the statistics pass never wants its last
+    frame's own.) Returns ``loops`` (walkthroughs rendered), ``uploads`` (photos uploaded, the
+    preloads' included) and ``steady`` (the last walkthrough uploaded and decoded nothing)."""
     images = renderer.images
     first, wanted = images.uploads, dict.fromkeys(wanted)
     t0, loops = time.perf_counter(), 0
     while True:
         images.preload(list(wanted))
-        before = images.uploads
+        before = images.uploads, images.decodes
         for cam in cameras:
             renderer.render(cam, readback=False)
             wanted.update(dict.fromkeys(images.wanted))
         loops += 1
-        steady = images.uploads == before and not images.pending
+        steady = (images.uploads, images.decodes) == before and not images.pending
         if steady or time.perf_counter() - t0 > WARM_UP_MAX_S:
             return {"loops": loops, "uploads": int(images.uploads - first), "steady": steady}
 
@@ -230,13 +232,13 @@ def measure_walkthrough(bundle, config, cameras, desc: str = "walkthrough",
         renderer.timer.enabled = False
         _back_to_back(renderer, cameras, WARM_UP_S)  # clocks up again after the timed pass's waits
         tiles = renderer.visibility.tiles  # its list length: the tile raster's work (disc-tile pairs)
-        reads0, splits0 = renderer.shading.status.reads, tiles.split_runs if tiles is not None else 0
+        reads0, splits0 = renderer.shading.status.reads, tiles.split_frames if tiles is not None else 0
         t0 = time.perf_counter()
         calls = _back_to_back(renderer, cameras, SUSTAINED_S)
         n = len(calls)
         sustained = (time.perf_counter() - t0) * 1e3 / n
         reads = (renderer.shading.status.reads - reads0) / n
-        split_share = (tiles.split_runs - splits0) / n if tiles is not None else None
+        split_share = (tiles.split_frames - splits0) / n if tiles is not None else None
         renderer.timer.enabled = True
         clocks["sustained"] = gpu_clocks()
         renderer.timer.deferred = True

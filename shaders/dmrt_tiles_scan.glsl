@@ -18,8 +18,8 @@
 //   B_TILE_COUNTS   uint[tiles] (dmrt_tiles_bin.glsl SCATTER 0)
 //   B_TILE_OFFSETS  uint[tiles + 1]: Offsets[t] = sum of Counts[0..t), Offsets[tiles] = total (and the
 //                   padding after it)
-//   B_TILE_SPLIT    with u_planned: its header's fifth word, the tiles the split plan took out of
-//                   the lists (their counts here are 0) (dmrt_tiles_split.glsl)
+//   B_TILE_SPLIT    SPLIT 1, with u_planned: its header's fifth word, the tiles the split plan took
+//                   out of the lists (their counts here are 0) (dmrt_tiles_split.glsl)
 #if defined COMPUTE_SHADER
 
 #ifndef SCAN_THREADS
@@ -32,17 +32,22 @@
 #ifndef ROUNDS
 #define ROUNDS 8
 #endif
+#ifndef SPLIT
+#define SPLIT 0  // 1: a split plan may run before the scan (TileVisibility's split_min > 0)
+#endif
 
 layout(local_size_x = SCAN_THREADS) in;
 
 layout(std430, binding = B_FRAME_STATUS) buffer Status { uint total; uint n_wanted; uint long_tiles; };
 layout(std430, binding = B_TILE_COUNTS) readonly buffer Counts { uvec4 counts4[]; };
 layout(std430, binding = B_TILE_OFFSETS) writeonly buffer Offsets { uvec4 offsets4[]; };
+#if SPLIT
 layout(std430, binding = B_TILE_SPLIT) readonly buffer SplitHeader { uint split_header[]; };
+#endif
 
 uniform uint u_tile_count;  // tiles_x * tiles_y
 uniform uint u_split_min;   // a list longer than this is long (0xFFFFFFFF: no split)
-uniform uint u_planned;     // 1: the split plan ran this frame (B_TILE_SPLIT bound)
+uniform uint u_planned;     // SPLIT 1: the split plan ran this frame (B_TILE_SPLIT bound)
 
 shared uint s_sum[ROUNDS * SCAN_THREADS];  // per round, the inclusive scan of its quad sums
 
@@ -99,7 +104,10 @@ void main() {
     if (t == 0u) {
         if (u_tile_count % 4u == 0u) offsets4[quads] = uvec4(carry);
         total = carry;
-        long_tiles = s_sum[0] + (u_planned != 0u ? split_header[4] : 0u);
+        long_tiles = s_sum[0];
+#if SPLIT
+        if (u_planned != 0u) long_tiles += split_header[4];
+#endif
     }
 }
 

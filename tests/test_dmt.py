@@ -273,6 +273,9 @@ def test_frame_contract(dmt128, bundle):
     again = dmt128.render(cam, W)
     for key in ("depth", "label", "color", "normal"):
         np.testing.assert_array_equal(again[key], frame[key], err_msg=key)
+    # the viewer's orbit key reads one pixel of the frame left on the GPU (through Staging)
+    y, x = np.argwhere(hit)[len(np.argwhere(hit)) // 2]
+    assert dmt128.depth_at(int(x), int(y)) == float(frame["depth"][y, x]) > 0
     # maps drawn in groups (the path for scenes whose vertex ids would pass 2^31): same frame
     whole = dmt128.maps_per_draw
     try:

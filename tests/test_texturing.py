@@ -144,7 +144,8 @@ def test_image_cache_preload(ctx, bundle):
 def test_streamed_decodes_no_frame_wants_any_more_end(ctx, bundle):
     """A streaming cache's background decodes of photos that a frame wanted and the next ones do
     not: once finished they join the decoded photos (CPU cache), so nothing stays pending, and a
-    later frame wanting them uploads them without decoding again."""
+    later frame wanting them uploads them without decoding again; and those of wanted photos are
+    not dropped for them."""
     import time
 
     from dmrt.runtime.texturing import ImageCache
@@ -162,6 +163,18 @@ def test_streamed_decodes_no_frame_wants_any_more_end(ctx, bundle):
         assert cache.pending == 0 and cache.slot_of[2] >= 0 and (cache.slot_of[[0, 1]] < 0).all()
         # decoded already: uploaded by this frame, not decoding (pending) for a later one
         assert cache.update([2, 1]) == 1 and cache.slot_of[1] >= 0 and cache.pending == 0
+    finally:
+        cache.release()
+    # a CPU cache of one photo and a half: flush's decodes of wanted photos are uploaded, not
+    # dropped from the CPU cache by each other and decoded again (the decodes counted)
+    photo_mb = max(c.width * c.height for c in bundle.cameras) * 4 / 2 ** 20
+    cache = ImageCache(ctx, bundle, cache_mb=4.5 * slot_mb, max_uploads=1, asynchronous=True,
+                       cpu_cache_mb=1.5 * photo_mb)
+    decoded, decode = [], cache._decode
+    cache._decode = lambda j: decoded.append(j) or decode(j)  # the real decode, counted
+    try:
+        cache.update([0, 1, 2, 3])
+        assert cache.flush() == 4 and sorted(decoded) == [0, 1, 2, 3]
     finally:
         cache.release()
 

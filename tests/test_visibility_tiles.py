@@ -248,7 +248,7 @@ def test_split_only_while_frames_have_long_lists(ctx):
             _assert_equal(ref[c.name], _layers(ctx, tiles, c, 5), 5, f"frame {frame} ({c.name})")
             stats = tiles.stats()
             assert (stats["split_tiles"] > 0) == (split and c is cam), f"frame {frame}: {stats}"
-            assert tiles.split_runs == sum(splits[:frame + 1]), f"frame {frame}"
+            assert tiles.split_frames == sum(splits[:frame + 1]), f"frame {frame}"
             if c is cam:
                 np.testing.assert_array_equal(_tile_labels(ctx, tiles, splats, cam, first), want)
                 assert stats["longest"] == (0 if split else discs), f"frame {frame}: {stats}"

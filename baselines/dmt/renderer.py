@@ -305,7 +305,7 @@ class DMTRenderer:
 
     def depth_at(self, x: int, y: int) -> float:
         """The last frame's camera z at pixel (x, y) (:class:`dmrt.runtime.protocol.GpuColorRenderer`)."""
-        return hit_depth_at(self._fb["hits"], self._size[0], x, y)
+        return hit_depth_at(self.shading.staging, self._fb["hits"], self._size[0], x, y)
 
     def gpu_colors(self) -> moderngl.Buffer:
         """The last frame's colours on the GPU (:class:`dmrt.runtime.protocol.GpuColorRenderer`)."""

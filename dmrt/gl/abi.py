@@ -81,9 +81,10 @@ B_KNN_INDICES = 47    # n x k uint: the neighbours found, nearest first
 B_KNN_DISTANCES = 48  # n x k float: their distances, metres
 # the tiles path's long lists split over workgroups (dmrt/runtime/tiles.py, shaders/dmrt_tiles_split.glsl):
 # uint words: two dispatch-indirect headers (slices x, 1, 1, slices reserved; split tiles x, 1, 1,
-# unused), a uvec4 per slice (tile, its first slice, its slices, this slice), a uvec4 per split tile
-# (tile, first slice, slices, unused), per tile its first slice or EMPTY_BITS, per slice and pixel of a
-# tile its partial result (2 words)
+# discs reserved: the scan reads x, the tiles the plan split), a uvec4 per slice (tile, its first
+# slice, its slices, this slice), a uvec4 per split tile (tile, first slice, slices, unused), per tile
+# its first disc or EMPTY_BITS, its discs and those not yet scattered, per slice and pixel of a tile
+# its partial result (2 words), then the split tiles' discs (uvec2 each, as Entries)
 B_TILE_SPLIT = 49
 
 # -- sentinels ---------------------------------------------------------------------------------

@@ -71,7 +71,9 @@ class ImageCache:
     slot_of : (n_photos,) int32, the cache slot of each photo, -1 = not resident.
     slots : moderngl.Buffer, ``slot_of`` on the GPU.
     uploads : int, full-resolution uploads so far.
-    pending : int, photos being decoded for an upload.
+    decodes : int, photo decodes started so far (a walkthrough that starts none and uploads none
+        leaves the cache as it found it).
+    pending : int, photos whose background decode has started and is not yet in the CPU cache.
     wanted : tuple of int, the photos the last frame wanted.
     """
 
@@ -115,6 +117,7 @@ class ImageCache:
         self.slot_of = np.full(n, -1, np.int32)
         self.slots = ctx.buffer(self.slot_of.tobytes())
         self.uploads = 0
+        self.decodes = 0
         self.max_uploads = int(max_uploads)
         self._photo_in = np.full(max(self.n_slots, 1), -1, np.int64)
         self._last_used = np.zeros(max(self.n_slots, 1), np.int64)
@@ -132,7 +135,7 @@ class ImageCache:
 
     @property
     def pending(self) -> int:
-        """Photos whose background decode has started and which are not uploaded yet."""
+        """Photos whose background decode has started and is not yet in the CPU cache."""
         return len(self._pending)
 
     @property
@@ -170,6 +173,7 @@ class ImageCache:
             for j in self._wanted:
                 if self.slot_of[j] < 0 and j not in self._decoded and j not in self._pending:
                     self._pending[j] = pool.submit(self._decode, j)
+                    self.decodes += 1
             return self._upload(0, block=True)
 
     def _want(self, photos) -> None:
@@ -223,17 +227,23 @@ class ImageCache:
         return slots[np.lexsort((self._last_used[slots], photo[slots] >= 0))].tolist()
 
     def _harvest(self) -> None:
-        """Keep the finished background decodes among the decoded photos, wanted or not: one that a
-        frame started and no later frame wanted stayed pending for good (its photo held in memory
-        outside ``cpu_cache_mb``, and ``pending`` never 0: the 10,240-photo walk's warm-up at
-        3840x2160 never settled, reports/many-photos)."""
-        for j in [j for j, fut in self._pending.items() if fut.done()]:
-            self._keep(j, self._pending.pop(j).result())
+        """Move the finished background decodes of photos this frame does not want into the CPU
+        cache, as its least recent (the wanted ones are :meth:`_image`'s): a decode that one frame
+        started and no later frame wanted stayed pending for good (its photo held in memory outside
+        ``cpu_cache_mb``, and ``pending`` never 0: the 10,240-photo walk's warm-up at 3840x2160
+        never settled, reports/many-photos). One that failed is dropped: a frame that wants its
+        photo decodes it again and reports the error."""
+        wanted = set(self._wanted)
+        for j in [j for j, fut in self._pending.items() if fut.done() and j not in wanted]:
+            fut = self._pending.pop(j)
+            if fut.exception() is None:
+                self._keep(j, fut.result(), recent=False)
 
-    def _keep(self, j: int, image: np.ndarray) -> None:
-        """Photo ``j`` decoded, the most recent in the CPU cache (least recent dropped past
-        ``cpu_cache_mb``)."""
+    def _keep(self, j: int, image: np.ndarray, recent: bool = True) -> None:
+        """Photo ``j`` decoded, the most (or least) recent in the CPU cache, whose least recent are
+        dropped past ``cpu_cache_mb``."""
         self._decoded[j] = image
+        self._decoded.move_to_end(j, last=recent)
         while len(self._decoded) > 1 and sum(a.nbytes for a in self._decoded.values()) > self._cpu_budget:
             self._decoded.popitem(last=False)
 
@@ -246,9 +256,12 @@ class ImageCache:
         fut = self._pending.get(j)
         if fut is None and self._pool is not None and not block:
             self._pending[j] = self._pool.submit(self._decode, j)
+            self.decodes += 1
             return None
         if fut is not None and not (block or fut.done()):
             return None
+        if fut is None:
+            self.decodes += 1
         image = fut.result() if fut is not None else self._decode(j)
         self._pending.pop(j, None)
         self._keep(j, image)

@@ -147,9 +147,13 @@ class TileVisibility:
         0: never (here the default; the renderer's is ``SPLIT_MIN``, ``RenderConfig.tile_split``).
         The layers are the same either way.
     split_hold : int
-        With ``split_min``: a frame splits while one of the last ``split_hold`` frames whose status
-        record was read back had a long list (the first frames split); else its long lists, if any,
-        are walked by the raster alone (and counted, so that the next frames split).
+        With ``split_min``: a frame splits while one of the last ``split_hold`` frames (>= 1: a
+        renderer reads a frame's record after its visibility stage) whose status record was read
+        back had a long list (the first ``split_hold`` frames split); else its long lists, if any,
+        are walked by the raster alone (and counted, so that the next frames split). Their discs
+        are then in the list buffer, sized by frames whose long lists were not: with
+        ``check="lagged"`` such a frame may outgrow it and lose discs, as any view whose list grows
+        past the headroom within two frames.
 
     Attributes
     ----------
@@ -158,8 +162,8 @@ class TileVisibility:
         Entries the list buffer holds.
     dropped_frames : int
         Frames whose list outgrew the buffer (``check="frame"``: built again).
-    split_runs : int
-        :meth:`run` calls that split (``split_min``, ``split_hold``).
+    split_frames : int
+        Frames that split (``split_min``, ``split_hold``).
     """
 
     def __init__(self, ctx: moderngl.Context, splats, tile: int = 16, batch: int = DEFAULT_BATCH, top: int = DEFAULT_TOP,
@@ -178,8 +182,8 @@ class TileVisibility:
             raise ValueError(f"walk must be 'auto', 'linear' or 'sparse', not {walk!r}")
         if split_min < 0:
             raise ValueError(f"split_min must be >= 0 (0: never), not {split_min}")
-        if split_hold < 0:
-            raise ValueError(f"split_hold must be >= 0, not {split_hold}")
+        if split_hold < 1:
+            raise ValueError(f"split_hold must be >= 1, not {split_hold}")
         self.ctx, self.splats = ctx, splats
         self.tile, self.check, self.batch, self.top = int(tile), check, int(batch), int(top)
         self.hit_masks = bool(hit_masks) and self.tile * self.tile == MASK_DISCS
@@ -193,7 +197,8 @@ class TileVisibility:
         self.walk, self.split_min, self.split_hold = walk, int(split_min), int(split_hold)
         self._splits = self.split_min > 0
         self._split_now = False  # this frame splits (split_hold)
-        self.split_runs = 0
+        self.split_frames = 0
+        self._split_counted = -1  # the last frame counted in split_frames (a frame may run again)
         self._rasters = {sparse: load_program(ctx, "dmrt_tiles_raster", {**self._defines, "TOP": int(top),
                                                                           "SPARSE_WALK": int(sparse)})
                          for sparse in (0, 1) if walk == "auto" or sparse == (walk == "sparse")}
@@ -214,6 +219,7 @@ class TileVisibility:
         self.large = ctx.buffer(reserve=16 + 4 * n)
         self._own_status = status is None
         self.status = FrameStatus(ctx) if status is None else status
+        self._first_frame = self.status.frame + 1
         self._capacity_of: dict[int, int] = {}  # the list capacity of each recent frame
         self._grid: tuple[int, int] | None = None
         # the raster's hit bits of each pixel's first 256 discs (32 bytes a pixel), which the
@@ -236,7 +242,8 @@ class TileVisibility:
         self.offsets = self.ctx.buffer(reserve=4 * (_padded(n) + 4))  # the scan writes four at a time
         # the scan's shared memory holds only the rounds the grid needs (one at 1280x720)
         rounds = min(SCAN_ROUNDS, -(-_padded(n) // (4 * SCAN_THREADS)))
-        self._scan = load_program(self.ctx, "dmrt_tiles_scan", {"ROUNDS": rounds, "SCAN_THREADS": SCAN_THREADS})
+        self._scan = load_program(self.ctx, "dmrt_tiles_scan", {"ROUNDS": rounds, "SCAN_THREADS": SCAN_THREADS,
+                                                                "SPLIT": int(self._splits)})
         self._grid = grid
 
     def _fit(self, total: int) -> None:
@@ -262,7 +269,7 @@ class TileVisibility:
             timer=None) -> None:
         """Fill ``layers`` label layers for the camera in ``uniforms``; with ``timer``, timed as the
         parts ``visibility:tile_lists`` (bin, scan, scatter), ``visibility:tile_raster``,
-        ``visibility:tile_split`` (the split passes, with ``split_min`` > 0) and
+        ``visibility:tile_split`` (the split passes, in a frame that splits) and
         ``visibility:redo`` (what a frame that outgrew the list did again).
 
         Parameters
@@ -297,8 +304,11 @@ class TileVisibility:
             self._last_total = total
             self.dropped_frames += total > self._capacity_of[frame - LAG]
             self._fit(total)
-        self._split_now = self._splits and frame - self.status.long_frame <= self.split_hold
-        self.split_runs += self._split_now
+        # the first frames split: those of a status ring shared with frames before this stage's
+        self._split_now = self._splits and frame - max(self.status.long_frame, self._first_frame) <= self.split_hold
+        if self._split_now and self._split_counted != frame:
+            self.split_frames += 1
+            self._split_counted = frame
         status = self.status.record(0)
         tile_uniforms = {**uniforms, "u_tiles": grid, "u_count": self.splats.n, "u_tile_count": grid[0] * grid[1]}
         raster = (tile_uniforms, layers, layer_depth, layer_label)
