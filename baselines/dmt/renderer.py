@@ -261,7 +261,7 @@ class DMTRenderer:
             if maps is not None:  # restrict on the CPU: zero the other maps' vertex counts
                 keep = np.zeros(n, bool)
                 keep[np.asarray(list(maps), np.int64)] = True
-                cmds = np.frombuffer(self._commands.read(), np.uint32).reshape(n, 5).copy()
+                cmds = np.frombuffer(self.shading.staging.read(self._commands), np.uint32).reshape(n, 5).copy()
                 stats = np.frombuffer(self._stats_host.read(), np.uint32).copy()
                 stats[0] += int(((cmds[:, 0] > 0) & ~keep).sum())
                 stats[1] -= int(cmds[~keep, 0].sum() // 3)
