@@ -230,9 +230,9 @@ class ImageCache:
         """Move the finished background decodes of photos this frame does not want into the CPU
         cache, as its least recent (the wanted ones are :meth:`_image`'s): a decode that one frame
         started and no later frame wanted stayed pending for good (its photo held in memory outside
-        ``cpu_cache_mb``, and ``pending`` never 0: the 10,240-photo walk's warm-up at 3840x2160
-        never settled, reports/many-photos). One that failed is dropped: a frame that wants its
-        photo decodes it again and reports the error."""
+        ``cpu_cache_mb``, and ``pending`` never 0: likely why the 10,240-photo walk's warm-up at
+        3840x2160 never settled, reports/many-photos). One that failed is dropped: a frame that
+        wants its photo decodes it again and reports the error."""
         wanted = set(self._wanted)
         for j in [j for j, fut in self._pending.items() if fut.done() and j not in wanted]:
             fut = self._pending.pop(j)
