@@ -127,6 +127,7 @@ class ImageCache:
         self._pending: dict[int, Future] = {}
         self._decoded: OrderedDict[int, np.ndarray] = OrderedDict()
         self._cpu_budget = max(0.0, cpu_cache_mb) * 2 ** 20
+        self._decoded_bytes = 0  # of the photos in _decoded (kept, not summed per insert: thousands of small photos)
 
     @property
     def wanted(self) -> tuple[int, ...]:
@@ -242,10 +243,12 @@ class ImageCache:
     def _keep(self, j: int, image: np.ndarray, recent: bool = True) -> None:
         """Photo ``j`` decoded, the most (or least) recent in the CPU cache, whose least recent are
         dropped past ``cpu_cache_mb``."""
+        old = self._decoded.get(j)
+        self._decoded_bytes += image.nbytes - (old.nbytes if old is not None else 0)
         self._decoded[j] = image
         self._decoded.move_to_end(j, last=recent)
-        while len(self._decoded) > 1 and sum(a.nbytes for a in self._decoded.values()) > self._cpu_budget:
-            self._decoded.popitem(last=False)
+        while len(self._decoded) > 1 and self._decoded_bytes > self._cpu_budget:
+            self._decoded_bytes -= self._decoded.popitem(last=False)[1].nbytes
 
     def _image(self, j: int, block: bool) -> np.ndarray | None:
         """Photo ``j`` decoded (h, w, 4) uint8 RGBA (alpha unused), or None while its background decode
