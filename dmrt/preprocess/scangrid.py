@@ -56,11 +56,11 @@ true normals: the mesh faces the beams hit; synthetic scans with 2 mm range nois
     tiny   0.20M   2         1.01 (0.91 - 1.88)      0.8, 9.2         1.2, 9.6
     small  2.00M   6         1.01 (0.90 - 1.86)      1.3, 7.4         1.9, 8.5
 
-The radii agree at the median. The scan's are larger within ~15 degrees of a scanner's zenith, where
-the beams' rings crowd (kNN's radius spans the crowded ring, leaving the rings apart; tiny: scan / kNN
-median 1.85 there, ``bench_scangrid``'s ``by_elevation``), and where stations overlap (the kNN sees their union, denser than the one
-station's grid, which covers the surface alone). On 2 shared cores the
-pass took 1.6 - 1.9 CPU microseconds a point against the kNN's 8.2 - 10.3 (``README.md``, "Radii and
+The radii agree at the median. The scan's are larger within ~15 degrees of a scanner's zenith,
+where the beams' rings crowd (kNN's radius spans the crowded ring, leaving the rings apart; tiny:
+scan / kNN median 1.85 there, ``bench_scangrid``'s ``by_elevation``), and where stations overlap
+(the kNN sees their union, denser than the one station's grid, which covers the surface alone).
+On 2 shared cores the pass took 1.6 - 1.9 CPU microseconds a point against the kNN's 8.2 - 10.3 (``README.md``, "Radii and
 normals from the scan's grid").
 """
 
