@@ -60,8 +60,8 @@ The radii agree at the median. The scan's are larger within ~15 degrees of a sca
 where the beams' rings crowd (kNN's radius spans the crowded ring, leaving the rings apart; tiny:
 scan / kNN median 1.85 there, ``bench_scangrid``'s ``by_elevation``), and where stations overlap
 (the kNN sees their union, denser than the one station's grid, which covers the surface alone).
-On 2 shared cores the pass took 1.6 - 1.9 CPU microseconds a point against the kNN's 8.2 - 10.3 (``README.md``, "Radii and
-normals from the scan's grid").
+On 2 shared cores the pass took 1.6 - 1.9 CPU microseconds a point against the kNN's 8.2 - 10.3
+(``README.md``, "Radii and normals from the scan's grid").
 """
 
 from __future__ import annotations
